@@ -1,0 +1,48 @@
+"""``quick-stream bench NAME``: benchmarks that print numbers (speed, accuracy, robustness)."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+DEFAULT_DATA = Path("../shared/data")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="run a benchmark and print its numbers", description=__doc__)
+    b = p.add_subparsers(dest="bench", required=True, metavar="NAME")
+    s = b.add_parser("speed", help="scene flow + motion ms per stage on one core (synthetic frames)")
+    s.add_argument("--pairs", type=int, default=100)
+    s.add_argument("--width", type=int, default=640)
+    s.add_argument("--height", type=int, default=480)
+    s.add_argument("--group", default="se3")
+    o = b.add_parser("odometry", help="relative pose error of exact/induced vs OpenCV odometry")
+    o.add_argument("--source", default=f"tum:{DEFAULT_DATA / '7scenes_redkitchen'}")
+    o.add_argument("--frames", type=int, default=None)
+    o.add_argument("--groups", default="se3", help="comma-separated groups to run exact and induced for")
+    o.add_argument("--no-opencv", action="store_true")
+    m = b.add_parser("moving-objects", help="robust vs mean estimators on jointvosf_pairs (people moving)")
+    m.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    for q in (s, o, m):
+        q.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.bench == "speed":
+        from ..bench import speed
+
+        r = speed.run(args.pairs, args.width, args.height, args.group)
+        text = speed.format_report(r)
+    elif args.bench == "odometry":
+        from ..bench import odometry
+
+        methods = [(g, e) for g in args.groups.split(",") for e in ("exact", "induced")]
+        r = odometry.run(args.source, methods, opencv=not args.no_opencv, frames=args.frames)
+        text = odometry.format_table(r)
+    else:
+        from ..bench import moving_objects
+
+        r = moving_objects.run(args.data)
+        text = moving_objects.format_table(r)
+    print(json.dumps(r, indent=2, default=float) if args.json else text)
+    return 0

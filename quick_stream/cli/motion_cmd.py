@@ -1,0 +1,164 @@
+"""``quick-stream motion``: camera motion from a source, timed per stage, checked against ground truth.
+
+Runs a source through scene flow and the chosen group/estimator; prints ms per
+frame per stage and, where the source has ground-truth poses, the relative pose
+error per frame pair (rotation deg, translation mm: median, mean, RMSE).
+``--compare-opencv`` runs ``cv2.Odometry`` (RGB_DEPTH) on the same pairs.
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import sys
+import time
+
+import cv2
+import numpy as np
+
+from ..evaluation.opencv_odometry import OpenCVOdometry
+from ..evaluation.rpe import ErrorStats, relative_pose_error
+from ..frame import RGBDFrame
+from ..lie import GROUPS
+from ..motion import ESTIMATORS, MotionParams, integrate_path
+from ..motion_pipeline import MotionPipeline, run_motion, true_motion
+from ..sceneflow import DIS_PRESETS, SceneFlowParams
+from ..sources import SourceError, open_source
+from ..sources.trajectory import write_tum_trajectory
+
+log = logging.getLogger("quick_stream.motion")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "motion",
+        help="estimate camera motion from a source and evaluate it",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--source", default="synthetic",
+                   help="synthetic[:key=value,...] (default) or tum:PATH[,key=value,...]")
+    p.add_argument("--frames", type=int, default=None, help="process at most this many frames")
+    p.add_argument("--group", choices=sorted(GROUPS), default="se3", help="Lie group (default se3)")
+    p.add_argument("--estimator", choices=ESTIMATORS, default="exact", help="motion estimator (default exact)")
+    p.add_argument("--preset", choices=sorted(DIS_PRESETS), default=SceneFlowParams.preset,
+                   help=f"DIS optical-flow preset (default {SceneFlowParams.preset})")
+    p.add_argument("--flow-scale", type=float, default=SceneFlowParams.flow_scale,
+                   help="compute optical flow on images scaled by this factor (default 1)")
+    p.add_argument("--no-fb-check", action="store_true", help="skip the forward-backward occlusion test")
+    p.add_argument("--max-points", type=int, default=SceneFlowParams.max_points,
+                   help=f"scene-flow pairs kept per frame pair (default {SceneFlowParams.max_points})")
+    p.add_argument("--threads", type=int, default=1,
+                   help="OpenCV threads (default 1: one core, as each service runs)")
+    p.add_argument("--compare-opencv", action="store_true",
+                   help="also run OpenCV RGB-D odometry (cv2.Odometry, RGB_DEPTH) on the same pairs")
+    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    p.add_argument("--trajectory", metavar="FILE",
+                   help="write the estimated camera path in TUM format (anchored at the first "
+                        "ground-truth pose when the source has one)")
+
+
+def _fmt_stats(name: str, s: ErrorStats, ms: float) -> str:
+    return (f"{name:<24} {s.n:>5} {s.rot_median:>8.4f} {s.rot_mean:>8.4f} {s.rot_rmse:>8.4f} "
+            f"{s.trans_median:>8.2f} {s.trans_mean:>8.2f} {s.trans_rmse:>8.2f} {ms:>9.2f}")
+
+
+def run(args: argparse.Namespace) -> int:
+    cv2.setNumThreads(max(1, args.threads))
+    try:
+        source = open_source(args.source)
+        flow_params = SceneFlowParams(
+            preset=args.preset, flow_scale=args.flow_scale, fb_check=not args.no_fb_check,
+            max_points=args.max_points,
+        )
+        flow_params.validate()
+        motion_params = MotionParams(group=args.group, estimator=args.estimator)
+        pipeline = MotionPipeline(flow_params, motion_params)
+    except (SourceError, ValueError) as e:
+        print(f"quick-stream motion: {e}", file=sys.stderr)
+        return 2
+    frames = source if args.frames is None else itertools.islice(source, args.frames)
+
+    ocv_errors: list[tuple[float, float]] = []
+    ocv_ms: list[float] = []
+    ocv_failed = 0
+    ocv = OpenCVOdometry(source.intrinsics) if args.compare_opencv else None
+
+    def compare(a: RGBDFrame, b: RGBDFrame) -> None:
+        nonlocal ocv_failed
+        t0 = time.perf_counter()
+        g = ocv.camera_motion(a, b)
+        ocv_ms.append((time.perf_counter() - t0) * 1e3)
+        truth = true_motion(a, b)
+        if g is None:
+            ocv_failed += 1
+        elif truth is not None:
+            ocv_errors.append(relative_pose_error(g, truth))
+
+    def on_failure(rec: dict) -> None:
+        log.warning("skipping frame %s (%s): %s", rec["seq"], rec["origin"], rec["error"])
+
+    t_start = time.perf_counter()
+    result = run_motion(frames, pipeline, on_failure=on_failure, extra=compare if ocv else None)
+    wall = time.perf_counter() - t_start
+
+    timing = result.timer.summary()
+    ours_ms = float(np.mean([p.flow_ms + p.motion_ms for p in result.pairs])) if result.pairs else float("nan")
+    name = f"{args.estimator} {args.group}"
+    stats = result.error_stats()
+    invalid = [
+        {"seq": p.motion.seq, "seq_next": p.motion.seq_next, "reason": p.motion.reason}
+        for p in result.pairs if not p.motion.valid
+    ]
+    report: dict = {
+        "source": args.source,
+        "group": args.group,
+        "estimator": args.estimator,
+        "sceneflow": flow_params.__dict__,
+        "frames": len(result.timestamps_ns) + len(result.failures),
+        "pairs": len(result.pairs),
+        "valid_pairs": len(result.pairs) - len(invalid),
+        "wall_s": wall,
+        "timing_ms": timing,
+        "methods": {name: {"ms_per_pair": ours_ms, **stats.as_dict()}},
+        "bad_frames": result.failures,
+        "invalid_motions": invalid,
+    }
+    if ocv is not None:
+        o = ErrorStats.from_errors([e[0] for e in ocv_errors], [e[1] for e in ocv_errors])
+        report["methods"]["opencv rgbd odometry"] = {
+            "ms_per_pair": float(np.mean(ocv_ms)) if ocv_ms else float("nan"),
+            "failed": ocv_failed,
+            **o.as_dict(),
+        }
+
+    if args.trajectory:
+        path = integrate_path(result.camera_motions)
+        if result.first_pose is not None:
+            path = result.first_pose @ path
+        write_tum_trajectory(args.trajectory, np.asarray(result.timestamps_ns) / 1e9, path)
+        report["trajectory"] = args.trajectory
+
+    if args.json:
+        print(json.dumps(report, indent=2, default=float))
+        return 0
+
+    print(f"source {args.source}: {report['frames']} frames, {report['pairs']} pairs "
+          f"({report['valid_pairs']} valid), {len(result.failures)} bad frames, {wall:.1f} s")
+    print("\nms per frame, by stage (mean / median / p95):")
+    for stage, s in timing.items():
+        print(f"  {stage:<8} {s['mean']:8.2f} {s['median']:8.2f} {s['p95']:8.2f}")
+    if ocv_ms:
+        print(f"  {'opencv':<8} {np.mean(ocv_ms):8.2f} {np.median(ocv_ms):8.2f} {np.percentile(ocv_ms, 95):8.2f}")
+    print("\nrelative pose error per frame pair" + ("" if stats.n else " (no ground truth)") + ":")
+    print(f"{'method':<24} {'pairs':>5} {'rot med':>8} {'rot mean':>8} {'rot rms':>8} "
+          f"{'t med mm':>8} {'t mean':>8} {'t rms':>8} {'ms/pair':>9}")
+    for mname, m in report["methods"].items():
+        s = ErrorStats(**{k: m[k] for k in ErrorStats.__dataclass_fields__})
+        print(_fmt_stats(mname, s, m["ms_per_pair"]))
+    for rec in invalid[:10]:
+        print(f"invalid motion {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
+    if len(invalid) > 10:
+        print(f"... {len(invalid) - 10} more invalid motions")
+    return 0

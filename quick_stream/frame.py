@@ -1,0 +1,148 @@
+"""RGB-D frame type shared by every source and stage.
+
+One frame = colour (BGR uint8, HxWx3) + depth (metres, float32, HxW, 0 = invalid)
++ pinhole intrinsics + capture timestamp (ns) + sequence number. Sources that
+cannot produce a usable frame yield a :class:`BadFrame` in its place, so a
+stream keeps its sequence numbering and downstream stages can flag the gap
+instead of crashing.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+
+class FrameError(ValueError):
+    """A frame (or one of its fields) is unusable; the message names which."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels for an image of ``width`` x ``height``."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def K(self) -> np.ndarray:
+        """The 3x3 camera matrix."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
+        )
+
+    def scaled(self, sx: float, sy: float | None = None) -> "Intrinsics":
+        """Intrinsics of the same camera after resizing the image by (sx, sy)."""
+        sy = sx if sy is None else sy
+        return Intrinsics(
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
+            int(round(self.width * sx)),
+            int(round(self.height * sy)),
+        )
+
+    def validate(self) -> None:
+        vals = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(v) for v in vals):
+            raise FrameError(f"intrinsics: non-finite value in {self}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise FrameError(f"intrinsics: focal length must be > 0, got fx={self.fx} fy={self.fy}")
+        if self.width <= 0 or self.height <= 0:
+            raise FrameError(f"intrinsics: image size must be > 0, got {self.width}x{self.height}")
+
+
+@dataclass
+class RGBDFrame:
+    """One RGB-D frame.
+
+    ``pose`` is the ground-truth camera-to-world transform (4x4) when the source
+    knows it, else None. ``origin`` names where the frame came from (a file, a
+    device, ``synthetic``) so errors can point at it. ``notes`` lists non-fatal
+    problems the source repaired (e.g. non-finite depth set to invalid).
+    """
+
+    color: np.ndarray
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    timestamp_ns: int
+    seq: int
+    pose: np.ndarray | None = None
+    origin: str = ""
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def label(self) -> str:
+        """Short human-readable name of this frame for error messages."""
+        where = f" ({self.origin})" if self.origin else ""
+        return f"frame {self.seq}{where}"
+
+    def validate(self) -> "RGBDFrame":
+        """Check types, shapes and values; raise :class:`FrameError` naming the field.
+
+        Non-finite or negative depth values are set to 0 (invalid) and recorded in
+        ``notes``; a frame whose depth is entirely invalid is rejected, since no
+        motion can be measured from it.
+        """
+        c, d = self.color, self.depth
+        try:
+            self.intrinsics.validate()
+        except FrameError as e:
+            raise FrameError(f"{self.label}: {e}") from None
+        if not isinstance(c, np.ndarray) or c.dtype != np.uint8 or c.ndim != 3 or c.shape[2] != 3:
+            raise FrameError(
+                f"{self.label}: colour must be HxWx3 uint8 BGR, got "
+                f"{getattr(c, 'shape', type(c))} {getattr(c, 'dtype', '')}"
+            )
+        if not isinstance(d, np.ndarray) or d.ndim != 2:
+            raise FrameError(f"{self.label}: depth must be HxW, got {getattr(d, 'shape', type(d))}")
+        if d.shape != c.shape[:2]:
+            raise FrameError(
+                f"{self.label}: depth size {d.shape[1]}x{d.shape[0]} does not match "
+                f"colour size {c.shape[1]}x{c.shape[0]}"
+            )
+        if (self.intrinsics.width, self.intrinsics.height) != (c.shape[1], c.shape[0]):
+            raise FrameError(
+                f"{self.label}: intrinsics are for {self.intrinsics.width}x{self.intrinsics.height} "
+                f"but the image is {c.shape[1]}x{c.shape[0]}"
+            )
+        if d.dtype != np.float32:
+            if not np.issubdtype(d.dtype, np.floating):
+                raise FrameError(f"{self.label}: depth must be float metres, got dtype {d.dtype}")
+            d = d.astype(np.float32)
+        bad = ~np.isfinite(d) | (d < 0)
+        nbad = int(np.count_nonzero(bad))
+        if nbad:
+            d = np.where(bad, np.float32(0), d)
+            self.notes = self.notes + (f"depth: {nbad} non-finite or negative values set to invalid",)
+        self.depth = d
+        if not np.any(d > 0):
+            raise FrameError(f"{self.label}: depth has no valid pixel (all zero or invalid)")
+        return self
+
+    def with_(self, **changes) -> "RGBDFrame":
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class BadFrame:
+    """Placeholder for a frame a source could not deliver (unreadable file, bad data).
+
+    It keeps the stream's sequence number and timestamp so downstream stages mark
+    the motions touching it invalid instead of silently bridging the gap.
+    """
+
+    seq: int
+    timestamp_ns: int
+    origin: str
+    error: str
+
+    @property
+    def label(self) -> str:
+        where = f" ({self.origin})" if self.origin else ""
+        return f"frame {self.seq}{where}"

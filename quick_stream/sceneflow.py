@@ -1,0 +1,270 @@
+"""Dense scene flow: DIS optical flow lifted to 3D with both depth maps.
+
+Design note section 1. For frames t and t+1 with depths Z_t, Z_{t+1} and
+intrinsics K_t, K_{t+1}, each sampled pixel p of frame t with flow f(p) gives
+
+    x  = K_t^-1 [p, 1] Z_t(p)                       (the point, camera-t coordinates)
+    x' = K_{t+1}^-1 [p + f, 1] Z_{t+1}(p + f)       (the same point, camera-(t+1) coordinates)
+    v  = x' - x                                     (its displacement)
+
+Masks: invalid or out-of-range depth in either frame, pixels on depth edges
+(depth is often misregistered to colour there), flow leaving the image,
+forward-backward inconsistent flow (occlusions) and unnaturally large
+velocities (robustly, relative to the median: the paper's only filter).
+Depth at the sub-pixel position p + f is interpolated bilinearly only where its
+four neighbours agree, never blended across a depth edge.
+
+The result keeps the pixel positions as well as the 3D pairs, so the motion
+estimator can weigh image-plane and depth errors separately.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import cv2
+import numpy as np
+
+from .frame import Intrinsics, RGBDFrame
+
+DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+@dataclass
+class SceneFlowParams:
+    """Parameters of :class:`SceneFlow` (each one documented where it acts)."""
+
+    preset: str = "ultrafast"  # DIS preset: ultrafast | fast | medium
+    flow_scale: float = 1.0  # compute optical flow on images resized by this factor
+    fb_check: bool = True  # forward-backward consistency test (occlusions)
+    fb_scale: float = 0.5  # backward flow (used only for the test) at this image scale
+    fb_threshold_px: float = 1.5  # max |f_fwd(p) + f_bwd(p + f_fwd)| in full-resolution px
+    grid_step: int = 4  # sample at most every grid_step-th pixel in x and y ...
+    max_points: int = 3000  # ... coarser if needed for ~3x this many candidates; keep at most this many
+    min_depth: float = 0.1  # metres; depth outside [min_depth, max_depth] is invalid
+    max_depth: float = 8.0
+    depth_edge: float = 0.03  # relative depth jump to a 4-neighbour that marks a depth edge
+    border_px: float = 2.0  # flow must land this far inside the image
+    outlier_k: float = 6.0  # |v| outlier if | |v| - median| > outlier_k * 1.4826 * MAD
+    outlier_floor_m: float = 0.01  # ... and more than this many metres from the median
+
+    @classmethod
+    def describe(cls) -> dict[str, str]:
+        """Parameter name -> default, for CLIs and reports."""
+        return {f.name: repr(f.default) for f in fields(cls)}
+
+    def validate(self) -> None:
+        if self.preset not in DIS_PRESETS:
+            raise ValueError(f"sceneflow preset must be one of {sorted(DIS_PRESETS)}, got {self.preset!r}")
+        for name in ("flow_scale", "fb_scale"):
+            val = getattr(self, name)
+            if not 0.1 <= val <= 1.0:
+                raise ValueError(f"sceneflow {name} must be in [0.1, 1], got {val}")
+        if self.grid_step < 1 or self.max_points < 3:
+            raise ValueError("sceneflow grid_step must be >= 1 and max_points >= 3")
+
+
+@dataclass
+class SceneFlowResult:
+    """Points ``x`` (camera t), displacements ``v`` and weights for one frame pair.
+
+    ``pixels`` are the sampled pixel positions in frame t and ``pixels_next`` where
+    the flow puts them in frame t+1 (full-resolution coordinates). ``counts``
+    reports how many samples each mask removed.
+    """
+
+    seq: int
+    seq_next: int
+    points: np.ndarray  # (N, 3) float64
+    displacements: np.ndarray  # (N, 3) float64
+    weights: np.ndarray  # (N,) float64
+    pixels: np.ndarray  # (N, 2) float64
+    pixels_next: np.ndarray  # (N, 2) float64
+    intrinsics: Intrinsics
+    intrinsics_next: Intrinsics
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def subset(self, keep: np.ndarray) -> "SceneFlowResult":
+        """The pairs selected by boolean mask or index array ``keep``."""
+        return SceneFlowResult(
+            self.seq, self.seq_next, self.points[keep], self.displacements[keep], self.weights[keep],
+            self.pixels[keep], self.pixels_next[keep], self.intrinsics, self.intrinsics_next,
+            dict(self.counts, kept=int(np.count_nonzero(keep) if np.asarray(keep).dtype == bool else len(keep))),
+        )
+
+
+def depth_edge_at(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) -> np.ndarray:
+    """True where pixel (u, v)'s depth differs from a 4-neighbour's by more than ``rel`` (relative).
+
+    Only the requested pixels are tested (the full-image mask is never built).
+    """
+    h, w = depth.shape
+    d = depth[v, u]
+    edge = np.zeros(u.shape, bool)
+    for du, dv in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        n = depth[np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)]
+        edge |= np.abs(n - d) > rel * np.minimum(n, d)
+    return edge
+
+
+def sample_depth(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) -> np.ndarray:
+    """Bilinear depth at sub-pixel (u, v) where the 4 neighbours are valid and agree within ``rel``.
+
+    Returns 0 where the neighbours straddle a depth edge or an invalid pixel
+    (design note section 1: no blending across depth edges).
+    """
+    h, w = depth.shape
+    u0 = np.floor(u).astype(np.intp)
+    v0 = np.floor(v).astype(np.intp)
+    u0 = np.clip(u0, 0, w - 2)
+    v0 = np.clip(v0, 0, h - 2)
+    a = u - u0
+    b = v - v0
+    d00 = depth[v0, u0]
+    d01 = depth[v0, u0 + 1]
+    d10 = depth[v0 + 1, u0]
+    d11 = depth[v0 + 1, u0 + 1]
+    dmin = np.minimum(np.minimum(d00, d01), np.minimum(d10, d11))
+    dmax = np.maximum(np.maximum(d00, d01), np.maximum(d10, d11))
+    ok = (dmin > 0) & (dmax - dmin <= rel * dmin)
+    z = (1 - b) * ((1 - a) * d00 + a * d01) + b * ((1 - a) * d10 + a * d11)
+    return np.where(ok, z, 0.0)
+
+
+def _sample_flow(flow: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear sample of a (H, W, 2) flow field at sub-pixel positions (edges replicated)."""
+    mx = u.astype(np.float32).reshape(1, -1)
+    my = v.astype(np.float32).reshape(1, -1)
+    out = cv2.remap(flow, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(-1, 2).astype(np.float64)
+
+
+class SceneFlow:
+    """Computes :class:`SceneFlowResult` for consecutive frames.
+
+    Keeps the last frame's grey images so a stream converts each frame once.
+    Not thread-safe (one instance per stream).
+    """
+
+    def __init__(self, params: SceneFlowParams | None = None) -> None:
+        self.params = params or SceneFlowParams()
+        self.params.validate()
+        self._dis = cv2.DISOpticalFlow_create(DIS_PRESETS[self.params.preset])
+        self._dis_fb = cv2.DISOpticalFlow_create(DIS_PRESETS["ultrafast"])
+        self._cache: tuple[tuple[int, int], dict[float, np.ndarray]] | None = None
+
+    def _greys(self, frame: RGBDFrame) -> dict[float, np.ndarray]:
+        """Grey images of ``frame`` at the flow scale and the backward-check scale (cached)."""
+        key = (frame.seq, id(frame.color))
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        p = self.params
+        g = cv2.cvtColor(frame.color, cv2.COLOR_BGR2GRAY)
+        out = {1.0: g}
+        for sc in {p.flow_scale, p.fb_scale * p.flow_scale} if p.fb_check else {p.flow_scale}:
+            if sc not in out:
+                out[sc] = cv2.resize(g, None, fx=sc, fy=sc, interpolation=cv2.INTER_AREA)
+        self._cache = (key, out)
+        return out
+
+    def optical_flow(self, f0: RGBDFrame, f1: RGBDFrame) -> tuple[np.ndarray, np.ndarray | None]:
+        """Forward DIS flow (at flow_scale) and, with fb_check, the backward flow (at fb_scale x flow_scale)."""
+        p = self.params
+        g0 = self._greys(f0)
+        g1 = self._greys(f1)
+        fwd = self._dis.calc(g0[p.flow_scale], g1[p.flow_scale], None)
+        bwd = None
+        if p.fb_check:
+            sb = p.fb_scale * p.flow_scale
+            bwd = self._dis_fb.calc(g1[sb], g0[sb], None)
+        return fwd, bwd
+
+    def compute(self, f0: RGBDFrame, f1: RGBDFrame) -> SceneFlowResult:
+        """Scene flow from frame ``f0`` (time t) to ``f1`` (time t+1)."""
+        fwd, bwd = self.optical_flow(f0, f1)
+        return lift_flow(f0, f1, fwd, bwd, self.params)
+
+
+def lift_flow(
+    f0: RGBDFrame,
+    f1: RGBDFrame,
+    fwd: np.ndarray,
+    bwd: np.ndarray | None,
+    p: SceneFlowParams,
+) -> SceneFlowResult:
+    """Lift optical flow to 3D and apply the masks (design note section 1)."""
+    h, w = f0.depth.shape
+    s = p.flow_scale
+    counts: dict[str, int] = {}
+    # Candidate pixels on a regular grid with valid, non-edge depth in frame t.
+    step = max(p.grid_step, int(np.sqrt(h * w / (3.0 * p.max_points))))
+    off = step // 2
+    vv, uu = np.mgrid[off:h:step, off:w:step]
+    uu = uu.ravel()
+    vv = vv.ravel()
+    counts["sampled"] = uu.size
+    z0 = f0.depth[vv, uu].astype(np.float64)
+    ok = (z0 >= p.min_depth) & (z0 <= p.max_depth)
+    counts["invalid_depth"] = int(uu.size - np.count_nonzero(ok))
+    if p.depth_edge > 0:
+        uu, vv, z0 = uu[ok], vv[ok], z0[ok]
+        edge = depth_edge_at(f0.depth, uu, vv, p.depth_edge)
+        counts["depth_edge"] = int(np.count_nonzero(edge))
+        ok = ~edge
+    uu, vv, z0 = uu[ok], vv[ok], z0[ok]
+    # Flow at those pixels (flow computed at scale s: sample at s*p, scale back).
+    if s == 1.0:
+        fl = fwd[vv, uu].astype(np.float64)
+    else:
+        fl = _sample_flow(fwd, (uu + 0.5) * s - 0.5, (vv + 0.5) * s - 0.5) / s
+    u1 = uu + fl[:, 0]
+    v1 = vv + fl[:, 1]
+    b = p.border_px
+    inside = (u1 >= b) & (u1 <= w - 1 - b) & (v1 >= b) & (v1 <= h - 1 - b)
+    counts["out_of_image"] = int(np.count_nonzero(~inside))
+    uu, vv, z0, u1, v1, fl = uu[inside], vv[inside], z0[inside], u1[inside], v1[inside], fl[inside]
+    if bwd is not None:
+        sb = s * p.fb_scale
+        back = _sample_flow(bwd, (u1 + 0.5) * sb - 0.5, (v1 + 0.5) * sb - 0.5) / sb
+        err = np.hypot(fl[:, 0] + back[:, 0], fl[:, 1] + back[:, 1])
+        cons = err <= p.fb_threshold_px
+        counts["fb_inconsistent"] = int(np.count_nonzero(~cons))
+        uu, vv, z0, u1, v1 = uu[cons], vv[cons], z0[cons], u1[cons], v1[cons]
+    z1 = sample_depth(f1.depth, u1, v1, p.depth_edge if p.depth_edge > 0 else 0.05)
+    ok1 = (z1 >= p.min_depth) & (z1 <= p.max_depth)
+    counts["invalid_depth_next"] = int(np.count_nonzero(~ok1))
+    uu, vv, z0, u1, v1, z1 = uu[ok1], vv[ok1], z0[ok1], u1[ok1], v1[ok1], z1[ok1]
+    K0, K1 = f0.intrinsics, f1.intrinsics
+    x = np.column_stack(((uu - K0.cx) / K0.fx * z0, (vv - K0.cy) / K0.fy * z0, z0))
+    x1 = np.column_stack(((u1 - K1.cx) / K1.fx * z1, (v1 - K1.cy) / K1.fy * z1, z1))
+    vel = x1 - x
+    if len(vel) >= 3:
+        speed = np.linalg.norm(vel, axis=1)
+        med = np.median(speed)
+        mad = 1.4826 * np.median(np.abs(speed - med))
+        keep = np.abs(speed - med) <= max(p.outlier_k * mad, p.outlier_floor_m)
+        counts["velocity_outlier"] = int(np.count_nonzero(~keep))
+        x, vel, uu, vv, u1, v1 = x[keep], vel[keep], uu[keep], vv[keep], u1[keep], v1[keep]
+    n = len(x)
+    if n > p.max_points:
+        idx = np.linspace(0, n - 1, p.max_points).round().astype(np.intp)
+        x, vel, uu, vv, u1, v1 = x[idx], vel[idx], uu[idx], vv[idx], u1[idx], v1[idx]
+    counts["kept"] = len(x)
+    return SceneFlowResult(
+        seq=f0.seq,
+        seq_next=f1.seq,
+        points=x,
+        displacements=vel,
+        weights=np.ones(len(x)),
+        pixels=np.column_stack((uu, vv)).astype(np.float64),
+        pixels_next=np.column_stack((u1, v1)),
+        intrinsics=K0,
+        intrinsics_next=K1,
+        counts=counts,
+    )

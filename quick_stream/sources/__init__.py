@@ -1,0 +1,60 @@
+"""Frame sources and the ``open_source`` spec parser.
+
+Specs: ``synthetic`` or ``synthetic:key=value,...`` (the embedded default, no
+data needed) and ``tum:PATH`` or ``tum:PATH,key=value,...`` (a TUM-layout
+folder). Later sources (MCAP replay, depthai cameras) register here too.
+"""
+from __future__ import annotations
+
+from .base import FrameOrGap, Source, SourceError
+
+SOURCE_KINDS = ("synthetic", "tum")
+
+
+def _split_options(text: str) -> tuple[list[str], dict[str, str]]:
+    positional: list[str] = []
+    options: dict[str, str] = {}
+    for part in filter(None, text.split(",")):
+        if "=" in part:
+            k, _, v = part.partition("=")
+            options[k.strip()] = v.strip()
+        else:
+            positional.append(part)
+    return positional, options
+
+
+def open_source(spec: str, **overrides: object) -> Source:
+    """Open a source from its spec string; ``overrides`` are extra options (CLI flags).
+
+    Raises :class:`SourceError` with the spec in the message when the spec or an
+    option is wrong or the source cannot be opened.
+    """
+    kind, _, rest = spec.partition(":")
+    kind = kind.strip().lower()
+    opts_extra = {k: str(v) for k, v in overrides.items() if v is not None}
+    try:
+        if kind == "synthetic":
+            from .synthetic import SyntheticSource
+
+            _, options = _split_options(rest)
+            options.update(opts_extra)
+            return SyntheticSource.from_spec(options)
+        if kind == "tum":
+            from .tum import TumSource
+
+            # The path may itself contain commas only if no options follow; options
+            # are the trailing ",key=value" parts.
+            path, _, opt_text = rest.partition(",")
+            _, options = _split_options(opt_text)
+            options.update(opts_extra)
+            if not path:
+                raise SourceError("tum source needs a folder: tum:PATH")
+            return TumSource.from_spec(path, options)
+    except SourceError:
+        raise
+    except (ValueError, OSError) as e:
+        raise SourceError(f"source {spec!r}: {e}") from None
+    raise SourceError(f"unknown source kind {kind!r} in {spec!r}; expected one of {', '.join(SOURCE_KINDS)}")
+
+
+__all__ = ["FrameOrGap", "SOURCE_KINDS", "Source", "SourceError", "open_source"]
