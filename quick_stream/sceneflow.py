@@ -50,6 +50,7 @@ class SceneFlowParams:
     border_px: float = 2.0  # flow must land this far inside the image
     outlier_k: float = 6.0  # |v| outlier if | |v| - median| > outlier_k * 1.4826 * MAD
     outlier_floor_m: float = 0.01  # ... and more than this many metres from the median
+    min_contrast: float = 2.0  # grey-level std below this (black, saturated, blank): no flow
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -86,6 +87,7 @@ class SceneFlowResult:
     intrinsics: Intrinsics
     intrinsics_next: Intrinsics
     counts: dict[str, int] = field(default_factory=dict)
+    problem: str = ""  # why the pair gave no usable flow (empty when it did)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -96,7 +98,15 @@ class SceneFlowResult:
             self.seq, self.seq_next, self.points[keep], self.displacements[keep], self.weights[keep],
             self.pixels[keep], self.pixels_next[keep], self.intrinsics, self.intrinsics_next,
             dict(self.counts, kept=int(np.count_nonzero(keep) if np.asarray(keep).dtype == bool else len(keep))),
+            self.problem,
         )
+
+    @classmethod
+    def empty(cls, f0: RGBDFrame, f1: RGBDFrame, problem: str) -> "SceneFlowResult":
+        """No usable pairs, with the reason."""
+        z = np.zeros((0, 3))
+        z2 = np.zeros((0, 2))
+        return cls(f0.seq, f1.seq, z, z, np.zeros(0), z2, z2, f0.intrinsics, f1.intrinsics, {"kept": 0}, problem)
 
 
 def depth_edge_at(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) -> np.ndarray:
@@ -157,20 +167,25 @@ class SceneFlow:
         self.params.validate()
         self._dis = cv2.DISOpticalFlow_create(DIS_PRESETS[self.params.preset])
         self._dis_fb = cv2.DISOpticalFlow_create(DIS_PRESETS["ultrafast"])
-        self._cache: tuple[tuple[int, int], dict[float, np.ndarray]] | None = None
+        # Grey images of the last two frames, keyed by seq; the colour array is kept
+        # with them so a hit is the very same image (identity, not a reused id).
+        self._cache: dict[int, tuple[np.ndarray, dict[float, np.ndarray]]] = {}
 
     def _greys(self, frame: RGBDFrame) -> dict[float, np.ndarray]:
         """Grey images of ``frame`` at the flow scale and the backward-check scale (cached)."""
-        key = (frame.seq, id(frame.color))
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1]
+        hit = self._cache.get(frame.seq)
+        if hit is not None and hit[0] is frame.color:
+            return hit[1]
         p = self.params
         g = cv2.cvtColor(frame.color, cv2.COLOR_BGR2GRAY)
         out = {1.0: g}
         for sc in {p.flow_scale, p.fb_scale * p.flow_scale} if p.fb_check else {p.flow_scale}:
             if sc not in out:
                 out[sc] = cv2.resize(g, None, fx=sc, fy=sc, interpolation=cv2.INTER_AREA)
-        self._cache = (key, out)
+        self._cache.pop(frame.seq, None)
+        if len(self._cache) >= 2:
+            del self._cache[next(iter(self._cache))]
+        self._cache[frame.seq] = (frame.color, out)
         return out
 
     def optical_flow(self, f0: RGBDFrame, f1: RGBDFrame) -> tuple[np.ndarray, np.ndarray | None]:
@@ -186,7 +201,18 @@ class SceneFlow:
         return fwd, bwd
 
     def compute(self, f0: RGBDFrame, f1: RGBDFrame) -> SceneFlowResult:
-        """Scene flow from frame ``f0`` (time t) to ``f1`` (time t+1)."""
+        """Scene flow from frame ``f0`` (time t) to ``f1`` (time t+1).
+
+        A frame without enough image contrast for optical flow (black, saturated,
+        blank) gives an empty result whose ``problem`` names it.
+        """
+        for f in (f0, f1):
+            g = self._greys(f)[self.params.flow_scale]
+            std = float(cv2.meanStdDev(g)[1][0, 0])
+            if std < self.params.min_contrast:
+                return SceneFlowResult.empty(
+                    f0, f1, f"{f.label}: too little image contrast for optical flow (grey std {std:.2f})"
+                )
         fwd, bwd = self.optical_flow(f0, f1)
         return lift_flow(f0, f1, fwd, bwd, self.params)
 

@@ -267,5 +267,5 @@ def test_renderer_clips_faces_crossing_the_camera_plane(monkeypatch):
             best = np.where(hit & (t < best), t, best)
         assert np.isfinite(best).all()
         wrong = np.abs(depth - best) > 1e-4 * best
-        assert wrong.sum() < 0.005 * wrong.size, wrong.sum()
+        assert wrong.sum() < 0.001 * wrong.size, wrong.sum()  # exact up to ties on edges
     assert clipped  # the near-plane clipping path was taken

@@ -94,6 +94,8 @@ class MotionEstimator:
     def estimate(self, flow: SceneFlowResult) -> MotionEstimate:
         p = self.params
         n = len(flow)
+        if flow.problem:
+            return invalid_motion(flow.seq, flow.seq_next, p.group, p.estimator, flow.problem)
         if n < max(p.min_points, p.exact.min_points):
             return invalid_motion(
                 flow.seq, flow.seq_next, p.group, p.estimator,

@@ -11,9 +11,11 @@ its texture: each visible quad is one ``cv2.warpPerspective`` (bilinear,
 ``BORDER_TRANSPARENT``) into the canvas in painter's order (room first, then the
 boxes far to near), so edges come out anti-aliased. A second warp, nearest-neighbour
 of a 1x1 label image, records which quad owns each pixel: exactly the pixels whose
-centre ray ``K^-1 [u, v, 1]`` hits the quad. Depth then comes per pixel from the
-owner's plane: inverse depth is affine in (u, v), looked up by label and evaluated
-with a few multiply-adds, so it agrees with the colour geometry to float precision.
+centre ray ``K^-1 [u, v, 1]`` hits the quad (the back wall owns all pixels at the
+start: a ray meeting no other room face meets it). Depth then comes per pixel from
+the owner's plane: inverse depth is affine in (u, v), looked up by label and
+evaluated with a few multiply-adds, so it agrees with the colour geometry (and with
+ray casting) to float precision. Quads reaching behind the camera are clipped.
 
 Textures are multi-octave value noise (plus blobs or stripes) in world units,
 generated once per (seed, resolution): each face gets a texel pitch of about one
@@ -23,9 +25,9 @@ at every scale.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
-import threading
 
 import cv2
 import numpy as np
@@ -279,6 +281,7 @@ class Renderer:
             self.m_lab[i] = np.column_stack([es, et, p0 + 0.5 * (es + et)])
         self.label_images = [np.full((1, 1), q.label, np.uint8) for q in quads]
         self.room = [i for i, q in enumerate(quads) if "." not in q.name]
+        assert quads[self.room[0]].name == "back_wall"  # drawn first, owns all pixels at start
         self.gu = (np.arange(width, dtype=np.float32) - np.float32(cx))[None, :]  # u - cx0, (1, W)
         self.gv = (np.arange(height, dtype=np.float32) - np.float32(cy))[:, None]  # v - cy0, (H, 1)
         self._scratch = threading.local()
@@ -302,6 +305,7 @@ class Renderer:
         return order
 
     def render(self, pose: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(BGR uint8 HxWx3, depth float32 HxW in metres) seen from camera-to-world ``pose``."""
         W, H = self.size
         R, C = pose[:3, :3], pose[:3, 3]
         rcw = R.T
@@ -367,7 +371,7 @@ class Renderer:
         luts = np.zeros((3, 1, 256), np.float32)
         labs = [self.quads[i].label for i in range(len(self.quads))]
         luts[0, 0, labs], luts[1, 0, labs], luts[2, 0, labs] = a, b, c
-        luts[2, 0, 0] = np.inf  # label 0 (nothing drawn) -> depth 0 (invalid)
+        luts[2, 0, 0] = np.inf  # label 0 (no surface) would give depth 0 (invalid)
         scratch = getattr(self._scratch, "buf", None)
         if scratch is None:  # per-thread work buffers: render() may run in several threads
             scratch = self._scratch.buf = np.empty((2, H, W), np.float32)
