@@ -20,6 +20,7 @@ estimator can weigh image-plane and depth errors separately.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -112,13 +113,19 @@ class SceneFlowResult:
 def depth_edge_at(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) -> np.ndarray:
     """True where pixel (u, v)'s depth differs from a 4-neighbour's by more than ``rel`` (relative).
 
-    Only the requested pixels are tested (the full-image mask is never built).
+    Only the requested pixels are tested (the full-image mask is never built);
+    pixels on the image border compare with themselves across the border.
     """
     h, w = depth.shape
-    d = depth[v, u]
+    flat = depth.ravel()
+    i = v * w + u
+    d = flat[i]
     edge = np.zeros(u.shape, bool)
-    for du, dv in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-        n = depth[np.clip(v + dv, 0, h - 1), np.clip(u + du, 0, w - 1)]
+    for j in (
+        np.where(u < w - 1, i + 1, i), np.where(u > 0, i - 1, i),
+        np.where(v < h - 1, i + w, i), np.where(v > 0, i - w, i),
+    ):
+        n = flat[j]
         edge |= np.abs(n - d) > rel * np.minimum(n, d)
     return edge
 
@@ -130,21 +137,32 @@ def sample_depth(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) ->
     (design note section 1: no blending across depth edges).
     """
     h, w = depth.shape
-    u0 = np.floor(u).astype(np.intp)
-    v0 = np.floor(v).astype(np.intp)
-    u0 = np.clip(u0, 0, w - 2)
-    v0 = np.clip(v0, 0, h - 2)
+    u0 = np.clip(np.floor(u).astype(np.intp), 0, w - 2)
+    v0 = np.clip(np.floor(v).astype(np.intp), 0, h - 2)
     a = u - u0
     b = v - v0
-    d00 = depth[v0, u0]
-    d01 = depth[v0, u0 + 1]
-    d10 = depth[v0 + 1, u0]
-    d11 = depth[v0 + 1, u0 + 1]
+    flat = depth.ravel()
+    i = v0 * w + u0
+    d00 = flat[i]
+    d01 = flat[i + 1]
+    d10 = flat[i + w]
+    d11 = flat[i + w + 1]
     dmin = np.minimum(np.minimum(d00, d01), np.minimum(d10, d11))
     dmax = np.maximum(np.maximum(d00, d01), np.maximum(d10, d11))
     ok = (dmin > 0) & (dmax - dmin <= rel * dmin)
     z = (1 - b) * ((1 - a) * d00 + a * d01) + b * ((1 - a) * d10 + a * d11)
     return np.where(ok, z, 0.0)
+
+
+@lru_cache(maxsize=8)
+def _grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate pixel coordinates (u, v) on a regular grid, read-only and cached."""
+    off = step // 2
+    vv, uu = np.mgrid[off:h:step, off:w:step]
+    uu, vv = uu.ravel(), vv.ravel()
+    uu.setflags(write=False)
+    vv.setflags(write=False)
+    return uu, vv
 
 
 def _sample_flow(flow: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -224,72 +242,76 @@ def lift_flow(
     bwd: np.ndarray | None,
     p: SceneFlowParams,
 ) -> SceneFlowResult:
-    """Lift optical flow to 3D and apply the masks (design note section 1)."""
+    """Lift optical flow to 3D and apply the masks (design note section 1).
+
+    Candidates are pixels on a regular grid (about twice ``max_points`` of them);
+    each mask shrinks the candidate set before the next, dearer one runs.
+    """
     h, w = f0.depth.shape
     s = p.flow_scale
     counts: dict[str, int] = {}
-    # Candidate pixels on a regular grid with valid, non-edge depth in frame t.
-    step = max(p.grid_step, int(np.sqrt(h * w / (3.0 * p.max_points))))
-    off = step // 2
-    vv, uu = np.mgrid[off:h:step, off:w:step]
-    uu = uu.ravel()
-    vv = vv.ravel()
+    step = max(p.grid_step, int(np.sqrt(h * w / (2.0 * p.max_points))))
+    uu, vv = _grid(h, w, step)
     counts["sampled"] = uu.size
-    z0 = f0.depth[vv, uu].astype(np.float64)
+    z0 = f0.depth.ravel()[vv * w + uu]
     ok = (z0 >= p.min_depth) & (z0 <= p.max_depth)
     counts["invalid_depth"] = int(uu.size - np.count_nonzero(ok))
     if p.depth_edge > 0:
-        uu, vv, z0 = uu[ok], vv[ok], z0[ok]
-        edge = depth_edge_at(f0.depth, uu, vv, p.depth_edge)
+        edge = depth_edge_at(f0.depth, uu, vv, p.depth_edge) & ok
         counts["depth_edge"] = int(np.count_nonzero(edge))
-        ok = ~edge
-    uu, vv, z0 = uu[ok], vv[ok], z0[ok]
-    # Flow at those pixels (flow computed at scale s: sample at s*p, scale back).
+        ok &= ~edge
+    sel = np.flatnonzero(ok)
+    uu, vv, z0 = uu[sel], vv[sel], z0[sel].astype(np.float64)
+    # Flow at those pixels (computed at scale s: sample at s*p, scale back).
     if s == 1.0:
-        fl = fwd[vv, uu].astype(np.float64)
+        fl = fwd.reshape(-1, 2)[vv * w + uu].astype(np.float64)
     else:
         fl = _sample_flow(fwd, (uu + 0.5) * s - 0.5, (vv + 0.5) * s - 0.5) / s
     u1 = uu + fl[:, 0]
     v1 = vv + fl[:, 1]
     b = p.border_px
-    inside = (u1 >= b) & (u1 <= w - 1 - b) & (v1 >= b) & (v1 <= h - 1 - b)
-    counts["out_of_image"] = int(np.count_nonzero(~inside))
-    uu, vv, z0, u1, v1, fl = uu[inside], vv[inside], z0[inside], u1[inside], v1[inside], fl[inside]
+    ok = (u1 >= b) & (u1 <= w - 1 - b) & (v1 >= b) & (v1 <= h - 1 - b)
+    counts["out_of_image"] = int(ok.size - np.count_nonzero(ok))
     if bwd is not None:
         sb = s * p.fb_scale
         back = _sample_flow(bwd, (u1 + 0.5) * sb - 0.5, (v1 + 0.5) * sb - 0.5) / sb
-        err = np.hypot(fl[:, 0] + back[:, 0], fl[:, 1] + back[:, 1])
-        cons = err <= p.fb_threshold_px
-        counts["fb_inconsistent"] = int(np.count_nonzero(~cons))
-        uu, vv, z0, u1, v1 = uu[cons], vv[cons], z0[cons], u1[cons], v1[cons]
+        bad = np.hypot(fl[:, 0] + back[:, 0], fl[:, 1] + back[:, 1]) > p.fb_threshold_px
+        counts["fb_inconsistent"] = int(np.count_nonzero(bad & ok))
+        ok &= ~bad
+    sel = np.flatnonzero(ok)
+    uu, vv, z0, u1, v1 = uu[sel], vv[sel], z0[sel], u1[sel], v1[sel]
     z1 = sample_depth(f1.depth, u1, v1, p.depth_edge if p.depth_edge > 0 else 0.05)
-    ok1 = (z1 >= p.min_depth) & (z1 <= p.max_depth)
-    counts["invalid_depth_next"] = int(np.count_nonzero(~ok1))
-    uu, vv, z0, u1, v1, z1 = uu[ok1], vv[ok1], z0[ok1], u1[ok1], v1[ok1], z1[ok1]
+    ok = (z1 >= p.min_depth) & (z1 <= p.max_depth)
+    counts["invalid_depth_next"] = int(ok.size - np.count_nonzero(ok))
     K0, K1 = f0.intrinsics, f1.intrinsics
-    x = np.column_stack(((uu - K0.cx) / K0.fx * z0, (vv - K0.cy) / K0.fy * z0, z0))
-    x1 = np.column_stack(((u1 - K1.cx) / K1.fx * z1, (v1 - K1.cy) / K1.fy * z1, z1))
-    vel = x1 - x
-    if len(vel) >= 3:
-        speed = np.linalg.norm(vel, axis=1)
-        med = np.median(speed)
-        mad = 1.4826 * np.median(np.abs(speed - med))
-        keep = np.abs(speed - med) <= max(p.outlier_k * mad, p.outlier_floor_m)
-        counts["velocity_outlier"] = int(np.count_nonzero(~keep))
-        x, vel, uu, vv, u1, v1 = x[keep], vel[keep], uu[keep], vv[keep], u1[keep], v1[keep]
-    n = len(x)
-    if n > p.max_points:
-        idx = np.linspace(0, n - 1, p.max_points).round().astype(np.intp)
-        x, vel, uu, vv, u1, v1 = x[idx], vel[idx], uu[idx], vv[idx], u1[idx], v1[idx]
-    counts["kept"] = len(x)
+    x = np.empty((uu.size, 3))
+    x[:, 0] = (uu - K0.cx) * (z0 / K0.fx)
+    x[:, 1] = (vv - K0.cy) * (z0 / K0.fy)
+    x[:, 2] = z0
+    vel = np.empty_like(x)
+    vel[:, 0] = (u1 - K1.cx) * (z1 / K1.fx) - x[:, 0]
+    vel[:, 1] = (v1 - K1.cy) * (z1 / K1.fy) - x[:, 1]
+    vel[:, 2] = z1 - z0
+    if np.count_nonzero(ok) >= 3:
+        speed = np.sqrt(np.einsum("ij,ij->i", vel, vel))
+        med = np.median(speed[ok])
+        dev = np.abs(speed - med)
+        mad = 1.4826 * np.median(dev[ok])
+        out = dev > max(p.outlier_k * mad, p.outlier_floor_m)
+        counts["velocity_outlier"] = int(np.count_nonzero(out & ok))
+        ok &= ~out
+    sel = np.flatnonzero(ok)
+    if sel.size > p.max_points:
+        sel = sel[np.linspace(0, sel.size - 1, p.max_points).round().astype(np.intp)]
+    counts["kept"] = int(sel.size)
     return SceneFlowResult(
         seq=f0.seq,
         seq_next=f1.seq,
-        points=x,
-        displacements=vel,
-        weights=np.ones(len(x)),
-        pixels=np.column_stack((uu, vv)).astype(np.float64),
-        pixels_next=np.column_stack((u1, v1)),
+        points=x[sel],
+        displacements=vel[sel],
+        weights=np.ones(sel.size),
+        pixels=np.column_stack((uu[sel], vv[sel])).astype(np.float64),
+        pixels_next=np.column_stack((u1[sel], v1[sel])),
         intrinsics=K0,
         intrinsics_next=K1,
         counts=counts,

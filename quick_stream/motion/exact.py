@@ -30,8 +30,8 @@ from ..lie import LieGroup
 class ExactParams:
     """Parameters of the exact estimator."""
 
-    init_iters: int = 3  # IRLS iterations of the closed-form fit
-    gn_iters: int = 3  # robust Gauss-Newton iterations on image + depth residuals
+    init_iters: int = 2  # IRLS iterations of the closed-form fit
+    gn_iters: int = 2  # robust Gauss-Newton iterations on image + depth residuals
     sigma_px: float = 0.5  # expected optical-flow error (px)
     depth_noise: float = 0.0015  # depth sigma = depth_noise * z^2 (m); Kinect/RealSense-like
     robust: bool = True  # Cauchy reweighting; False = plain weighted least squares (for comparison)
