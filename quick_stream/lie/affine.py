@@ -7,7 +7,7 @@ and, unlike ``expm``, is surjective onto GL+(3) and SL(3). ``det phi(U) = e^{tr 
 trace-free sl(3) basis keeps SA(3) in SL(3).
 
 Writing ``U = S + W`` (symmetric + skew): ``phi(U) = expm(S - W) expm(2W)``; the skew factor is a
-rotation (batched Rodrigues, ``so3``), only ``expm(U^T)`` needs ``scipy.linalg.expm``.
+rotation (batched Rodrigues, ``so3``), only ``expm(U^T)`` needs a general matrix exponential (batched, ``lie.expm``).
 
 ``phi`` has no closed-form inverse (paper, "sigma^-1 must be computed numerically"):
 :func:`phi_inverse` runs damped Gauss-Newton on the coordinates ``u`` with the analytic
@@ -18,9 +18,9 @@ polar-decomposition guess, with a homotopy (continuation) fallback.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
 from . import so3
+from .expm import expm as _expm
 from .base import LieGroup
 
 __all__ = ["SA3", "GA3", "phi", "phi_derivative", "phi_inverse"]
@@ -31,7 +31,7 @@ SL_DET_TOL = 1e-6  # |det A - 1| accepted by SA3.log (A is rescaled onto SL(3) b
 def phi(U: np.ndarray) -> np.ndarray:
     """Paper eq. (phi): ``expm(U^T) expm(U - U^T)``; (..., 3, 3) -> (..., 3, 3)."""
     U = np.asarray(U, dtype=np.float64)
-    return scipy.linalg.expm(np.swapaxes(U, -1, -2)) @ so3.exp(so3.vee(U - np.swapaxes(U, -1, -2)))
+    return _expm(np.swapaxes(U, -1, -2)) @ so3.exp(so3.vee(U - np.swapaxes(U, -1, -2)))
 
 
 def phi_derivative(U: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +48,7 @@ def phi_derivative(U: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndar
     blk[:, :, :3, :3] = X[:, None]
     blk[:, :, 3:, 3:] = X[:, None]
     blk[:, :, :3, 3:] = np.swapaxes(dirs, -1, -2)
-    big = scipy.linalg.expm(blk.reshape(B * m, 6, 6)).reshape(B, m, 6, 6)
+    big = _expm(blk.reshape(B * m, 6, 6)).reshape(B, m, 6, 6)
     eX = big[:, 0, :3, :3]
     L = big[:, :, :3, 3:]
     w = so3.vee(U - X)
@@ -160,7 +160,7 @@ def phi_inverse(
             ui = np.zeros((1, lin.shape[0]))
             ri = np.array([np.inf])
             for s in np.linspace(0.0, 1.0, n_steps + 1)[1:]:
-                As = (scipy.linalg.expm(s * SP) @ so3.exp(s * k))[None]
+                As = (_expm(s * SP) @ so3.exp(s * k))[None]
                 with np.errstate(over="ignore", invalid="ignore"):
                     ui, ri = _newton(As, ui, lin)
             if ri[0] <= tol * scale[i]:
