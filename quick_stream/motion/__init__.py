@@ -70,6 +70,7 @@ class MotionEstimate:
     n_points: int = 0
     inlier_ratio: float = 0.0
     rms_px: float = float("nan")
+    zeta_bar: np.ndarray | None = None  # log(matrix^-1): the path solver's zeta_bar (design note 4)
 
     @property
     def point_motion(self) -> np.ndarray:
@@ -80,7 +81,9 @@ class MotionEstimate:
 def invalid_motion(seq: int, seq_next: int, group: str, estimator: str, reason: str) -> MotionEstimate:
     """An identity motion flagged invalid (the path holds still across it)."""
     g = get_group(group)
-    return MotionEstimate(seq, seq_next, group, estimator, g.identity(), np.zeros(g.dim), False, reason)
+    return MotionEstimate(
+        seq, seq_next, group, estimator, g.identity(), np.zeros(g.dim), False, reason, zeta_bar=np.zeros(g.dim)
+    )
 
 
 class MotionEstimator:
@@ -114,6 +117,7 @@ class MotionEstimator:
                 M, inliers, rms = ref.M, ref.inlier_ratio, ref.rms_px
             g = self.group.inverse(M)
             twist = self.group.log(g)
+            zbar = self.group.log(M)
         except (np.linalg.LinAlgError, ValueError, FloatingPointError) as e:
             return invalid_motion(flow.seq, flow.seq_next, p.group, p.estimator, f"fit failed: {e}")
         if not np.all(np.isfinite(g)):
@@ -125,7 +129,7 @@ class MotionEstimator:
             )
         return MotionEstimate(
             flow.seq, flow.seq_next, p.group, p.estimator, g, twist, True,
-            n_points=n, inlier_ratio=inliers, rms_px=rms,
+            n_points=n, inlier_ratio=inliers, rms_px=rms, zeta_bar=zbar,
         )
 
 

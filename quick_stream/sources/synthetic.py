@@ -200,6 +200,14 @@ class SyntheticSource:
         """Ground-truth camera-to-world poses of all frames, (N, 4, 4) float64 (no rendering)."""
         return np.concatenate([self._chunk(c)[0] for c in range(-(-self.frames // _CHUNK))])
 
+    def intended_poses(self) -> np.ndarray:
+        """The shake-free camera path (N, 4, 4): the same seed's path with shake 0.
+
+        Stabilization is judged against it: shake = what the pose does beyond this path.
+        """
+        t = np.arange(self.frames) / self.fps
+        return CameraPath(self.seed, 0.0, self.zoom).poses(t)
+
     def intrinsics_at(self, i: int) -> Intrinsics:
         """The true intrinsics of frame i (the zoomed focal length)."""
         i = self._index(i)

@@ -1,0 +1,54 @@
+"""End-constraints at keyframes (design note section 4, last paragraph).
+
+* ``identity`` (the paper's): no correction at keyframes, so the stabilized path
+  passes through the real, jittery keyframe poses and their jitter survives as a
+  slow wobble.
+* ``smoothed``: the stabilized pose at each keyframe is a causal alpha-beta
+  (constant-velocity) filter of the keyframe poses in the group: predict
+  S_pred = S_prev exp(L v) over the segment's L frames, innovation
+  e = log(S_pred^-1 K_j), S_j = S_pred exp(alpha e), v += beta e / L. It uses no
+  frame beyond the closing keyframe, so the latency stays one segment, and a
+  steady pan or dolly passes through without lag. The end-constraint is the
+  correction g_s = K_j^-1 S_j (see :mod:`.optimal` for the composition order).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..lie import LieGroup
+
+END_MODES = ("identity", "smoothed")
+
+
+class EndConstraints:
+    """Correction targets at keyframes for one stream."""
+
+    def __init__(self, group: LieGroup, mode: str = "smoothed", alpha: float = 0.35, beta: float = 0.1) -> None:
+        if mode not in END_MODES:
+            raise ValueError(f"end-constraint mode must be one of {END_MODES}, got {mode!r}")
+        if not (0 < alpha <= 1 and 0 <= beta <= 1):
+            raise ValueError(f"smoothing gains need 0 < alpha <= 1 and 0 <= beta <= 1, got {alpha}, {beta}")
+        self.group, self.mode, self.alpha, self.beta = group, mode, alpha, beta
+        self._S: np.ndarray | None = None  # smoothed pose at the last keyframe
+        self._v = np.zeros(group.dim)  # velocity twist per frame
+
+    def reset(self, keyframe_pose: np.ndarray) -> None:
+        """Restart at a keyframe with no correction (stream start, broken path, failed segment)."""
+        self._S = np.asarray(keyframe_pose, dtype=np.float64).copy()
+        self._v = np.zeros(self.group.dim)
+
+    def at_keyframe(self, keyframe_pose: np.ndarray, frames: int) -> np.ndarray:
+        """The correction required at a keyframe reached ``frames`` frames after the previous one."""
+        K = np.asarray(keyframe_pose, dtype=np.float64)
+        if self.mode == "identity" or self._S is None:
+            if self._S is None:
+                self.reset(K)
+            else:
+                self._S = K.copy()
+            return np.eye(4)
+        g = self.group
+        pred = self._S @ g.exp(frames * self._v)
+        e = g.log(g.inverse(pred) @ K)
+        self._S = pred @ g.exp(self.alpha * e)
+        self._v = self._v + self.beta * e / frames
+        return g.inverse(K) @ self._S
