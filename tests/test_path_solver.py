@@ -1,7 +1,7 @@
 """Optimal path per segment: end-constraints, closed forms, reference optimiser, composition order."""
 import numpy as np
 import pytest
-from scipy.optimize import minimize
+from scipy.optimize import NonlinearConstraint, minimize
 
 from quick_stream.lie import GROUPS, get_group
 from quick_stream.path import PathParams, integrate, path_cost, solve_segment, zeta_bar
@@ -23,18 +23,27 @@ def reference_cost(group, motions, C0, C1, w=None):
     def cons(z):
         return group.vee(np.linalg.inv(C1) @ integrate(group, C0, z.reshape(N, n))[-1] - np.eye(4))
 
-    res = minimize(lambda z: path_cost(z.reshape(N, n), zb, w), zb.ravel(),
-                   jac=lambda z: ((z.reshape(N, n) - zb) * w).ravel(),
-                   constraints=[{"type": "eq", "fun": cons}], method="SLSQP",
+    def cost(z):
+        return path_cost(z.reshape(N, n), zb, w)
+
+    def grad(z):
+        return ((z.reshape(N, n) - zb) * w).ravel()
+
+    res = minimize(cost, zb.ravel(), jac=grad, constraints=[{"type": "eq", "fun": cons}], method="SLSQP",
                    options={"ftol": 1e-15, "maxiter": 500})
+    if not res.success:  # SLSQP's subproblem can go rank-deficient: a second generic method
+        res = minimize(cost, zb.ravel(), jac=grad, method="trust-constr",
+                       constraints=[NonlinearConstraint(cons, 0.0, 0.0)],
+                       options={"gtol": 1e-12, "xtol": 1e-14, "maxiter": 3000})
     assert res.success, res.message
+    assert np.linalg.norm(cons(res.x)) < 1e-8
     return res.fun
 
 
 @pytest.mark.parametrize("name", sorted(GROUPS))
 def test_meets_end_constraints_and_matches_reference_optimiser(name):
     g = get_group(name)
-    rng = np.random.default_rng(abs(hash(name)) % 2**32)
+    rng = np.random.default_rng(sorted(GROUPS).index(name))
     for trial in range(2):
         motions, C1 = random_segment(g, rng)
         C0 = g.exp(rng.normal(0, 0.01, g.dim))

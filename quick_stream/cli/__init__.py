@@ -9,9 +9,9 @@ import argparse
 import logging
 import sys
 
-from . import bench_cmd, motion_cmd
+from . import bench_cmd, motion_cmd, stabilize_cmd
 
-COMMANDS = {"motion": motion_cmd, "bench": bench_cmd}
+COMMANDS = {"stabilize": stabilize_cmd, "motion": motion_cmd, "bench": bench_cmd}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -23,7 +23,7 @@ END_MODES = ("identity", "smoothed")
 class EndConstraints:
     """Correction targets at keyframes for one stream."""
 
-    def __init__(self, group: LieGroup, mode: str = "smoothed", alpha: float = 0.35, beta: float = 0.1) -> None:
+    def __init__(self, group: LieGroup, mode: str = "smoothed", alpha: float = 0.4, beta: float = 0.4) -> None:
         if mode not in END_MODES:
             raise ValueError(f"end-constraint mode must be one of {END_MODES}, got {mode!r}")
         if not (0 < alpha <= 1 and 0 <= beta <= 1):
@@ -31,11 +31,13 @@ class EndConstraints:
         self.group, self.mode, self.alpha, self.beta = group, mode, alpha, beta
         self._S: np.ndarray | None = None  # smoothed pose at the last keyframe
         self._v = np.zeros(group.dim)  # velocity twist per frame
+        self._warm = False  # velocity estimated yet (first keyframe after a reset sets it)
 
     def reset(self, keyframe_pose: np.ndarray) -> None:
         """Restart at a keyframe with no correction (stream start, broken path, failed segment)."""
         self._S = np.asarray(keyframe_pose, dtype=np.float64).copy()
         self._v = np.zeros(self.group.dim)
+        self._warm = False
 
     def at_keyframe(self, keyframe_pose: np.ndarray, frames: int) -> np.ndarray:
         """The correction required at a keyframe reached ``frames`` frames after the previous one."""
@@ -47,6 +49,11 @@ class EndConstraints:
                 self._S = K.copy()
             return np.eye(4)
         g = self.group
+        if not self._warm:  # first keyframe after a reset: no correction, start the velocity
+            self._v = g.log(g.inverse(self._S) @ K) / frames
+            self._S = K.copy()
+            self._warm = True
+            return np.eye(4)
         pred = self._S @ g.exp(frames * self._v)
         e = g.log(g.inverse(pred) @ K)
         self._S = pred @ g.exp(self.alpha * e)

@@ -29,8 +29,8 @@ from .optimal import PathParams, solve_segment
 class PlannerParams:
     group: str = "se3"
     end: str = "smoothed"  # end-constraint mode: identity | smoothed
-    alpha: float = 0.35  # smoothed mode: keyframe-pose filter gains
-    beta: float = 0.1
+    alpha: float = 0.4  # smoothed mode: keyframe-pose filter gains
+    beta: float = 0.4
     keyframes: KeyframeParams = field(default_factory=KeyframeParams)
     path: PathParams = field(default_factory=PathParams)
 

@@ -1,0 +1,56 @@
+"""Line plots drawn with OpenCV (no plotting dependency): the camera path before and after."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+COLORS = {"before": (60, 60, 220), "after": (60, 170, 40)}  # BGR: red, green
+
+
+def path_components(poses: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) -> (N, 6): translation (mm) and rotation vector (deg) relative to the first pose."""
+    rel = np.linalg.inv(poses[0]) @ poses
+    A = rel[:, :3, :3]
+    U, _, Vt = np.linalg.svd(A)  # nearest rotation (affine groups carry more than a rotation)
+    R = U @ Vt
+    R[np.linalg.det(R) < 0] *= -1
+    rv = Rotation.from_matrix(R).as_rotvec()
+    return np.column_stack([rel[:, :3, 3] * 1000.0, np.degrees(rv)])
+
+
+def plot_paths(series: dict[str, np.ndarray], fps: float, path: str, width: int = 1200,
+               row_height: int = 150) -> None:
+    """One row per component (tx, ty, tz in mm; rx, ry, rz in deg), one line per series."""
+    labels = ["tx (mm)", "ty (mm)", "tz (mm)", "rx (deg)", "ry (deg)", "roll rz (deg)"]
+    margin_l, margin_r, margin_t = 110, 20, 40
+    H = margin_t + row_height * 6 + 30
+    img = np.full((H, width, 3), 255, np.uint8)
+    cv2.putText(img, "camera path: " + ", ".join(f"{k}" for k in series), (margin_l, 26),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+    x_legend = width - 260
+    for i, name in enumerate(series):
+        col = COLORS.get(name, (120, 120, 120))
+        cv2.line(img, (x_legend + 130 * i, 20), (x_legend + 130 * i + 30, 20), col, 2)
+        cv2.putText(img, name, (x_legend + 130 * i + 36, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.5, col, 1, cv2.LINE_AA)
+    n = max(len(v) for v in series.values())
+    xs = margin_l + np.arange(n) * (width - margin_l - margin_r) / max(n - 1, 1)
+    for r in range(6):
+        top = margin_t + r * row_height
+        y0, y1 = top + 10, top + row_height - 10
+        vals = np.concatenate([v[:, r] for v in series.values()])
+        lo, hi = float(vals.min()), float(vals.max())
+        if hi - lo < 1e-9:
+            lo, hi = lo - 1, hi + 1
+        cv2.rectangle(img, (margin_l, y0), (width - margin_r, y1), (200, 200, 200), 1)
+        cv2.putText(img, labels[r], (8, (y0 + y1) // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, f"{hi:.2f}", (8, y0 + 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (90, 90, 90), 1, cv2.LINE_AA)
+        cv2.putText(img, f"{lo:.2f}", (8, y1), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (90, 90, 90), 1, cv2.LINE_AA)
+        for name, v in series.items():
+            ys = y1 - (v[:, r] - lo) / (hi - lo) * (y1 - y0)
+            pts = np.column_stack([xs[: len(v)], ys]).round().astype(np.int32)
+            cv2.polylines(img, [pts], False, COLORS.get(name, (120, 120, 120)), 1, cv2.LINE_AA)
+    cv2.putText(img, f"frames (0..{n - 1}, {fps:g} fps)", (margin_l, H - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    if not cv2.imwrite(path, img):
+        raise OSError(f"cannot write plot {path}")

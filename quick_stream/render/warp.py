@@ -1,0 +1,280 @@
+"""Content-preserving warp (Liu et al. 2009) driven by depth: design note section 5.
+
+A regular grid of ``gx`` x ``gy`` cells covers the input frame; its vertices sit on
+pixel centres, from (0, 0) to (W-1, H-1), so every pixel lies in some cell and the
+outer edges of the grid are the source image's border. The unknowns are the
+output positions of the (gx+1)(gy+1) vertices (18 for the paper's 2x2 grid).
+
+Control points: valid-depth pixels ``p`` on a regular sub-grid (at most
+``max_control_points``, deterministic), their 3D points ``x = K^-1 [p, 1] Z(p)`` and
+targets ``p_hat = project(K, T x)`` where ``T`` (4x4 affine) maps real-camera to
+virtual-camera coordinates. Points landing behind the virtual camera are dropped.
+
+Energy, with ``V`` the output vertices::
+
+    E = E_d / N + alpha * E_s
+    E_d = sum_p | sum_k w_k(p) V_k - p_hat |^2        (w_k: bilinear weights of p in its input cell)
+    E_s = sum_triangles | V1 - V2 - u (V3 - V2) - v R90 (V3 - V2) |^2
+
+``(u, v)`` are the coordinates of V1 in the frame of edge V2->V3 on the *input*
+grid, so E_s = 0 exactly when each triangle is a similar copy of its input.
+Each cell contributes its 4 corner triangles (a corner and its two neighbours).
+Normalisation: the data term is a *mean* over the control points, so ``alpha``
+weighs "one control point's squared error" against the shape term and keeps its
+meaning whatever the resolution or the number of control points (the paper's
+alpha = 0.1 with a sum over all ~300k VGA pixels would make E_s irrelevant).
+All coefficients are dimensionless, so the 2n x 2n normal matrix is
+scale-free and its condition number is a meaningful singularity test.
+
+A failed solve (too few control points, singular system, folded mesh) gives the
+identity mesh with ``ok = False`` and a ``reason``, so callers can flag the frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from functools import lru_cache
+
+import numpy as np
+
+from ..frame import RGBDFrame
+
+
+@dataclass
+class WarpParams:
+    """Parameters of :func:`solve_warp` (each one documented where it acts)."""
+
+    grid: tuple[int, int] = (2, 2)  # cells in x and y
+    alpha: float = 0.1  # weight of the similarity term (data term is a mean, see module doc)
+    max_control_points: int = 2000  # valid-depth pixels are subsampled on a regular grid to at most this
+    min_control_points: int = 8  # fewer usable control points: identity mesh, ok=False
+    min_depth: float = 0.0  # metres; control points need depth > min_depth (0 = invalid)
+    min_target_z: float = 1e-3  # metres; points with virtual-camera z below this are dropped
+    max_condition: float = 1e10  # normal matrix condition number above this: singular
+
+    @classmethod
+    def describe(cls) -> dict[str, str]:
+        """Parameter name -> default, for CLIs and reports."""
+        return {f.name: repr(f.default) for f in fields(cls)}
+
+    def validate(self) -> None:
+        gx, gy = self.grid
+        if int(gx) != gx or int(gy) != gy or gx < 1 or gy < 1:
+            raise ValueError(f"warp grid must be two integers >= 1, got {self.grid}")
+        if not (np.isfinite(self.alpha) and self.alpha >= 0):
+            raise ValueError(f"warp alpha must be finite and >= 0, got {self.alpha}")
+        if self.max_control_points < self.min_control_points or self.min_control_points < 1:
+            raise ValueError("warp needs 1 <= min_control_points <= max_control_points")
+
+
+@dataclass
+class MeshWarp:
+    """Input and output grid vertices of one frame's warp, (gy+1, gx+1, 2) arrays in pixels.
+
+    ``dst`` is where each ``src`` vertex goes in the output image. ``ok`` False
+    means the solve failed and ``dst`` is ``src`` (identity); ``reason`` says why.
+    ``residual_px`` is the RMS distance between the warped control points and
+    their targets; ``n_controls`` how many control points entered the solve.
+    """
+
+    width: int
+    height: int
+    src: np.ndarray
+    dst: np.ndarray
+    ok: bool = True
+    reason: str = ""
+    residual_px: float = 0.0
+    n_controls: int = 0
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """Cells in x and y."""
+        return self.src.shape[1] - 1, self.src.shape[0] - 1
+
+    @classmethod
+    def identity(cls, width: int, height: int, grid: tuple[int, int] = (2, 2), reason: str = "",
+                 n_controls: int = 0) -> "MeshWarp":
+        """The identity mesh; ``ok`` is False when a ``reason`` is given."""
+        src = grid_geometry(width, height, int(grid[0]), int(grid[1])).src
+        return cls(width, height, src, src.copy(), ok=not reason, reason=reason, n_controls=n_controls)
+
+    def quads_convex(self) -> bool:
+        """True when every output cell is a convex quad with the input's orientation (no fold)."""
+        d = self.dst
+        # corners of each cell in cyclic order 00, 10, 11, 01 (clockwise on screen, y down)
+        cyc = np.stack([d[:-1, :-1], d[:-1, 1:], d[1:, 1:], d[1:, :-1]], axis=2)  # (gy, gx, 4, 2)
+        e = np.roll(cyc, -1, axis=2) - cyc
+        en = np.roll(e, -1, axis=2)
+        cross = e[..., 0] * en[..., 1] - e[..., 1] * en[..., 0]
+        return bool(np.all(cross > 1e-9 * self.width * self.height))
+
+
+@dataclass(frozen=True)
+class GridGeometry:
+    """Input grid of one (width, height, gx, gy): vertex positions and the similarity term."""
+
+    xs: np.ndarray  # (gx+1,) vertex x positions
+    ys: np.ndarray  # (gy+1,) vertex y positions
+    src: np.ndarray  # (gy+1, gx+1, 2)
+    sim_normal: np.ndarray  # (2n, 2n) S^T S of the similarity residuals S X (X = [x_0..x_n-1, y_0..y_n-1])
+
+
+@lru_cache(maxsize=16)
+def grid_geometry(width: int, height: int, gx: int, gy: int) -> GridGeometry:
+    """Vertices on pixel centres spanning [0, W-1] x [0, H-1], and the similarity normal matrix (cached)."""
+    xs = np.linspace(0.0, width - 1.0, gx + 1)
+    ys = np.linspace(0.0, height - 1.0, gy + 1)
+    src = np.stack(np.meshgrid(xs, ys), axis=-1)
+    n = (gx + 1) * (gy + 1)
+    jj, ii = np.mgrid[0:gy, 0:gx]
+    ii, jj = ii.ravel(), jj.ravel()
+    # Vertex indices of each cell's corners in cyclic order 00, 10, 11, 01.
+    cyc = np.stack([jj * (gx + 1) + ii, jj * (gx + 1) + ii + 1,
+                    (jj + 1) * (gx + 1) + ii + 1, (jj + 1) * (gx + 1) + ii], axis=1)
+    flat = src.reshape(-1, 2)
+    rows = []
+    for q in range(4):  # corner q with its neighbours q-1 (V2) and q+1 (V3)
+        k1, k2, k3 = cyc[:, q], cyc[:, (q - 1) % 4], cyc[:, (q + 1) % 4]
+        e = flat[k3] - flat[k2]
+        d = flat[k1] - flat[k2]
+        ee = np.einsum("ij,ij->i", e, e)
+        u = np.einsum("ij,ij->i", d, e) / ee
+        v = (d[:, 0] * e[:, 1] - d[:, 1] * e[:, 0]) / ee  # d . R90 e with R90 (x, y) = (y, -x)
+        for m in range(len(k1)):
+            # residual = V1 - (1-u) V2 - u V3 - v R90 (V3 - V2)
+            rx = np.zeros(2 * n)
+            ry = np.zeros(2 * n)
+            rx[k1[m]] += 1
+            rx[k2[m]] -= 1 - u[m]
+            rx[k3[m]] -= u[m]
+            rx[n + k3[m]] -= v[m]
+            rx[n + k2[m]] += v[m]
+            ry[n + k1[m]] += 1
+            ry[n + k2[m]] -= 1 - u[m]
+            ry[n + k3[m]] -= u[m]
+            ry[k3[m]] += v[m]
+            ry[k2[m]] -= v[m]
+            rows += [rx, ry]
+    S = np.array(rows)
+    for a in (xs, ys, src):
+        a.setflags(write=False)
+    sn = S.T @ S
+    sn.setflags(write=False)
+    return GridGeometry(xs, ys, src, sn)
+
+
+@lru_cache(maxsize=8)
+def _pixel_grid(height: int, width: int, step: int) -> np.ndarray:
+    """Flat indices of a regular pixel sub-grid (offset step // 2), read-only and cached."""
+    off = step // 2
+    idx = (np.arange(off, height, step)[:, None] * width + np.arange(off, width, step)[None, :]).ravel()
+    idx.setflags(write=False)
+    return idx
+
+
+def control_pixels(depth: np.ndarray, max_points: int, min_depth: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Valid-depth pixels on the finest regular sub-grid that keeps at most ``max_points``.
+
+    Returns flat pixel indices and their depths. The step starts from an estimate
+    of the valid fraction (measured on the coarsest grid that can hold at most
+    ``max_points`` pixels) and grows until the count fits: deterministic, no randomness.
+    """
+    h, w = depth.shape
+    flat = depth.ravel()
+    s0 = max(1, int(np.ceil(np.sqrt(h * w / max_points))))
+    idx0 = _pixel_grid(h, w, s0)
+    frac = np.count_nonzero(flat[idx0] > min_depth) / max(idx0.size, 1)
+    step = max(1, int(np.sqrt(frac * h * w / max_points)))
+    while True:
+        idx = _pixel_grid(h, w, step)
+        z = flat[idx]
+        ok = np.flatnonzero(z > min_depth)  # NaN compares False: invalid
+        if ok.size <= max_points:
+            return idx[ok], z[ok].astype(np.float64)
+        step += 1
+
+
+def solve_warp(frame: RGBDFrame, point_transform: np.ndarray, params: WarpParams | None = None) -> MeshWarp:
+    """Mesh warp moving each valid-depth pixel to where the virtual camera sees its 3D point.
+
+    ``point_transform`` (4x4 affine) maps real-camera coordinates to
+    virtual-camera coordinates; the virtual camera has the frame's intrinsics.
+    """
+    p = params or WarpParams()
+    p.validate()
+    h, w = frame.depth.shape
+    T = np.asarray(point_transform, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"point_transform must be a finite 4x4 matrix, got shape {T.shape}")
+    gx, gy = (int(g) for g in p.grid)
+    K = frame.intrinsics
+    idx, z = control_pixels(frame.depth, p.max_control_points, p.min_depth)
+    u = (idx % w).astype(np.float64)
+    v = (idx // w).astype(np.float64)
+    x = np.empty((idx.size, 3))
+    x[:, 0] = (u - K.cx) * (z / K.fx)
+    x[:, 1] = (v - K.cy) * (z / K.fy)
+    x[:, 2] = z
+    y = x @ T[:3, :3].T + T[:3, 3]
+    front = y[:, 2] > p.min_target_z
+    if not np.all(front):
+        u, v, y = u[front], v[front], y[front]
+    tgt = np.empty((u.size, 2))
+    tgt[:, 0] = K.fx * y[:, 0] / y[:, 2] + K.cx
+    tgt[:, 1] = K.fy * y[:, 1] / y[:, 2] + K.cy
+    return solve_mesh(np.column_stack((u, v)), tgt, w, h, p)
+
+
+def bilinear_weights(pixels: np.ndarray, geo: GridGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex indices (N, 4) and bilinear weights (N, 4) of each pixel in its input cell."""
+    gx, gy = geo.xs.size - 1, geo.ys.size - 1
+    cw = geo.xs[-1] / gx
+    ch = geo.ys[-1] / gy
+    fx = pixels[:, 0] / cw
+    fy = pixels[:, 1] / ch
+    i = np.clip(np.floor(fx).astype(np.intp), 0, gx - 1)
+    j = np.clip(np.floor(fy).astype(np.intp), 0, gy - 1)
+    a = fx - i
+    b = fy - j
+    k00 = j * (gx + 1) + i
+    ks = np.stack([k00, k00 + 1, k00 + gx + 1, k00 + gx + 2], axis=1)
+    ws = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], axis=1)
+    return ks, ws
+
+
+def solve_mesh(pixels: np.ndarray, targets: np.ndarray, width: int, height: int,
+               params: WarpParams | None = None) -> MeshWarp:
+    """Minimise E = E_d / N + alpha E_s for control ``pixels`` (N, 2) -> ``targets`` (N, 2).
+
+    The normal equations are accumulated in one matrix product (the data term's
+    x and y blocks share the n x n matrix B^T B) and the 2n x 2n system is solved
+    directly. See the module docstring for the energy and its normalisation.
+    """
+    p = params or WarpParams()
+    gx, gy = (int(g) for g in p.grid)
+    geo = grid_geometry(width, height, gx, gy)
+    n = (gx + 1) * (gy + 1)
+    N = len(pixels)
+    if N < p.min_control_points:
+        return MeshWarp.identity(width, height, (gx, gy), f"too few control points ({N} < {p.min_control_points})", N)
+    ks, ws = bilinear_weights(pixels, geo)
+    B = np.zeros((N, n))
+    np.put_along_axis(B, ks, ws, axis=1)  # the 4 indices of a row are distinct
+    G = np.zeros((2 * n, 2 * n))
+    BtB = (B.T @ B) / N
+    G[:n, :n] = BtB
+    G[n:, n:] = BtB
+    G += p.alpha * geo.sim_normal
+    rhs = np.concatenate((B.T @ targets[:, 0], B.T @ targets[:, 1])) / N
+    if not np.all(np.isfinite(G)) or not np.all(np.isfinite(rhs)):
+        return MeshWarp.identity(width, height, (gx, gy), "non-finite control point targets", N)
+    cond = np.linalg.cond(G)
+    if not cond < p.max_condition:
+        return MeshWarp.identity(width, height, (gx, gy), f"singular warp system (condition {cond:.3g})", N)
+    X = np.linalg.solve(G, rhs)
+    dst = np.stack((X[:n], X[n:]), axis=-1).reshape(gy + 1, gx + 1, 2)
+    r = np.column_stack((B @ X[:n], B @ X[n:])) - targets
+    rms = float(np.sqrt(np.mean(np.einsum("ij,ij->i", r, r))))
+    mesh = MeshWarp(width, height, geo.src, dst, ok=True, residual_px=rms, n_controls=N)
+    if not mesh.quads_convex():
+        return MeshWarp.identity(width, height, (gx, gy), "warped mesh folds (a cell is not a convex quad)", N)
+    return mesh
