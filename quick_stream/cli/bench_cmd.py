@@ -23,7 +23,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     o.add_argument("--no-opencv", action="store_true")
     m = b.add_parser("moving-objects", help="robust vs mean estimators on jointvosf_pairs (people moving)")
     m.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    for q in (s, o, m):
+    q = b.add_parser("quality", help="ours (4 groups x 2 end modes) vs FFmpeg vid.stab/deshake on 7scenes_redkitchen")
+    q.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    q.add_argument("--frames", type=int, default=None)
+    q.add_argument("--no-baselines", action="store_true", help="skip FFmpeg (no install)")
+    for q in (s, o, m, q):
         q.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -39,6 +43,11 @@ def run(args: argparse.Namespace) -> int:
         methods = [(g, e) for g in args.groups.split(",") for e in ("exact", "induced")]
         r = odometry.run(args.source, methods, opencv=not args.no_opencv, frames=args.frames)
         text = odometry.format_table(r)
+    elif args.bench == "quality":
+        from ..bench import quality
+
+        r = quality.run(args.data, args.frames, baselines=not args.no_baselines)
+        text = quality.format_table(r)
     else:
         from ..bench import moving_objects
 

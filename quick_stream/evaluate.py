@@ -1,0 +1,96 @@
+"""The paper's evaluation protocol on a TUM-layout folder (design note section 7).
+
+K random subsequences of L frames (seeded), each stabilized with every group,
+each scored with the quality metrics and the failure rule (a failed sequence
+counts 0 for cropping, distortion and stability); the averages form a table.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .metrics import MetricsAccumulator
+from .motion import MotionParams
+from .path.planner import PlannerParams
+from .render import FramingParams
+from .sources.tum import TumSource
+from .stabilizer import Stabilizer, StabilizerParams
+
+GROUPS = ("se3", "sim3", "sa3", "ga3")
+AVERAGED = ("cropping", "distortion", "stability", "jitter_px", "jitter_deg", "input_jitter_px")
+
+
+@dataclass
+class EvaluateParams:
+    subsequences: int = 20  # K
+    length: int = 30  # L frames
+    seed: int = 0
+    groups: tuple[str, ...] = GROUPS
+    end: str = "smoothed"
+    framing: str = "auto"
+    extra: dict = field(default_factory=dict)
+
+
+def pick_starts(n_frames: int, p: EvaluateParams) -> list[int]:
+    """K start indices of L-frame windows, seeded, sorted (with replacement only if the clip is short)."""
+    if n_frames < p.length:
+        raise ValueError(f"clip has {n_frames} frames, fewer than the subsequence length {p.length}")
+    rng = np.random.default_rng(p.seed)
+    choices = n_frames - p.length + 1
+    return sorted(int(s) for s in rng.choice(choices, p.subsequences, replace=p.subsequences > choices))
+
+
+def stabilize_window(folder: Path, start: int, p: EvaluateParams, group: str) -> dict:
+    src = TumSource(folder, start=start, count=p.length)
+    st = Stabilizer(StabilizerParams(motion=MotionParams(group=group), planner=PlannerParams(group=group, end=p.end),
+                                     framing=FramingParams(mode=p.framing)), keep_inputs=True)
+    acc = MetricsAccumulator(src.fps)
+    t = 0.0
+    flagged = 0
+    for fr in list(src) + [None]:
+        t0 = time.perf_counter()
+        batch = st.finish() if fr is None else st.push(fr)
+        t += time.perf_counter() - t0
+        for sf in batch:
+            acc.add(sf.input_image, sf.image)
+            flagged += bool(sf.flags)
+    m = acc.result().as_dict()
+    m.update(start=start, group=group, ms_per_frame=1e3 * t / p.length, flagged_frames=flagged,
+             bad_frames=len(st.bad_frames))
+    return m
+
+
+def evaluate(folder: Path, p: EvaluateParams | None = None, progress=None) -> dict:
+    p = p or EvaluateParams()
+    folder = Path(folder)
+    starts = pick_starts(len(TumSource(folder)), p)
+    runs: list[dict] = []
+    for group in p.groups:
+        for s in starts:
+            runs.append(stabilize_window(folder, s, p, group))
+            if progress:
+                progress(len(runs), len(starts) * len(p.groups))
+    table = {}
+    for group in p.groups:
+        rs = [r for r in runs if r["group"] == group]
+        row = {k: float(np.mean([r[k] for r in rs])) for k in AVERAGED}
+        row["failures"] = sum(r["failed"] for r in rs)
+        row["ms_per_frame"] = float(np.mean([r["ms_per_frame"] for r in rs]))
+        table[group] = row
+    return {"folder": str(folder), "subsequences": p.subsequences, "length": p.length, "seed": p.seed,
+            "starts": starts, "end": p.end, "framing": p.framing, "table": table, "runs": runs}
+
+
+def markdown(r: dict) -> str:
+    head = ("| group | cropping | distortion | stability | jitter px | jitter deg | input jitter px "
+            "| failures | ms/frame |")
+    lines = [f"{r['folder']}: {r['subsequences']} subsequences x {r['length']} frames (seed {r['seed']}), "
+             f"{r['end']} end-constraints, {r['framing']} framing", "", head, "|" + "---|" * 9]
+    for g, row in r["table"].items():
+        lines.append(f"| {g} | {row['cropping']:.3f} | {row['distortion']:.3f} | {row['stability']:.3f} | "
+                     f"{row['jitter_px']:.3f} | {row['jitter_deg']:.4f} | {row['input_jitter_px']:.3f} | "
+                     f"{row['failures']} | {row['ms_per_frame']:.1f} |")
+    return "\n".join(lines)
