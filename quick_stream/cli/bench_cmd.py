@@ -27,7 +27,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--data", type=Path, default=DEFAULT_DATA)
     q.add_argument("--frames", type=int, default=None)
     q.add_argument("--no-baselines", action="store_true", help="skip FFmpeg (no install)")
-    for q in (s, o, m, q):
+    ps = b.add_parser("path", help="optimal-path solver ms per frame for every group")
+    for q in (s, o, m, q, ps):
         q.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -43,6 +44,11 @@ def run(args: argparse.Namespace) -> int:
         methods = [(g, e) for g in args.groups.split(",") for e in ("exact", "induced")]
         r = odometry.run(args.source, methods, opencv=not args.no_opencv, frames=args.frames)
         text = odometry.format_table(r)
+    elif args.bench == "path":
+        from ..bench import path_speed
+
+        r = path_speed.run()
+        text = path_speed.format_table(r)
     elif args.bench == "quality":
         from ..bench import quality
 
