@@ -40,6 +40,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", choices=ESTIMATORS, default="exact")
     p.add_argument("--keyframe-interval", type=int, default=KeyframeParams.interval)
     p.add_argument("--end", choices=END_MODES, default="smoothed", help="end-constraint mode (default smoothed)")
+    p.add_argument("--lowpass-sigma", type=float, default=PlannerParams.lowpass_sigma,
+                   help="frames; the path keeps the camera velocity low-passed with this Gaussian "
+                        f"(default {PlannerParams.lowpass_sigma:g}; 0 = the paper's full undo)")
     p.add_argument("--framing", choices=("black", "crop", "auto"), default="auto")
     p.add_argument("--crop-zoom", type=float, default=FramingParams.crop_zoom, help="zoom for --framing crop")
     p.add_argument("--output", default="out/stabilized.mp4", help="MP4 file ('' for none)")
@@ -79,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         source = open_source(args.source)
         params = StabilizerParams(
             motion=MotionParams(group=args.group, estimator=args.estimator),
-            planner=PlannerParams(group=args.group, end=args.end,
+            planner=PlannerParams(group=args.group, end=args.end, lowpass_sigma=args.lowpass_sigma,
                                   keyframes=KeyframeParams(interval=args.keyframe_interval,
                                                            min_interval=min(10, args.keyframe_interval - 1))),
             framing=FramingParams(mode=args.framing, crop_zoom=args.crop_zoom),
@@ -146,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     report: dict = {
         "source": args.source,
         "settings": {"group": args.group, "estimator": args.estimator, "keyframe_interval": args.keyframe_interval,
-                     "end": args.end, "framing": args.framing, "crop_zoom": args.crop_zoom},
+                     "end": args.end, "lowpass_sigma": args.lowpass_sigma, "framing": args.framing, "crop_zoom": args.crop_zoom},
         "frames_in": total, "frames_out": len(records),
         "wall_s": wall,
         "fps_wall": len(records) / wall if wall > 0 else 0.0,

@@ -3,13 +3,14 @@
 * ``identity`` (the paper's): no correction at keyframes, so the stabilized path
   passes through the real, jittery keyframe poses and their jitter survives as a
   slow wobble.
-* ``smoothed``: the stabilized pose at each keyframe is a causal alpha-beta
-  (constant-velocity) filter of the keyframe poses in the group: predict
-  S_pred = S_prev exp(L v) over the segment's L frames, innovation
-  e = log(S_pred^-1 K_j), S_j = S_pred exp(alpha e), v += beta e / L. It uses no
-  frame beyond the closing keyframe, so the latency stays one segment, and a
-  steady pan or dolly passes through without lag. The end-constraint is the
-  correction g_s = K_j^-1 S_j (see :mod:`.optimal` for the composition order).
+* ``smoothed``: the stabilized pose at each keyframe is a causal filter of the
+  keyframe poses in the group: predict S_pred = S_prev P over the segment, where
+  P is the segment's intended motion (the planner passes the product of its
+  low-passed camera twists) or, without one, the alpha-beta constant-velocity
+  step exp(L v); innovation e = log(S_pred^-1 K_j), S_j = S_pred exp(alpha e),
+  v += beta e / L. It uses no frame beyond the closing keyframe, so the latency
+  stays one segment, and a steady pan or dolly passes through without lag. The
+  end-constraint is the correction g_s = K_j^-1 S_j (composition order: :mod:`.optimal`).
 """
 from __future__ import annotations
 
@@ -39,8 +40,12 @@ class EndConstraints:
         self._v = np.zeros(self.group.dim)
         self._warm = False
 
-    def at_keyframe(self, keyframe_pose: np.ndarray, frames: int) -> np.ndarray:
-        """The correction required at a keyframe reached ``frames`` frames after the previous one."""
+    def at_keyframe(self, keyframe_pose: np.ndarray, frames: int, motion: np.ndarray | None = None) -> np.ndarray:
+        """The correction required at a keyframe reached ``frames`` frames after the previous one.
+
+        ``motion``, when given, is the segment's intended (low-passed) camera motion; it
+        replaces the constant-velocity prediction exp(L v).
+        """
         K = np.asarray(keyframe_pose, dtype=np.float64)
         if self.mode == "identity" or self._S is None:
             if self._S is None:
@@ -54,7 +59,7 @@ class EndConstraints:
             self._S = K.copy()
             self._warm = True
             return np.eye(4)
-        pred = self._S @ g.exp(frames * self._v)
+        pred = self._S @ (g.exp(frames * self._v) if motion is None else motion)
         e = g.log(g.inverse(pred) @ K)
         self._S = pred @ g.exp(self.alpha * e)
         self._v = self._v + self.beta * e / frames

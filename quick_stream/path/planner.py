@@ -29,8 +29,9 @@ from .optimal import PathParams, solve_segment
 class PlannerParams:
     group: str = "se3"
     end: str = "smoothed"  # end-constraint mode: identity | smoothed
-    alpha: float = 0.4  # smoothed mode: keyframe-pose filter gains
+    alpha: float = 0.1  # smoothed mode: keyframe-pose filter gains
     beta: float = 0.4
+    lowpass_sigma: float = 20.0  # frames; > 0: keep the low-passed camera velocity (0: the paper, undo all)
     keyframes: KeyframeParams = field(default_factory=KeyframeParams)
     path: PathParams = field(default_factory=PathParams)
 
@@ -81,6 +82,7 @@ class PathPlanner:
         self._seqs: list[int] = []  # frames after the start, in order
         self._zbar: list[np.ndarray] = []
         self._motions: list[np.ndarray] = []
+        self._history: list[np.ndarray] = []  # camera-motion twists of recent frames (for the low-pass)
 
     @property
     def open_frames(self) -> int:
@@ -99,6 +101,7 @@ class PathPlanner:
         if restart:
             self._C0 = np.eye(4)
             self.ends.reset(self._pose)
+            self._history = []
 
     def push(self, motion: MotionEstimate) -> list[Correction]:
         """Add the motion from frame ``motion.seq`` to ``motion.seq_next``; returns released corrections."""
@@ -115,6 +118,8 @@ class PathPlanner:
         self._seqs.append(motion.seq_next)
         self._zbar.append(zb)
         self._motions.append(motion.matrix)
+        if self.params.lowpass_sigma > 0:
+            self._history.append(motion.twist if motion.twist is not None else self.group.log(motion.matrix))
         self._pose = self._pose @ motion.matrix
         why = self.detector.push(motion.matrix)
         return self._close(why) if why else []
@@ -125,10 +130,10 @@ class PathPlanner:
 
     def _close(self, closed_by: str) -> list[Correction]:
         seg = len(self.segments)
-        C1 = self.ends.at_keyframe(self._pose, len(self._seqs))
+        zbar, smooth = self._targets()
+        C1 = self.ends.at_keyframe(self._pose, len(self._seqs), smooth)
         t0 = time.perf_counter()
-        sol = solve_segment(self.group, np.asarray(self._motions), self._C0, C1, self.params.path,
-                            zbar=np.asarray(self._zbar))
+        sol = solve_segment(self.group, np.asarray(self._motions), self._C0, C1, self.params.path, zbar=zbar)
         ms = (time.perf_counter() - t0) * 1e3
         info = SegmentInfo(seg, self._start, self._seqs[-1], closed_by, sol.converged, sol.iterations,
                            sol.residual, sol.cost, ms, sol.reason)
@@ -146,3 +151,30 @@ class PathPlanner:
         self._begin(end_seq, restart=False)
         self._C0 = next_C0
         return out
+
+    def _targets(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """zeta_bar of the open segment, plus the low-passed camera velocity when lowpass_sigma > 0.
+
+        Beyond the paper: its zeta_bar undoes each frame's whole motion, so the
+        stabilized camera moves at constant velocity between keyframes and a
+        camera whose intended motion curves gets a kink at every keyframe. Adding
+        back s_t, a Gaussian low-pass of the camera's own twists (frames up to the
+        closing keyframe only, the window truncated there), keeps the slow
+        motion's shape: the optimum becomes zeta = zeta_bar + s + c.
+        """
+        zbar = np.asarray(self._zbar)
+        sigma = self.params.lowpass_sigma
+        if sigma <= 0:
+            return zbar, None
+        n = len(zbar)
+        self._history = self._history[-(n + int(np.ceil(3 * sigma))):]
+        H = np.asarray(self._history)
+        idx = np.arange(len(H))
+        out = zbar.copy()
+        for i, t in enumerate(range(len(H) - n, len(H))):
+            w = np.exp(-0.5 * ((idx - t) / sigma) ** 2)
+            out[i] = zbar[i] + (w @ H) / w.sum()
+        smooth = np.eye(4)
+        for E in self.group.exp(out - zbar):
+            smooth = smooth @ E
+        return out, smooth
