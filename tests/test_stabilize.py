@@ -65,12 +65,15 @@ def test_stabilize_command_writes_video_report_and_plot(tmp_path, capsys):
                "--png", str(out / "png"), "--quiet"])
     assert rc == 0
     text = capsys.readouterr().out
-    assert "frames/s" in text and "shake" in text
+    assert "frames/s" in text and "shake" in text and "residual jitter" in text
     report = json.loads((out / "r.json").read_text())
     assert report["frames_out"] == 70 and len(report["frames"]) == 70
     assert {"flow", "motion", "path", "warp", "render"} <= set(report["timing_ms"])
     assert report["segments"] and all(s["converged"] for s in report["segments"])
     assert np.asarray(report["frames"][10]["correction"]).shape == (4, 4)
+    m = report["metrics"]
+    assert not m["failed"] and m["cropping"] > 0.8 and m["distortion"] > 0.9
+    assert m["jitter_px"] < m["input_jitter_px"]
     s = report["shake"]
     assert s["stabilized"]["rot_deg"] < 0.3 * s["input"]["rot_deg"]
     cap = cv2.VideoCapture(str(out / "s.mp4"))

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..evaluation.shake import shake
 from ..lie import GROUPS
+from ..metrics import MetricsAccumulator
 from ..motion import ESTIMATORS, MotionParams, integrate_path
 from ..path.constraints import END_MODES
 from ..path.keyframes import KeyframeParams
@@ -49,6 +50,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--png", default=None, metavar="DIR", help="also write every stabilized frame as PNG here")
     p.add_argument("--report", default="out/report.json", help="JSON report file ('' for none)")
     p.add_argument("--plot", default="out/path.png", help="PNG plot of the camera path ('' for none)")
+    p.add_argument("--no-metrics", action="store_true",
+                   help="skip the quality metrics (cropping, distortion, stability, jitter; ~65 ms per frame)")
     p.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -88,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
             framing=FramingParams(mode=args.framing, crop_zoom=args.crop_zoom),
         )
         params.planner.keyframes.validate()
-        stab = Stabilizer(params)
+        stab = Stabilizer(params, keep_inputs=not args.no_metrics)
     except (SourceError, ValueError) as e:
         print(f"quick-stream stabilize: {e}", file=sys.stderr)
         return 2
@@ -101,10 +104,18 @@ def run(args: argparse.Namespace) -> int:
     records: list[dict] = []
     out_ms: list[float] = []
     progress = Progress(total, not args.quiet)
+    metrics = None if args.no_metrics else MetricsAccumulator(source.fps)
+    metrics_ms = 0.0
     true_poses: dict[int, np.ndarray] = {}
 
     def emit(batch: list[StabilizedFrame]) -> None:
-        nonlocal writer
+        nonlocal writer, metrics_ms
+        if metrics is not None:
+            t0 = time.perf_counter()
+            for sf in batch:
+                metrics.add(sf.input_image, sf.image)
+                sf.input_image = None
+            metrics_ms += (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         for sf in batch:
             if args.output:
@@ -157,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
         "timing_ms": timing,
         "io_ms": {"read": float(np.mean(read_ms)) if read_ms else 0.0,
                   "write_per_segment": float(np.mean(out_ms)) if out_ms else 0.0},
+        "metrics": metrics.result().as_dict() if metrics is not None and records else None,
+        "metrics_ms_per_frame": metrics_ms / max(len(records), 1),
         "segments": [s.__dict__ for s in stab.planner.segments],
         "bad_frames": stab.bad_frames,
         "flagged_frames": [{"seq": r["seq"], "flags": r["flags"]} for r in records if r["flags"]],
@@ -187,6 +200,12 @@ def run(args: argparse.Namespace) -> int:
           f"({args.group}, {args.end} end-constraints, {args.framing} framing) in {wall:.1f} s: "
           f"{report['fps_wall']:.1f} frames/s overall, {report['fps_compute']:.1f} frames/s without I/O")
     print("ms per frame by stage: " + ", ".join(f"{k} {s['mean']:.2f}" for k, s in timing.items()))
+    if report["metrics"]:
+        m = report["metrics"]
+        print(f"quality: cropping {m['cropping']:.3f}, distortion {m['distortion']:.3f}, stability "
+              f"{m['stability']:.3f}, residual jitter {m['jitter_px']:.2f} px / {m['jitter_deg']:.3f} deg "
+              f"(input {m['input_jitter_px']:.2f} px / {m['input_jitter_deg']:.3f} deg)"
+              + (f"; FAILED: {m['failure_reason']}" if m["failed"] else ""))
     print(f"segments: {len(report['segments'])}, bad frames: {len(stab.bad_frames)}, "
           f"flagged frames: {len(report['flagged_frames'])}")
     if "shake" in report:
