@@ -4,7 +4,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from quick_stream.cli import main
 from quick_stream.sources.synthetic import SyntheticSource

@@ -1,7 +1,6 @@
 """`quick-stream evaluate` and the quality benchmark plumbing on small inputs."""
 import json
 
-import numpy as np
 import pytest
 
 from quick_stream.cli import main

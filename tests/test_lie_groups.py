@@ -202,7 +202,7 @@ def test_ad_is_derivative_of_Ad(G: LieGroup, rng: np.random.Generator) -> None:
 
 # ----------------------------------------------------------------------------- Jacobians
 def _fd_jacobians(G: LieGroup, xi: np.ndarray, h: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    g, gi = G.exp(xi), G.inverse(G.exp(xi))
+    gi = G.inverse(G.exp(xi))
     E = h * np.eye(G.dim)
     gp, gm = G.exp(xi + E), G.exp(xi - E)  # batched: row k perturbs coordinate k
     Jr = (G.log(gi @ gp) - G.log(gi @ gm)).T / (2 * h)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from quick_stream.bench.ffmpeg_baselines import find_ffmpeg, run_baselines
+from quick_stream.bench.ffmpeg_baselines import ensure_ffmpeg, run_baselines
 from quick_stream.metrics import MetricParams, evaluate_sequence
 from quick_stream.metrics_jitter import low_frequency_ratio, trajectory_jitter
 
@@ -159,13 +159,11 @@ def test_params_validate_and_describe():
         MetricParams(min_inliers=2).validate()
 
 
-FFMPEG = find_ffmpeg()
-
-
-@pytest.mark.skipif(FFMPEG is None, reason="ffmpeg with vidstab/deshake not installed (the benchmark installs it)")
 def test_ffmpeg_baselines_frame_count_and_shape(tmp_path):
+    # like the benchmark, installs Debian's ffmpeg (with libvidstab) when it is missing
+    ffmpeg = ensure_ffmpeg()
     frames = sequence(20, shake_px=3.0, shake_deg=0.5)
-    out = run_baselines(frames, fps=30, workdir=tmp_path, ffmpeg=FFMPEG)
+    out = run_baselines(frames, fps=30, workdir=tmp_path, ffmpeg=ffmpeg)
     assert set(out) == {"vidstab", "deshake"}
     for name, fr in out.items():
         assert len(fr) == 20, name

@@ -3,7 +3,6 @@ import json
 
 import cv2
 import numpy as np
-import pytest
 
 from quick_stream.cli import main
 from quick_stream.frame import BadFrame
