@@ -87,3 +87,18 @@ def test_stabilize_command_writes_video_report_and_plot(tmp_path, capsys):
 def test_stabilize_rejects_bad_settings(capsys):
     assert main(["stabilize", "--source", "synthetic", "--keyframe-interval", "1", "--quiet"]) == 2
     assert "interval" in capsys.readouterr().err
+    assert main(["stabilize", "--source", "synthetic", "--path-weights", "1,2", "--quiet"]) == 2
+    assert "6 positive numbers" in capsys.readouterr().err
+
+
+def test_path_weights_reach_the_solver(tmp_path, capsys):
+    args = ["stabilize", "--source", "synthetic:width=160,height=120,frames=35", "--output", "", "--plot", "",
+            "--no-metrics", "--quiet"]
+    reports = []
+    for w in ("1,1,1,1,1,1", "1,1,1,50,50,50"):
+        rep = tmp_path / f"r{len(reports)}.json"
+        assert main(args + ["--path-weights", w, "--report", str(rep)]) == 0
+        reports.append(json.loads(rep.read_text()))
+    a = np.array([f["correction"] for f in reports[0]["frames"]])
+    b = np.array([f["correction"] for f in reports[1]["frames"]])
+    assert np.abs(a - b).max() > 1e-7  # weights act at second order here; the report keeps 1e-9

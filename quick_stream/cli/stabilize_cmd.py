@@ -25,6 +25,7 @@ from ..metrics import MetricsAccumulator
 from ..motion import ESTIMATORS, MotionParams, integrate_path
 from ..path.constraints import END_MODES
 from ..path.keyframes import KeyframeParams
+from ..path.optimal import PathParams
 from ..path.planner import PlannerParams
 from ..plot import path_components, plot_paths
 from ..render import FramingParams
@@ -44,6 +45,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lowpass-sigma", type=float, default=PlannerParams.lowpass_sigma,
                    help="frames; the path keeps the camera velocity low-passed with this Gaussian "
                         f"(default {PlannerParams.lowpass_sigma:g}; 0 = the paper's full undo)")
+    p.add_argument("--path-weights", default=None, metavar="W1,W2,...",
+                   help="diagonal of the path cost's weight W, one per twist component (default identity)")
     p.add_argument("--framing", choices=("black", "crop", "auto"), default="auto")
     p.add_argument("--crop-zoom", type=float, default=FramingParams.crop_zoom, help="zoom for --framing crop")
     p.add_argument("--output", default="out/stabilized.mp4", help="MP4 file ('' for none)")
@@ -82,15 +85,18 @@ class Progress:
 def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(max(1, args.threads))
     try:
+        weights = tuple(float(w) for w in args.path_weights.split(",")) if args.path_weights else None
         source = open_source(args.source)
         params = StabilizerParams(
             motion=MotionParams(group=args.group, estimator=args.estimator),
             planner=PlannerParams(group=args.group, end=args.end, lowpass_sigma=args.lowpass_sigma,
+                                  path=PathParams(weights=weights),
                                   keyframes=KeyframeParams(interval=args.keyframe_interval,
                                                            min_interval=min(10, args.keyframe_interval - 1))),
             framing=FramingParams(mode=args.framing, crop_zoom=args.crop_zoom),
         )
         params.planner.keyframes.validate()
+        params.planner.path.weight_vector(GROUPS[args.group].dim)
         stab = Stabilizer(params, keep_inputs=not args.no_metrics)
     except (SourceError, ValueError) as e:
         print(f"quick-stream stabilize: {e}", file=sys.stderr)
