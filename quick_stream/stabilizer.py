@@ -62,7 +62,10 @@ class StabilizedFrame:
 class Stabilizer:
     """One stream's stabilizer (not thread-safe)."""
 
-    def __init__(self, params: StabilizerParams | None = None, keep_inputs: bool = False) -> None:
+    def __init__(self, params: StabilizerParams | None = None, keep_inputs: bool = False,
+                 keep_motions: bool = False) -> None:
+        """``keep_inputs``: attach each input image to its output (metrics); ``keep_motions``:
+        record every motion estimate (reports, plots). Both off, memory stays bounded by one segment."""
         self.params = p = params or StabilizerParams()
         p.framing.validate()
         self.motion = MotionPipeline(p.flow, p.motion)
@@ -70,6 +73,7 @@ class Stabilizer:
         self.zoom = ZoomSmoother(p.framing)
         self.timer = StageTimer()
         self.keep_inputs = keep_inputs
+        self.keep_motions = keep_motions
         self.bad_frames: list[dict] = []
         self.motions: list = []
         self._frames: dict[int, RGBDFrame] = {}
@@ -91,7 +95,8 @@ class Stabilizer:
         m, flow_ms, motion_ms, _ = out
         self.timer.add("flow", flow_ms)
         self.timer.add("motion", motion_ms)
-        self.motions.append(m)
+        if self.keep_motions:
+            self.motions.append(m)
         t0 = time.perf_counter()
         released = self.planner.push(m)
         self.timer.add("path", (time.perf_counter() - t0) * 1e3)

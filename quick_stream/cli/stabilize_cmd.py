@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         )
         params.planner.keyframes.validate()
         params.planner.path.weight_vector(GROUPS[args.group].dim)
-        stab = Stabilizer(params, keep_inputs=not args.no_metrics)
+        stab = Stabilizer(params, keep_inputs=not args.no_metrics, keep_motions=True)
     except (SourceError, ValueError) as e:
         print(f"quick-stream stabilize: {e}", file=sys.stderr)
         return 2
