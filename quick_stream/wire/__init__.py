@@ -1,0 +1,35 @@
+"""Versioned msgpack wire format of the quick-stream services (docs/wire-format.md).
+
+>>> data = encode_frame(frame, "cam0", color="jpeg", depth="zstd")
+>>> msg = decode(data)            # Decoded(type="frame", obj=RGBDFrame, stream, seq, extra)
+
+Every decoding failure is a :class:`WireError` (a ``ValueError``) naming the problem and,
+where known, the stream, seq and field.
+"""
+from .codec import (
+    DEFAULT_MAX_BYTES,
+    FORMAT_VERSION,
+    MESSAGE_TYPES,
+    WireError,
+    dequantize_depth,
+    quantize_depth,
+)
+from .messages import (
+    Decoded,
+    StabilizedImage,
+    Stats,
+    decode,
+    encode,
+    encode_correction,
+    encode_flow,
+    encode_frame,
+    encode_motion,
+    encode_stabilized,
+    encode_stats,
+)
+
+__all__ = [
+    "DEFAULT_MAX_BYTES", "FORMAT_VERSION", "MESSAGE_TYPES", "Decoded", "StabilizedImage", "Stats",
+    "WireError", "decode", "dequantize_depth", "encode", "encode_correction", "encode_flow",
+    "encode_frame", "encode_motion", "encode_stabilized", "encode_stats", "quantize_depth",
+]

@@ -1,0 +1,297 @@
+"""Encode/decode of each wire message type (format version 1; docs/wire-format.md).
+
+``encode_<type>(obj, stream, ...) -> bytes`` per type, :func:`encode` dispatching on
+the object's class, and :func:`decode` returning a :class:`Decoded` (type, object,
+envelope, wire-only extras). :func:`decode` raises only :class:`~.codec.WireError`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..frame import FrameError, Intrinsics, RGBDFrame
+from ..motion import MotionEstimate
+from ..path.planner import Correction
+from ..sceneflow import SceneFlowResult
+from .codec import (
+    DEFAULT_MAX_BYTES,
+    FORMAT_VERSION,
+    Reader,
+    WireError,
+    decode_depth,
+    decode_image,
+    encode_array,
+    encode_depth,
+    encode_image,
+    float_list,
+    pack,
+    unpack,
+)
+
+GROUP_DIMS = {"se3": 6, "sim3": 7, "sa3": 11, "ga3": 12}
+MAX_FLOW_POINTS = 10_000_000
+
+
+@dataclass
+class StabilizedImage:
+    """One rendered output frame: BGR uint8 image, the framing zoom used and any flags."""
+
+    seq: int
+    timestamp_ns: int
+    image: np.ndarray
+    zoom: float = 1.0
+    flags: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Stats:
+    """Per-service health/stats: flat dict of numbers, strings, bools or nil."""
+
+    service: str
+    values: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Decoded:
+    """A decoded message: ``type``, the object, its envelope and wire-only ``extra`` fields.
+
+    ``extra`` holds what the object has no attribute for: ``zoom`` (correction),
+    ``color_encoding``/``depth_encoding``/``depth_scale`` (frame), ``encoding`` (stabilized).
+    """
+
+    type: str
+    obj: Any
+    stream: str
+    seq: int
+    version: int = FORMAT_VERSION
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# --- helpers ------------------------------------------------------------------------------------
+
+def _intrinsics(k: Intrinsics) -> dict[str, Any]:
+    return {"fx": float(k.fx), "fy": float(k.fy), "cx": float(k.cx), "cy": float(k.cy),
+            "width": int(k.width), "height": int(k.height)}
+
+
+def _read_intrinsics(r: Reader, name: str) -> Intrinsics:
+    m = r.map(name)
+    k = Intrinsics(m.float("fx", positive=True), m.float("fy", positive=True), m.float("cx"), m.float("cy"),
+                   m.int("width", min=1), m.int("height", min=1))
+    try:
+        k.validate()
+    except FrameError as e:
+        raise r.error(name, str(e)) from None
+    return k
+
+
+def _str(name: str, s: Any) -> str:
+    if not isinstance(s, str):
+        raise WireError(f"expected str, got {type(s).__name__}", field=name)
+    return s
+
+
+# --- frame --------------------------------------------------------------------------------------
+
+def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality: int = 90,
+                 depth: str = "raw", depth_scale: float = 1000.0) -> bytes:
+    """An RGBDFrame as a ``frame`` message; colour ``jpeg``/``raw``, depth ``raw``/``zstd``."""
+    f = {
+        "t_ns": int(frame.timestamp_ns),
+        "intrinsics": _intrinsics(frame.intrinsics),
+        "color": encode_image(frame.color, color, quality),
+        "depth": encode_depth(frame.depth, depth, depth_scale),
+        "pose": None if frame.pose is None else float_list("pose", frame.pose, 16),
+        "origin": _str("origin", frame.origin),
+    }
+    return pack(f, "frame", stream, frame.seq)
+
+
+def _decode_frame(r: Reader) -> Decoded:
+    k = _read_intrinsics(r, "intrinsics")
+    t_ns = r.int("t_ns")
+    color, cenc = decode_image(r, "color")
+    depth, denc, scale = decode_depth(r, "depth")
+    if color.shape[:2] != (k.height, k.width):
+        raise r.error("color", f"image is {color.shape[1]}x{color.shape[0]} but intrinsics say {k.width}x{k.height}")
+    if depth.shape != (k.height, k.width):
+        raise r.error("depth", f"depth is {depth.shape[1]}x{depth.shape[0]} but intrinsics say {k.width}x{k.height}")
+    pose = r.floats("pose", 16, optional=True)
+    frame = RGBDFrame(color, depth, k, t_ns, r.seq, None if pose is None else pose.reshape(4, 4),
+                      r.str("origin", optional=True) or "")
+    return Decoded("frame", frame, r.stream, r.seq,
+                   extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale})
+
+
+# --- flow ---------------------------------------------------------------------------------------
+
+_FLOW_ARRAYS = (("points", 3), ("displacements", 3), ("weights", None), ("pixels", 2), ("pixels_next", 2))
+
+
+def encode_flow(flow: SceneFlowResult, stream: str) -> bytes:
+    """A SceneFlowResult as a ``flow`` message (arrays float32 on the wire)."""
+    f: dict[str, Any] = {"seq_next": int(flow.seq_next)}
+    for name, _ in _FLOW_ARRAYS:
+        f[name] = encode_array(getattr(flow, name), "<f4")
+    f["intrinsics"] = _intrinsics(flow.intrinsics)
+    f["intrinsics_next"] = _intrinsics(flow.intrinsics_next)
+    f["counts"] = {str(k): int(v) for k, v in flow.counts.items()}
+    f["problem"] = _str("problem", flow.problem)
+    return pack(f, "flow", stream, flow.seq)
+
+
+def _decode_flow(r: Reader) -> Decoded:
+    arrays = {}
+    n = None
+    for name, cols in _FLOW_ARRAYS:
+        a = r.array(name, "<f4", 1 if cols is None else 2, () if cols is None else (cols,),
+                    finite=True, max_elems=3 * MAX_FLOW_POINTS)
+        if n is None:
+            n = a.shape[0]
+        elif a.shape[0] != n:
+            raise r.error(name, f"{a.shape[0]} rows but points has {n}")
+        arrays[name] = a.astype(np.float64)
+    counts_r = r.map("counts")
+    counts = {}
+    for key in counts_r.d:
+        counts[key] = counts_r.int(key)
+    flow = SceneFlowResult(
+        r.seq, r.int("seq_next", min=0), arrays["points"], arrays["displacements"], arrays["weights"],
+        arrays["pixels"], arrays["pixels_next"], _read_intrinsics(r, "intrinsics"),
+        _read_intrinsics(r, "intrinsics_next"), counts, r.str("problem"),
+    )
+    return Decoded("flow", flow, r.stream, r.seq)
+
+
+# --- motion -------------------------------------------------------------------------------------
+
+def encode_motion(m: MotionEstimate, stream: str) -> bytes:
+    """A MotionEstimate as a ``motion`` message (matrix 16 float64 row-major; rms_px may be NaN)."""
+    dim = GROUP_DIMS.get(m.group)
+    if dim is None:
+        raise WireError(f"unknown group {m.group!r}", field="group", stream=stream, seq=m.seq)
+    f = {
+        "seq_next": int(m.seq_next), "group": m.group, "estimator": _str("estimator", m.estimator),
+        "matrix": float_list("matrix", m.matrix, 16), "twist": float_list("twist", m.twist, dim),
+        "zeta_bar": None if m.zeta_bar is None else float_list("zeta_bar", m.zeta_bar, dim),
+        "valid": bool(m.valid), "reason": _str("reason", m.reason), "n_points": int(m.n_points),
+        "inlier_ratio": float(m.inlier_ratio), "rms_px": float(m.rms_px),
+    }
+    return pack(f, "motion", stream, m.seq)
+
+
+def _decode_motion(r: Reader) -> Decoded:
+    group = r.str("group")
+    dim = GROUP_DIMS.get(group)
+    if dim is None:
+        raise r.error("group", f"unknown group {group!r} (known: {', '.join(GROUP_DIMS)})")
+    zeta = r.floats("zeta_bar", dim, optional=True)
+    m = MotionEstimate(
+        r.seq, r.int("seq_next", min=0), group, r.str("estimator"), r.floats("matrix", 16).reshape(4, 4),
+        r.floats("twist", dim), r.bool("valid"), r.str("reason"), r.int("n_points", min=0),
+        r.float("inlier_ratio"), r.float("rms_px", finite=False), zeta,
+    )
+    return Decoded("motion", m, r.stream, r.seq)
+
+
+# --- correction ---------------------------------------------------------------------------------
+
+def encode_correction(c: Correction, stream: str, zoom: float | None = None) -> bytes:
+    """A Correction as a ``correction`` message, with the optional framing ``zoom``."""
+    if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
+        raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
+    f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
+         "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom)}
+    return pack(f, "correction", stream, c.seq)
+
+
+def _decode_correction(r: Reader) -> Decoded:
+    c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
+                   r.bool("valid"), r.str("reason"))
+    return Decoded("correction", c, r.stream, r.seq, extra={"zoom": r.float("zoom", positive=True, optional=True)})
+
+
+# --- stabilized ---------------------------------------------------------------------------------
+
+def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", quality: int = 90) -> bytes:
+    """A StabilizedImage as a ``stabilized`` message (image ``jpeg``/``raw``)."""
+    if not (np.isfinite(s.zoom) and s.zoom > 0):
+        raise WireError(f"zoom must be finite and > 0, got {s.zoom}", field="zoom", stream=stream, seq=s.seq)
+    f = {"t_ns": int(s.timestamp_ns), "image": encode_image(s.image, color, quality), "zoom": float(s.zoom),
+         "flags": [_str("flags", x) for x in s.flags]}
+    return pack(f, "stabilized", stream, s.seq)
+
+
+def _decode_stabilized(r: Reader) -> Decoded:
+    img, enc = decode_image(r, "image")
+    flags = r.list("flags")
+    if not all(isinstance(x, str) for x in flags):
+        raise r.error("flags", "expected an array of str")
+    s = StabilizedImage(r.seq, r.int("t_ns"), img, r.float("zoom", positive=True), flags)
+    return Decoded("stabilized", s, r.stream, r.seq, extra={"encoding": enc})
+
+
+# --- stats --------------------------------------------------------------------------------------
+
+_STAT_TYPES = (int, float, str, bool, type(None))
+
+
+def encode_stats(s: Stats, stream: str, seq: int) -> bytes:
+    """A Stats as a ``stats`` message; ``seq`` counts this service's stats messages."""
+    vals = {}
+    for k, v in s.values.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        if not isinstance(k, str) or not isinstance(v, _STAT_TYPES):
+            raise WireError(f"stats values must be str -> number/str/bool/nil, got {k!r}: {type(v).__name__}",
+                            field=f"values.{k}", stream=stream, seq=seq)
+        vals[k] = v
+    return pack({"service": _str("service", s.service), "values": vals}, "stats", stream, seq)
+
+
+def _decode_stats(r: Reader) -> Decoded:
+    vr = r.map("values")
+    for k, v in vr.d.items():
+        if not isinstance(k, str) or not isinstance(v, _STAT_TYPES):
+            raise vr.error(str(k), f"expected number/str/bool/nil, got {type(v).__name__}")
+    return Decoded("stats", Stats(r.str("service"), dict(vr.d)), r.stream, r.seq)
+
+
+# --- dispatch -----------------------------------------------------------------------------------
+
+_DECODERS = {
+    "frame": _decode_frame, "flow": _decode_flow, "motion": _decode_motion,
+    "correction": _decode_correction, "stabilized": _decode_stabilized, "stats": _decode_stats,
+}
+
+
+def encode(obj: Any, stream: str, **kw: Any) -> bytes:
+    """Encode any message object (type from its class); ``kw`` goes to the per-type encoder."""
+    if isinstance(obj, RGBDFrame):
+        return encode_frame(obj, stream, **kw)
+    if isinstance(obj, SceneFlowResult):
+        return encode_flow(obj, stream, **kw)
+    if isinstance(obj, MotionEstimate):
+        return encode_motion(obj, stream, **kw)
+    if isinstance(obj, Correction):
+        return encode_correction(obj, stream, **kw)
+    if isinstance(obj, StabilizedImage):
+        return encode_stabilized(obj, stream, **kw)
+    if isinstance(obj, Stats):
+        return encode_stats(obj, stream, **kw)
+    raise WireError(f"no wire message type for {type(obj).__name__}")
+
+
+def decode(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Decoded:
+    """Decode one message; raises :class:`WireError` (and nothing else) for any malformed input."""
+    r = None
+    try:
+        r = unpack(data, max_bytes)
+        return _DECODERS[r.type](r)
+    except WireError:
+        raise
+    except Exception as e:  # noqa: BLE001 - safety net: no other exception type may escape
+        raise WireError(f"malformed message: {type(e).__name__}: {e}",
+                        stream=getattr(r, "stream", None), seq=getattr(r, "seq", None)) from None
