@@ -1,0 +1,74 @@
+"""Key expressions and the zenoh flag set; a router and two peers exchange a wire message on loopback."""
+import argparse
+import socket
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from quick_stream import keys
+from quick_stream.motion import MotionEstimate
+from quick_stream.transport import add_zenoh_args, config_from_args
+from quick_stream.wire import decode, encode_motion
+
+
+def test_keys_build_parse_and_reject():
+    assert keys.key("cam0", "motion") == "quick/@v1/cam0/motion"
+    assert keys.parse("quick/@v1/cam-2/frame") == ("cam-2", "frame")
+    assert keys.all_streams("stats") == "quick/@v1/*/stats"
+    for bad in ("", "a/b", "cam*", "x" * 65, "c@m"):
+        with pytest.raises(ValueError, match="stream id"):
+            keys.key(bad, "frame")
+    with pytest.raises(ValueError, match="stage"):
+        keys.key("cam0", "nosuch")
+    with pytest.raises(ValueError, match="not a quick-stream key"):
+        keys.parse("other/@v1/cam0/frame")
+
+
+def parse(argv):
+    p = argparse.ArgumentParser()
+    add_zenoh_args(p)
+    return p.parse_args(argv)
+
+
+def test_bad_flags_are_named():
+    with pytest.raises(ValueError, match="--cfg"):
+        config_from_args(parse(["--cfg", "novalue"]))
+    with pytest.raises(ValueError, match="--config"):
+        config_from_args(parse(["-c", "/does/not/exist.json5"]))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_router_and_peers_exchange_a_motion_message_on_loopback():
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    router = zenoh.open(config_from_args(parse(["-m", "router", "-l", ep, "--no-multicast-scouting"])))
+    sessions = [router]
+    try:
+        pub_s = zenoh.open(config_from_args(parse(["-e", ep, "--no-multicast-scouting"])))
+        sub_s = zenoh.open(config_from_args(parse(["-e", ep, "--no-multicast-scouting"])))
+        sessions += [pub_s, sub_s]
+        sub = sub_s.declare_subscriber(keys.all_streams("motion"), zenoh.handlers.RingChannel(16))
+        other = sub_s.declare_subscriber(keys.key("cam1", "motion"), zenoh.handlers.RingChannel(16))
+        pub = pub_s.declare_publisher(keys.key("cam0", "motion"))
+        m = MotionEstimate(7, 8, "se3", "exact", np.eye(4), np.zeros(6), True, zeta_bar=np.zeros(6))
+        got = None
+        deadline = time.time() + 10
+        while got is None and time.time() < deadline:
+            pub.put(encode_motion(m, "cam0"))
+            time.sleep(0.05)
+            got = sub.try_recv()
+        assert got is not None, "no message through the router within 10 s"
+        d = decode(got.payload.to_bytes())
+        assert (d.type, d.stream, d.seq) == ("motion", "cam0", 7)
+        assert keys.parse(str(got.key_expr)) == ("cam0", "motion")
+        assert other.try_recv() is None  # another stream's subscriber sees nothing
+    finally:
+        for s in reversed(sessions):
+            s.close()
