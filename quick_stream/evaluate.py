@@ -7,11 +7,13 @@ counts 0 for cropping, distortion and stability); the averages form a table.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
+from .frame import BadFrame, RGBDFrame
 from .metrics import MetricsAccumulator
 from .motion import MotionParams
 from .path.planner import PlannerParams
@@ -31,7 +33,6 @@ class EvaluateParams:
     groups: tuple[str, ...] = GROUPS
     end: str = "smoothed"
     framing: str = "auto"
-    extra: dict = field(default_factory=dict)
 
 
 def pick_starts(n_frames: int, p: EvaluateParams) -> list[int]:
@@ -43,23 +44,44 @@ def pick_starts(n_frames: int, p: EvaluateParams) -> list[int]:
     return sorted(int(s) for s in rng.choice(choices, p.subsequences, replace=p.subsequences > choices))
 
 
-def stabilize_window(folder: Path, start: int, p: EvaluateParams, group: str) -> dict:
-    src = TumSource(folder, start=start, count=p.length)
-    st = Stabilizer(StabilizerParams(motion=MotionParams(group=group), planner=PlannerParams(group=group, end=p.end),
-                                     framing=FramingParams(mode=p.framing)), keep_inputs=True)
-    acc = MetricsAccumulator(src.fps)
-    t = 0.0
-    flagged = 0
-    for fr in list(src) + [None]:
-        t0 = time.perf_counter()
-        batch = st.finish() if fr is None else st.push(fr)
-        t += time.perf_counter() - t0
+def stabilize_and_score(source: Iterable[RGBDFrame | BadFrame], params: StabilizerParams, fps: float) -> dict:
+    """Stabilize ``source`` (read lazily) and score the output against its input.
+
+    Returns the metrics plus our compute time per frame (stabilizer only, not the
+    metrics), flagged frames, bad frames and segments.
+    """
+    st = Stabilizer(params, keep_inputs=True)
+    acc = MetricsAccumulator(fps)
+    t, frames, flagged = 0.0, 0, 0
+
+    def score(batch) -> None:
+        nonlocal flagged
         for sf in batch:
             acc.add(sf.input_image, sf.image)
             flagged += bool(sf.flags)
+
+    for fr in source:
+        frames += 1
+        t0 = time.perf_counter()
+        batch = st.push(fr)
+        t += time.perf_counter() - t0
+        score(batch)
+    t0 = time.perf_counter()
+    batch = st.finish()
+    t += time.perf_counter() - t0
+    score(batch)
     m = acc.result().as_dict()
-    m.update(start=start, group=group, ms_per_frame=1e3 * t / p.length, flagged_frames=flagged,
-             bad_frames=len(st.bad_frames))
+    m.update(ms_per_frame=1e3 * t / max(frames, 1), flagged_frames=flagged, bad_frames=len(st.bad_frames),
+             segments=len(st.planner.segments))
+    return m
+
+
+def stabilize_window(folder: Path, start: int, p: EvaluateParams, group: str) -> dict:
+    src = TumSource(folder, start=start, count=p.length)
+    params = StabilizerParams(motion=MotionParams(group=group), planner=PlannerParams(group=group, end=p.end),
+                              framing=FramingParams(mode=p.framing))
+    m = stabilize_and_score(src, params, src.fps)
+    m.update(start=start, group=group)
     return m
 
 

@@ -7,17 +7,16 @@ Ours runs with ``auto`` framing (border-free), vid.stab and deshake as
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import cv2
 
-from ..metrics import MetricsAccumulator
+from .. import evaluate
 from ..motion import MotionParams
 from ..path.planner import PlannerParams
 from ..render import FramingParams
 from ..sources.tum import TumSource
-from ..stabilizer import Stabilizer, StabilizerParams
+from ..stabilizer import StabilizerParams
 from . import ffmpeg_baselines
 
 GROUPS = ("se3", "sim3", "sa3", "ga3")
@@ -27,31 +26,12 @@ COLUMNS = ("cropping", "distortion", "stability", "jitter_px", "jitter_deg", "fa
 
 def stabilize_and_score(folder: Path, group: str, end: str, frames: int | None, framing: str = "auto",
                         lowpass_sigma: float = PlannerParams.lowpass_sigma) -> dict:
-    """Stabilize a TUM clip and score it; returns the metrics plus our per-frame compute time."""
+    """Stabilize a TUM clip with these settings and score it (:func:`quick_stream.evaluate.stabilize_and_score`)."""
     src = TumSource(folder, count=frames)
-    st = Stabilizer(StabilizerParams(motion=MotionParams(group=group),
-                                     planner=PlannerParams(group=group, end=end, lowpass_sigma=lowpass_sigma),
-                                     framing=FramingParams(mode=framing)), keep_inputs=True)
-    acc = MetricsAccumulator(src.fps)
-    t_ours = 0.0
-
-    def score(batch):
-        for sf in batch:
-            acc.add(sf.input_image, sf.image)
-
-    for fr in src:
-        t0 = time.perf_counter()
-        batch = st.push(fr)
-        t_ours += time.perf_counter() - t0
-        score(batch)
-    t0 = time.perf_counter()
-    batch = st.finish()
-    t_ours += time.perf_counter() - t0
-    score(batch)
-    m = acc.result().as_dict()
-    m["ms_per_frame"] = 1e3 * t_ours / max(len(src), 1)
-    m["segments"] = len(st.planner.segments)
-    return m
+    params = StabilizerParams(motion=MotionParams(group=group),
+                              planner=PlannerParams(group=group, end=end, lowpass_sigma=lowpass_sigma),
+                              framing=FramingParams(mode=framing))
+    return evaluate.stabilize_and_score(src, params, src.fps)
 
 
 def run(data_root: Path, frames: int | None = None, baselines: bool = True) -> dict:

@@ -72,11 +72,6 @@ class MotionEstimate:
     rms_px: float = float("nan")
     zeta_bar: np.ndarray | None = None  # log(matrix^-1): the path solver's zeta_bar (design note 4)
 
-    @property
-    def point_motion(self) -> np.ndarray:
-        """M_t = g(xi_t)^-1: maps camera-t coordinates of a static point to camera-(t+1)."""
-        return np.linalg.inv(self.matrix)
-
 
 def invalid_motion(seq: int, seq_next: int, group: str, estimator: str, reason: str) -> MotionEstimate:
     """An identity motion flagged invalid (the path holds still across it)."""

@@ -84,11 +84,6 @@ class PathPlanner:
         self._motions: list[np.ndarray] = []
         self._history: list[np.ndarray] = []  # camera-motion twists of recent frames (for the low-pass)
 
-    @property
-    def open_frames(self) -> int:
-        """Frames waiting for their segment to close."""
-        return len(self._seqs)
-
     def start(self, seq: int) -> list[Correction]:
         """First frame of the stream (a keyframe, no correction)."""
         self._begin(seq, restart=True)

@@ -267,20 +267,17 @@ _DECODERS = {
 }
 
 
+_ENCODERS = (
+    (RGBDFrame, encode_frame), (SceneFlowResult, encode_flow), (MotionEstimate, encode_motion),
+    (Correction, encode_correction), (StabilizedImage, encode_stabilized), (Stats, encode_stats),
+)
+
+
 def encode(obj: Any, stream: str, **kw: Any) -> bytes:
     """Encode any message object (type from its class); ``kw`` goes to the per-type encoder."""
-    if isinstance(obj, RGBDFrame):
-        return encode_frame(obj, stream, **kw)
-    if isinstance(obj, SceneFlowResult):
-        return encode_flow(obj, stream, **kw)
-    if isinstance(obj, MotionEstimate):
-        return encode_motion(obj, stream, **kw)
-    if isinstance(obj, Correction):
-        return encode_correction(obj, stream, **kw)
-    if isinstance(obj, StabilizedImage):
-        return encode_stabilized(obj, stream, **kw)
-    if isinstance(obj, Stats):
-        return encode_stats(obj, stream, **kw)
+    for cls, encoder in _ENCODERS:
+        if isinstance(obj, cls):
+            return encoder(obj, stream, **kw)
     raise WireError(f"no wire message type for {type(obj).__name__}")
 
 
