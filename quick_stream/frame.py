@@ -146,3 +146,16 @@ class BadFrame:
     def label(self) -> str:
         where = f" ({self.origin})" if self.origin else ""
         return f"frame {self.seq}{where}"
+
+
+def quantize_depth(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
+    """Metres -> uint16 units of 1/scale m; non-finite, <= 0 or out-of-range values become 0 (invalid)."""
+    d = np.asarray(depth, dtype=np.float64) * scale
+    q = np.rint(np.where(np.isfinite(d), d, 0.0))
+    q[(q < 0) | (q > 65535)] = 0
+    return q.astype(np.uint16)
+
+
+def dequantize_depth(q: np.ndarray, scale: float = 1000.0) -> np.ndarray:
+    """uint16 units -> float32 metres (0 stays 0 = invalid)."""
+    return (q.astype(np.float32) / np.float32(scale)).astype(np.float32)

@@ -35,6 +35,29 @@ def all_streams(stage: str) -> str:
     return f"{PREFIX}/*/{stage}"
 
 
+def stream_keys(stream: str) -> str:
+    """Key expression matching every stage of one stream (``quick/@v1/<stream>/*``)."""
+    return f"{PREFIX}/{check_stream(stream)}/*"
+
+
+_SERVICE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def health_key(stream: str, service: str) -> str:
+    """Liveliness token key of a running service, ``quick/@v1/<stream>/health/<service>``."""
+    if not isinstance(service, str) or not _SERVICE.match(service):
+        raise ValueError(f"service name must be 1-64 characters of [A-Za-z0-9_-], got {service!r}")
+    return f"{PREFIX}/{check_stream(stream)}/health/{service}"
+
+
+def parse_health(key_expr: str) -> tuple[str, str]:
+    """(stream, service) of a liveliness token key; ValueError if it is not one."""
+    parts = str(key_expr).split("/")
+    if len(parts) != 5 or "/".join(parts[:2]) != PREFIX or parts[3] != "health" or not _SERVICE.match(parts[4]):
+        raise ValueError(f"not a quick-stream health key ({PREFIX}/<stream>/health/<service>): {key_expr!r}")
+    return check_stream(parts[2]), parts[4]
+
+
 def parse(key_expr: str) -> tuple[str, str]:
     """(stream, stage) of a concrete key; ValueError if it is not one of ours."""
     parts = str(key_expr).split("/")

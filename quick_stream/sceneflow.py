@@ -235,6 +235,12 @@ class SceneFlow:
         return lift_flow(f0, f1, fwd, bwd, self.params)
 
 
+def _f32(a: np.ndarray) -> np.ndarray:
+    """float64 array rounded to float32 precision: the flow message carries float32, so a
+    stage fed from the wire computes bit for bit what an in-process one does."""
+    return a.astype(np.float32).astype(np.float64)
+
+
 def lift_flow(
     f0: RGBDFrame,
     f1: RGBDFrame,
@@ -307,11 +313,11 @@ def lift_flow(
     return SceneFlowResult(
         seq=f0.seq,
         seq_next=f1.seq,
-        points=x[sel],
-        displacements=vel[sel],
+        points=_f32(x[sel]),
+        displacements=_f32(vel[sel]),
         weights=np.ones(sel.size),
-        pixels=np.column_stack((uu[sel], vv[sel])).astype(np.float64),
-        pixels_next=np.column_stack((u1[sel], v1[sel])),
+        pixels=_f32(np.column_stack((uu[sel], vv[sel]))),
+        pixels_next=_f32(np.column_stack((u1[sel], v1[sel]))),
         intrinsics=K0,
         intrinsics_next=K1,
         counts=counts,

@@ -114,7 +114,7 @@ def test_frame_raw_raw_bit_exact():
     assert np.abs(g.depth - f.depth).max() <= 0.5e-3 + 1e-6
     assert g.intrinsics == f.intrinsics and g.timestamp_ns == f.timestamp_ns and g.seq == f.seq
     assert np.array_equal(g.pose, f.pose) and g.origin == "synthetic"
-    assert m.extra == {"color_encoding": "raw", "depth_encoding": "raw", "depth_scale": 1000.0}
+    assert m.extra == {"color_encoding": "raw", "depth_encoding": "raw", "depth_scale": 1000.0, "pub_ns": None}
     g.validate()
 
 

@@ -20,17 +20,13 @@ import cv2
 import numpy as np
 
 from ..evaluation.shake import shake
-from ..lie import GROUPS
 from ..metrics import MetricsAccumulator
-from ..motion import ESTIMATORS, MotionParams, integrate_path
-from ..path.constraints import END_MODES
-from ..path.keyframes import KeyframeParams
-from ..path.optimal import PathParams
-from ..path.planner import PlannerParams
+from ..motion import integrate_path
 from ..plot import path_components, plot_paths
-from ..render import FramingParams
+from ..sinks import VideoSink
 from ..sources import SourceError, open_source
-from ..stabilizer import StabilizedFrame, Stabilizer, StabilizerParams
+from ..stabilizer import StabilizedFrame, Stabilizer
+from .settings import add_stabilizer_args, stabilizer_params
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -38,17 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default) or tum:PATH")
     p.add_argument("--frames", type=int, default=None, help="stabilize at most this many frames")
-    p.add_argument("--group", choices=sorted(GROUPS), default="se3")
-    p.add_argument("--estimator", choices=ESTIMATORS, default="exact")
-    p.add_argument("--keyframe-interval", type=int, default=KeyframeParams.interval)
-    p.add_argument("--end", choices=END_MODES, default="smoothed", help="end-constraint mode (default smoothed)")
-    p.add_argument("--lowpass-sigma", type=float, default=PlannerParams.lowpass_sigma,
-                   help="frames; the path keeps the camera velocity low-passed with this Gaussian "
-                        f"(default {PlannerParams.lowpass_sigma:g}; 0 = the paper's full undo)")
-    p.add_argument("--path-weights", default=None, metavar="W1,W2,...",
-                   help="diagonal of the path cost's weight W, one per twist component (default identity)")
-    p.add_argument("--framing", choices=("black", "crop", "auto"), default="auto")
-    p.add_argument("--crop-zoom", type=float, default=FramingParams.crop_zoom, help="zoom for --framing crop")
+    add_stabilizer_args(p)
     p.add_argument("--output", default="out/stabilized.mp4", help="MP4 file ('' for none)")
     p.add_argument("--png", default=None, metavar="DIR", help="also write every stabilized frame as PNG here")
     p.add_argument("--report", default="out/report.json", help="JSON report file ('' for none)")
@@ -85,28 +71,15 @@ class Progress:
 def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(max(1, args.threads))
     try:
-        weights = tuple(float(w) for w in args.path_weights.split(",")) if args.path_weights else None
         source = open_source(args.source)
-        params = StabilizerParams(
-            motion=MotionParams(group=args.group, estimator=args.estimator),
-            planner=PlannerParams(group=args.group, end=args.end, lowpass_sigma=args.lowpass_sigma,
-                                  path=PathParams(weights=weights),
-                                  keyframes=KeyframeParams(interval=args.keyframe_interval,
-                                                           min_interval=min(10, args.keyframe_interval - 1))),
-            framing=FramingParams(mode=args.framing, crop_zoom=args.crop_zoom),
-        )
-        params.planner.keyframes.validate()
-        params.planner.path.weight_vector(GROUPS[args.group].dim)
+        params = stabilizer_params(args)
         stab = Stabilizer(params, keep_inputs=not args.no_metrics, keep_motions=True)
     except (SourceError, ValueError) as e:
         print(f"quick-stream stabilize: {e}", file=sys.stderr)
         return 2
     total = len(source) if args.frames is None else min(args.frames, len(source))
     frames = source if args.frames is None else itertools.islice(source, args.frames)
-    writer = None
-    png_dir = Path(args.png) if args.png else None
-    if png_dir:
-        png_dir.mkdir(parents=True, exist_ok=True)
+    sink = VideoSink(args.output or None, args.png, source.fps)
     records: list[dict] = []
     out_ms: list[float] = []
     progress = Progress(total, not args.quiet)
@@ -115,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     true_poses: dict[int, np.ndarray] = {}
 
     def emit(batch: list[StabilizedFrame]) -> None:
-        nonlocal writer, metrics_ms
+        nonlocal metrics_ms
         if metrics is not None:
             t0 = time.perf_counter()
             for sf in batch:
@@ -124,16 +97,7 @@ def run(args: argparse.Namespace) -> int:
             metrics_ms += (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         for sf in batch:
-            if args.output:
-                if writer is None:
-                    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-                    h, w = sf.image.shape[:2]
-                    writer = cv2.VideoWriter(args.output, cv2.VideoWriter_fourcc(*"mp4v"), source.fps, (w, h))
-                    if not writer.isOpened():
-                        raise OSError(f"cannot open video writer for {args.output}")
-                writer.write(sf.image)
-            if png_dir:
-                cv2.imwrite(str(png_dir / f"{sf.seq:06d}.png"), sf.image)
+            sink.write(sf.seq, sf.image)
             c = sf.correction
             records.append({"seq": sf.seq, "timestamp_ns": sf.timestamp_ns, "segment": c.segment,
                             "keyframe": c.keyframe, "valid": c.valid and sf.mesh.ok, "flags": sf.flags,
@@ -156,8 +120,7 @@ def run(args: argparse.Namespace) -> int:
             emit(stab.push(fr))
         emit(stab.finish())
     finally:
-        if writer is not None:
-            writer.release()
+        sink.close()
         progress.close()
     wall = time.perf_counter() - t_start
 

@@ -2,13 +2,14 @@
 
 Specs: ``synthetic`` or ``synthetic:key=value,...`` (the embedded default, no
 data needed) and ``tum:PATH`` or ``tum:PATH,key=value,...`` (a TUM-layout
-folder). Later sources (MCAP replay, depthai cameras) register here too.
+folder) and ``mcap:FILE`` or ``mcap:FILE,stream=ID`` (replay of a recording's
+``frame`` messages). Later sources (depthai cameras) register here too.
 """
 from __future__ import annotations
 
 from .base import FrameOrGap, Source, SourceError
 
-SOURCE_KINDS = ("synthetic", "tum")
+SOURCE_KINDS = ("synthetic", "tum", "mcap")
 
 
 def _split_options(text: str) -> tuple[list[str], dict[str, str]]:
@@ -50,6 +51,15 @@ def open_source(spec: str, **overrides: object) -> Source:
             if not path:
                 raise SourceError("tum source needs a folder: tum:PATH")
             return TumSource.from_spec(path, options)
+        if kind == "mcap":
+            from .mcap_replay import McapSource
+
+            path, _, opt_text = rest.partition(",")
+            _, options = _split_options(opt_text)
+            options.update(opts_extra)
+            if not path:
+                raise SourceError("mcap source needs a recording: mcap:FILE[,stream=ID]")
+            return McapSource.from_spec(path, options)
     except SourceError:
         raise
     except (ValueError, OSError) as e:

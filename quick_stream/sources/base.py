@@ -25,6 +25,7 @@ class Source(Protocol):
     intrinsics: Intrinsics  # nominal intrinsics of the stream (frames carry their own)
     fps: float
     has_ground_truth: bool
+    depth_scale: float  # raw depth units per metre the frames were quantized to (the wire keeps it)
 
     def __len__(self) -> int: ...  # number of frames the source will yield (or will try to)
 

@@ -20,7 +20,7 @@ from typing import Iterator, Mapping
 
 import numpy as np
 
-from ..frame import Intrinsics, RGBDFrame
+from ..frame import Intrinsics, RGBDFrame, dequantize_depth, quantize_depth
 from .scene import Renderer, build_scene
 
 # Intended path (m, deg, s) and shake (rms per axis at shake=1) parameters.
@@ -134,6 +134,7 @@ class SyntheticSource:
 
     name = "synthetic"
     has_ground_truth = True
+    depth_scale = 1000.0  # depth is delivered in whole millimetres
 
     def __init__(self, width: int = 640, height: int = 480, fps: float = 30.0, frames: int = 300,
                  seed: int = 0, shake: float = 1.0, zoom: float = 0.0, report_zoom: bool = True,
@@ -237,6 +238,8 @@ class SyntheticSource:
         true_k = self.intrinsics_at(i)
         pose = self._chunk(i // _CHUNK)[0][i % _CHUNK]
         color, depth = self._renderer.render(pose, true_k.K)
+        # Millimetre depth, as a real sensor (and the wire's uint16 depth) delivers it.
+        depth = dequantize_depth(quantize_depth(depth, self.depth_scale), self.depth_scale)
         return RGBDFrame(color=color, depth=depth,
                          intrinsics=true_k if self.report_zoom else self.intrinsics,
                          timestamp_ns=int(round(i * 1e9 / self.fps)), seq=i,

@@ -16,11 +16,13 @@ from .codec import (
 )
 from .messages import (
     Decoded,
+    EndOfStream,
     StabilizedImage,
     Stats,
     decode,
     encode,
     encode_correction,
+    encode_end,
     encode_flow,
     encode_frame,
     encode_motion,
@@ -29,7 +31,7 @@ from .messages import (
 )
 
 __all__ = [
-    "DEFAULT_MAX_BYTES", "FORMAT_VERSION", "MESSAGE_TYPES", "Decoded", "StabilizedImage", "Stats",
-    "WireError", "decode", "dequantize_depth", "encode", "encode_correction", "encode_flow",
+    "DEFAULT_MAX_BYTES", "FORMAT_VERSION", "MESSAGE_TYPES", "Decoded", "EndOfStream", "StabilizedImage", "Stats",
+    "WireError", "decode", "dequantize_depth", "encode", "encode_correction", "encode_end", "encode_flow",
     "encode_frame", "encode_motion", "encode_stabilized", "encode_stats", "quantize_depth",
 ]

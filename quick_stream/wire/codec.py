@@ -17,8 +17,10 @@ import msgpack
 import numpy as np
 import zstandard
 
+from ..frame import dequantize_depth, quantize_depth  # noqa: F401 - re-exported
+
 FORMAT_VERSION = 1
-MESSAGE_TYPES = ("frame", "flow", "motion", "correction", "stabilized", "stats")
+MESSAGE_TYPES = ("frame", "flow", "motion", "correction", "stabilized", "stats", "end")
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
 MAX_IMAGE_SIDE = 16384  # decoded images larger than this in either dimension are rejected
 MAX_LIST_LEN = 100_000  # msgpack arrays (lists); bulk data travels as bin, not lists
@@ -330,19 +332,6 @@ def jpeg_size(data: bytes) -> tuple[int, int] | None:
 
 
 # --- depth ------------------------------------------------------------------------------------
-
-def quantize_depth(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
-    """Metres -> uint16 units of 1/scale m; non-finite, <= 0 or out-of-range values become 0 (invalid)."""
-    d = np.asarray(depth, dtype=np.float64) * scale
-    q = np.rint(np.where(np.isfinite(d), d, 0.0))
-    q[(q < 0) | (q > 65535)] = 0
-    return q.astype(np.uint16)
-
-
-def dequantize_depth(q: np.ndarray, scale: float = 1000.0) -> np.ndarray:
-    """uint16 units -> float32 metres (0 stays 0 = invalid)."""
-    return (q.astype(np.float32) / np.float32(scale)).astype(np.float32)
-
 
 def encode_depth(depth: np.ndarray, encoding: str = "raw", scale: float = 1000.0) -> dict[str, Any]:
     """Depth (metres) as ``{enc: raw|zstd, dtype <u2, shape, scale, data}``."""

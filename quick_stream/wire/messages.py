@@ -54,6 +54,17 @@ class Stats:
 
 
 @dataclass
+class EndOfStream:
+    """The stream ended (source exhausted or stopped); ``seq`` is its last frame's seq (-1: none).
+
+    Sent in order on the same key as the stage's data, so a receiver sees it after the
+    last data message; each stage forwards it once it has flushed what it held."""
+
+    seq: int
+    reason: str = ""
+
+
+@dataclass
 class Decoded:
     """A decoded message: ``type``, the object, its envelope and wire-only ``extra`` fields.
 
@@ -96,9 +107,11 @@ def _str(name: str, s: Any) -> str:
 # --- frame --------------------------------------------------------------------------------------
 
 def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality: int = 90,
-                 depth: str = "raw", depth_scale: float = 1000.0) -> bytes:
-    """An RGBDFrame as a ``frame`` message; colour ``jpeg``/``raw``, depth ``raw``/``zstd``."""
+                 depth: str = "raw", depth_scale: float = 1000.0, pub_ns: int | None = None) -> bytes:
+    """An RGBDFrame as a ``frame`` message; colour ``jpeg``/``raw``, depth ``raw``/``zstd``;
+    ``pub_ns``: wall-clock time the capture published it (latency accounting)."""
     f = {
+        "pub_ns": None if pub_ns is None else int(pub_ns),
         "t_ns": int(frame.timestamp_ns),
         "intrinsics": _intrinsics(frame.intrinsics),
         "color": encode_image(frame.color, color, quality),
@@ -122,7 +135,8 @@ def _decode_frame(r: Reader) -> Decoded:
     frame = RGBDFrame(color, depth, k, t_ns, r.seq, None if pose is None else pose.reshape(4, 4),
                       r.str("origin", optional=True) or "")
     return Decoded("frame", frame, r.stream, r.seq,
-                   extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale})
+                   extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale,
+                          "pub_ns": r.int("pub_ns", optional=True)})
 
 
 # --- flow ---------------------------------------------------------------------------------------
@@ -198,29 +212,49 @@ def _decode_motion(r: Reader) -> Decoded:
 
 # --- correction ---------------------------------------------------------------------------------
 
-def encode_correction(c: Correction, stream: str, zoom: float | None = None) -> bytes:
-    """A Correction as a ``correction`` message, with the optional framing ``zoom``."""
+def encode_correction(c: Correction, stream: str, zoom: float | None = None,
+                      batch: tuple[int, int, int] | None = None) -> bytes:
+    """A Correction as a ``correction`` message, with the optional framing ``zoom`` and
+    ``batch`` = (release id, index in it, release size): the planner's release it belongs to."""
     if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
         raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
+    if batch is not None and not (len(batch) == 3 and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
+        raise WireError(f"batch must be (release >= 0, 0 <= index < size, size), got {batch}",
+                        field="batch", stream=stream, seq=c.seq)
     f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
-         "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom)}
+         "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom),
+         "batch": None if batch is None else [int(x) for x in batch]}
     return pack(f, "correction", stream, c.seq)
 
 
 def _decode_correction(r: Reader) -> Decoded:
     c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
                    r.bool("valid"), r.str("reason"))
-    return Decoded("correction", c, r.stream, r.seq, extra={"zoom": r.float("zoom", positive=True, optional=True)})
+    batch = r.get("batch", optional=True)
+    if batch is not None:
+        if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
+                or not (batch[0] >= 0 and 0 <= batch[1] < batch[2])):
+            raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {batch!r}")
+        batch = tuple(batch)
+    return Decoded("correction", c, r.stream, r.seq,
+                   extra={"zoom": r.float("zoom", positive=True, optional=True), "batch": batch})
 
 
 # --- stabilized ---------------------------------------------------------------------------------
 
-def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", quality: int = 90) -> bytes:
-    """A StabilizedImage as a ``stabilized`` message (image ``jpeg``/``raw``)."""
+def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", quality: int = 90,
+                      src_pub_ns: int | None = None, ready_pub_ns: int | None = None) -> bytes:
+    """A StabilizedImage as a ``stabilized`` message (image ``jpeg``/``raw``).
+
+    Latency accounting (optional): ``src_pub_ns`` is when the capture published the source
+    frame, ``ready_pub_ns`` when it published the frame that closed this frame's segment
+    (so the wait for the segment is ready - src, and the processing is now - ready)."""
     if not (np.isfinite(s.zoom) and s.zoom > 0):
         raise WireError(f"zoom must be finite and > 0, got {s.zoom}", field="zoom", stream=stream, seq=s.seq)
     f = {"t_ns": int(s.timestamp_ns), "image": encode_image(s.image, color, quality), "zoom": float(s.zoom),
-         "flags": [_str("flags", x) for x in s.flags]}
+         "flags": [_str("flags", x) for x in s.flags],
+         "src_pub_ns": None if src_pub_ns is None else int(src_pub_ns),
+         "ready_pub_ns": None if ready_pub_ns is None else int(ready_pub_ns)}
     return pack(f, "stabilized", stream, s.seq)
 
 
@@ -230,7 +264,9 @@ def _decode_stabilized(r: Reader) -> Decoded:
     if not all(isinstance(x, str) for x in flags):
         raise r.error("flags", "expected an array of str")
     s = StabilizedImage(r.seq, r.int("t_ns"), img, r.float("zoom", positive=True), flags)
-    return Decoded("stabilized", s, r.stream, r.seq, extra={"encoding": enc})
+    return Decoded("stabilized", s, r.stream, r.seq,
+                   extra={"encoding": enc, "src_pub_ns": r.int("src_pub_ns", optional=True),
+                          "ready_pub_ns": r.int("ready_pub_ns", optional=True)})
 
 
 # --- stats --------------------------------------------------------------------------------------
@@ -259,17 +295,31 @@ def _decode_stats(r: Reader) -> Decoded:
     return Decoded("stats", Stats(r.str("service"), dict(vr.d)), r.stream, r.seq)
 
 
+# --- end of stream ------------------------------------------------------------------------------
+
+def encode_end(e: EndOfStream, stream: str) -> bytes:
+    """An EndOfStream as an ``end`` message (envelope seq = last frame's seq, 0 when none)."""
+    return pack({"last_seq": int(e.seq), "reason": _str("reason", e.reason)}, "end", stream, max(int(e.seq), 0))
+
+
+def _decode_end(r: Reader) -> Decoded:
+    last = r.int("last_seq", min=-1)
+    return Decoded("end", EndOfStream(last, r.str("reason")), r.stream, r.seq)
+
+
 # --- dispatch -----------------------------------------------------------------------------------
 
 _DECODERS = {
     "frame": _decode_frame, "flow": _decode_flow, "motion": _decode_motion,
     "correction": _decode_correction, "stabilized": _decode_stabilized, "stats": _decode_stats,
+    "end": _decode_end,
 }
 
 
 _ENCODERS = (
     (RGBDFrame, encode_frame), (SceneFlowResult, encode_flow), (MotionEstimate, encode_motion),
     (Correction, encode_correction), (StabilizedImage, encode_stabilized), (Stats, encode_stats),
+    (EndOfStream, encode_end),
 )
 
 

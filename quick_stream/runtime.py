@@ -1,0 +1,220 @@
+"""What every service process shares: session, liveliness, inboxes, stop signal, stats.
+
+A service is ``main(argv)`` in ``services/``: it parses the standard zenoh flags
+(:mod:`quick_stream.transport`) plus its own, opens a :class:`ServiceRuntime`, and
+loops: take messages from its inboxes, call the library stage, publish.
+
+* **Inbox**: a callback subscriber that appends each payload to a bounded deque.
+  When full it drops the *oldest* and counts it (zenoh's ``RingChannel`` drops
+  silently; we report drops in the stats). Lossless inboxes are the same with a
+  bound no healthy stream reaches, fed by publishers that block instead of drop.
+* **Stop**: SIGTERM and SIGINT set a flag; the loop ends, then the runtime
+  undeclares everything and closes the session in ``finally``
+  (transport-facts.md: without a handler SIGTERM kills the process before cleanup).
+* **Liveliness**: a token on ``quick/@v1/<stream>/health/<service>``, so the
+  launcher and other services see who is up (and who went away, in milliseconds).
+* **Stats**: a ``stats`` message about once a second (``values`` the service fills:
+  counters, fps, ms per item, drops, errors).
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections import deque
+from typing import Any, Callable
+
+import numpy as np
+import zenoh
+
+from . import keys
+from .wire import Stats, encode_stats
+
+log = logging.getLogger(__name__)
+
+
+class Inbox:
+    """Bounded drop-oldest queue of (key, payload bytes) fed by a zenoh callback subscriber."""
+
+    def __init__(self, capacity: int, cond: threading.Condition) -> None:
+        self.capacity = capacity
+        self._q: deque[tuple[str, bytes]] = deque()
+        self._cond = cond
+        self.received = 0
+        self.dropped = 0
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        item = (str(sample.key_expr), sample.payload.to_bytes())
+        with self._cond:
+            if len(self._q) >= self.capacity:
+                self._q.popleft()
+                self.dropped += 1
+            self._q.append(item)
+            self.received += 1
+            self._cond.notify_all()
+
+    def pop(self) -> tuple[str, bytes] | None:
+        with self._cond:
+            return self._q.popleft() if self._q else None
+
+    def __len__(self) -> int:
+        return len(self._q)
+
+
+class RateMeter:
+    """Items and per-item milliseconds over the last stats period."""
+
+    def __init__(self) -> None:
+        self.total = 0
+        self._n = 0
+        self._ms: list[float] = []
+        self._t0 = time.monotonic()
+
+    def add(self, ms: float | None = None) -> None:
+        self.total += 1
+        self._n += 1
+        if ms is not None:
+            self._ms.append(ms)
+
+    def take(self, prefix: str) -> dict[str, float]:
+        """fps and ms p50/p99 since the last take, keys prefixed."""
+        now = time.monotonic()
+        dt = max(now - self._t0, 1e-9)
+        out = {f"{prefix}_fps": round(self._n / dt, 2), f"{prefix}_total": self.total}
+        if self._ms:
+            a = np.asarray(self._ms)
+            out[f"{prefix}_ms_p50"] = round(float(np.percentile(a, 50)), 3)
+            out[f"{prefix}_ms_p99"] = round(float(np.percentile(a, 99)), 3)
+        self._n, self._ms, self._t0 = 0, [], now
+        return out
+
+
+class ServiceRuntime:
+    """One service process's zenoh session and life cycle (use as a context manager)."""
+
+    def __init__(self, service: str, stream: str, conf: zenoh.Config, stats_period_s: float = 1.0,
+                 install_signals: bool = True) -> None:
+        self.service = service
+        self.stream = keys.check_stream(stream)
+        self.stop = threading.Event()
+        self._cond = threading.Condition()
+        self._inboxes: list[Inbox] = []
+        self._subs: list[Any] = []  # keep references: a dropped subscriber is undeclared
+        self._pubs: list[Any] = []
+        self._stats_seq = 0
+        self._stats_period = stats_period_s
+        self._next_stats = time.monotonic() + stats_period_s
+        if install_signals:
+            signal.signal(signal.SIGTERM, self._on_signal)
+            signal.signal(signal.SIGINT, self._on_signal)
+        self.session = zenoh.open(conf)
+        self._token = self.session.liveliness().declare_token(keys.health_key(stream, service))
+        self._stats_pub = self.publisher("stats", lossless=False)
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        log.info("%s/%s: signal %d, stopping", self.stream, self.service, signum)
+        self.stop.set()
+        with self._cond:
+            self._cond.notify_all()
+
+    # --- endpoints -------------------------------------------------------------------------------
+
+    def publisher(self, stage: str, lossless: bool = False, stream: str | None = None) -> zenoh.Publisher:
+        """Publisher on ``quick/@v1/<stream>/<stage>``; ``lossless`` blocks instead of dropping
+        when the transport is congested (corrections, end markers)."""
+        pub = self.session.declare_publisher(
+            keys.key(stream or self.stream, stage),
+            congestion_control=zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        self._pubs.append(pub)
+        return pub
+
+    def inbox(self, key_expr: str, capacity: int) -> Inbox:
+        """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages."""
+        box = Inbox(capacity, self._cond)
+        self._subs.append(self.session.declare_subscriber(key_expr, box._on_sample))
+        self._inboxes.append(box)
+        return box
+
+    def wait(self, timeout_s: float) -> None:
+        """Sleep until any inbox has a message, a stop signal, or ``timeout_s``."""
+        with self._cond:
+            if self.stop.is_set() or any(len(b) for b in self._inboxes):
+                return
+            self._cond.wait(timeout_s)
+
+    def wake(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    # --- liveliness --------------------------------------------------------------------------------
+
+    def alive(self, stream: str | None = None) -> set[str]:
+        """Services of ``stream`` (default: ours) whose liveliness token is up right now."""
+        out = set()
+        key = f"{keys.PREFIX}/{keys.check_stream(stream or self.stream)}/health/*"
+        for reply in self.session.liveliness().get(key, timeout=1.0):
+            try:
+                out.add(keys.parse_health(str(reply.ok.key_expr))[1])
+            except (ValueError, AttributeError, zenoh.ZError):
+                continue
+        return out
+
+    def wait_for(self, services: list[str], timeout_s: float) -> set[str]:
+        """Block until all ``services`` are alive (or timeout / stop); returns those still missing."""
+        deadline = time.monotonic() + timeout_s
+        missing = set(services)
+        while missing and not self.stop.is_set():
+            missing = set(services) - self.alive()
+            if not missing or time.monotonic() > deadline:
+                break
+            self.stop.wait(0.1)
+        return missing
+
+    # --- stats ---------------------------------------------------------------------------------------
+
+    def stats_due(self) -> bool:
+        return time.monotonic() >= self._next_stats
+
+    def publish_stats(self, values: dict[str, Any]) -> None:
+        """Publish a ``stats`` message now (inbox drops are added automatically)."""
+        vals = dict(values)
+        for i, b in enumerate(self._inboxes):
+            vals[f"inbox{i}_dropped"] = b.dropped
+            vals[f"inbox{i}_queued"] = len(b)
+        self._stats_pub.put(encode_stats(Stats(self.service, vals), self.stream, self._stats_seq))
+        self._stats_seq += 1
+        self._next_stats = time.monotonic() + self._stats_period
+
+    def maybe_stats(self, values: Callable[[], dict[str, Any]]) -> None:
+        if self.stats_due():
+            self.publish_stats(values())
+
+    # --- shutdown --------------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        for s in self._subs:
+            try:
+                s.undeclare()
+            except zenoh.ZError:
+                pass
+        self._subs.clear()
+        try:
+            self._token.undeclare()
+        except zenoh.ZError:
+            pass
+        for p in self._pubs:
+            try:
+                p.undeclare()
+            except zenoh.ZError:
+                pass
+        self._pubs.clear()
+        self.session.close()
+
+    def __enter__(self) -> "ServiceRuntime":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

@@ -1,0 +1,229 @@
+"""The pipeline's three stateful stages, shared by the in-process stabilizer and the services.
+
+    frames -> FlowStage -> SceneFlowResult -> MotionStage -> MotionEstimate + correction batches
+    frames + correction batches -> RenderStage -> StabilizedFrame
+
+:class:`~quick_stream.stabilizer.Stabilizer` chains them in one process; the
+``flow``, ``motion`` and ``render`` services each drive one of them from Zenoh
+messages (docs/architecture.md). Because the services add only transport, a
+stream run through the services gives bit-for-bit the offline result
+(tests/test_services_e2e.py).
+
+A *correction batch* is what one planner call released (the first frame's
+correction; a closed segment; a segment closed early by an invalid motion plus
+the restart frame). The renderer frames each batch as a whole (one zoom track,
+:func:`~quick_stream.render.segment_zooms`), so the batches travel as batches.
+
+Streams with holes: :class:`MotionStage` turns a gap between consecutive flows
+(the flow stage skipped frames or was restarted) into an invalid motion, so the
+path restarts there and the frames are flagged; :class:`RenderStage` renders a
+frame that no correction will ever reach (an *orphan*, skipped upstream) with
+no correction, flagged, instead of holding it forever.
+"""
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .frame import RGBDFrame
+from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
+from .motion_pipeline import StageTimer
+from .path.planner import Correction, PathPlanner, PlannerParams
+from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
+from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
+
+FrameLoader = Callable[[], RGBDFrame]
+
+
+class FlowStage:
+    """Scene flow between each good frame and the previous one (one instance per stream)."""
+
+    def __init__(self, params: SceneFlowParams | None = None) -> None:
+        self.flow = SceneFlow(params)
+        self._prev: RGBDFrame | None = None
+
+    def push(self, frame: RGBDFrame) -> SceneFlowResult | None:
+        """Add the next frame; returns the flow from the previous frame to it (None for the first).
+
+        A frame older than the previous one (out of order, duplicate) is refused with ValueError.
+        """
+        prev = self._prev
+        if prev is not None and frame.seq <= prev.seq:
+            raise ValueError(f"frame {frame.seq} is not after frame {prev.seq} (out of order or duplicate)")
+        self._prev = frame
+        if prev is None:
+            return None
+        return self.flow.compute(prev, frame)
+
+
+class MotionStage:
+    """Motion estimation plus path planning: flows in, motions and correction batches out."""
+
+    def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None) -> None:
+        self.estimator = MotionEstimator(motion)
+        self.planner = PathPlanner(planner)
+        if self.planner.params.group != self.estimator.params.group:
+            raise ValueError(f"motion group {self.estimator.params.group!r} and path group "
+                             f"{self.planner.params.group!r} differ")
+        self._last: int | None = None  # seq of the newest frame the path has reached
+        self.gaps = 0
+        self.timer = StageTimer()
+
+    @property
+    def started(self) -> bool:
+        return self._last is not None
+
+    def start(self, seq: int) -> list[Correction]:
+        """First frame of the stream: its correction batch (identity, a keyframe)."""
+        self._last = seq
+        return self.planner.start(seq)
+
+    def push(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[list[Correction]]]:
+        """Add one flow; returns the motions made and the correction batches released, in order.
+
+        Starts the path at ``flow.seq`` if not started. A flow that does not begin
+        at the newest frame reached (frames skipped upstream) first gets an invalid
+        motion across the gap. A flow that ends at or before that frame is refused
+        with ValueError (stale or duplicate).
+        """
+        batches: list[list[Correction]] = []
+        motions: list[MotionEstimate] = []
+        if self._last is None:
+            batches.append(self.start(flow.seq))
+        if flow.seq_next <= self._last:
+            raise ValueError(f"flow {flow.seq}->{flow.seq_next} ends at or before frame {self._last} "
+                             "(stale or duplicate)")
+        p = self.estimator.params
+        if flow.seq != self._last:
+            self.gaps += 1
+            gap = invalid_motion(self._last, flow.seq, p.group, p.estimator,
+                                 f"no scene flow from frame {self._last} to {flow.seq} (frames skipped upstream)")
+            motions.append(gap)
+            batches.append(self.planner.push(gap))
+        t0 = time.perf_counter()
+        m = self.estimator.estimate(flow)
+        t1 = time.perf_counter()
+        motions.append(m)
+        batches.append(self.planner.push(m))
+        self.timer.add("motion", (t1 - t0) * 1e3)
+        self.timer.add("path", (time.perf_counter() - t1) * 1e3)
+        self._last = flow.seq_next
+        return motions, [b for b in batches if b]
+
+    def finish(self) -> list[list[Correction]]:
+        """End of stream: the last segment's batch (if any)."""
+        b = self.planner.finish() if self.started else []
+        return [b] if b else []
+
+
+@dataclass
+class StabilizedFrame:
+    seq: int
+    timestamp_ns: int
+    image: np.ndarray  # BGR uint8, same size as the input
+    correction: Correction
+    zoom: float
+    mesh: MeshWarp
+    input_image: np.ndarray | None = None  # kept only when the caller asks (metrics)
+
+    @property
+    def flags(self) -> list[str]:
+        out = []
+        if not self.correction.valid:
+            out.append(self.correction.reason)
+        if not self.mesh.ok:
+            out.append(f"warp: {self.mesh.reason}")
+        return out
+
+
+def orphan_correction(seq: int) -> Correction:
+    """What a frame no correction reached is rendered with: none, flagged."""
+    return Correction(seq, np.eye(4), -1, False, False, "no correction: frame skipped upstream")
+
+
+class RenderStage:
+    """Holds frames until their correction batch arrives, then warps, frames and renders them.
+
+    Frames may be given decoded or as a loader (decoded only when rendered, so a
+    service buffers compressed bytes). At most ``max_frames`` wait; beyond that the
+    oldest is dropped and counted (``dropped``); a correction whose frame is gone is
+    counted in ``missing``; a frame that cannot be loaded is reported in ``bad``.
+    """
+
+    def __init__(self, warp: WarpParams | None = None, framing: FramingParams | None = None,
+                 max_frames: int = 240, keep_inputs: bool = False) -> None:
+        self.warp = warp or WarpParams()
+        self.framing = framing or FramingParams()
+        self.framing.validate()
+        self.zoom = ZoomSmoother(self.framing)
+        self.max_frames = max_frames
+        self.keep_inputs = keep_inputs
+        self.timer = StageTimer()
+        self._frames: OrderedDict[int, RGBDFrame | FrameLoader] = OrderedDict()
+        self.dropped = 0
+        self.missing = 0
+        self.orphans = 0
+        self.bad: list[dict] = []
+
+    @property
+    def buffered(self) -> int:
+        return len(self._frames)
+
+    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader) -> None:
+        """Buffer a frame (or its loader) until its correction arrives."""
+        if self._frames and seq <= next(reversed(self._frames)):
+            raise ValueError(f"frame {seq} is not after the newest buffered frame (out of order or duplicate)")
+        self._frames[seq] = frame
+        while len(self._frames) > self.max_frames:
+            self._frames.popitem(last=False)
+            self.dropped += 1
+
+    def _load(self, seq: int) -> RGBDFrame | None:
+        f = self._frames.pop(seq, None)
+        if f is None or isinstance(f, RGBDFrame):
+            return f
+        try:
+            return f()
+        except Exception as e:  # noqa: BLE001 - a frame that cannot be decoded is reported, not fatal
+            self.bad.append({"seq": seq, "error": f"{type(e).__name__}: {e}"})
+            return None
+
+    def render_batch(self, corrections: list[Correction]) -> list[StabilizedFrame]:
+        """Render one correction batch, preceded by any orphans older than it (each their own batch)."""
+        if not corrections:
+            return []
+        first = min(c.seq for c in corrections)
+        out: list[StabilizedFrame] = []
+        for seq in [s for s in self._frames if s < first]:
+            self.orphans += 1
+            out.extend(self._render([orphan_correction(seq)]))
+        return out + self._render(corrections)
+
+    def _render(self, corrections: list[Correction]) -> list[StabilizedFrame]:
+        t0 = time.perf_counter()
+        items = []
+        for c in corrections:
+            f = self._load(c.seq)
+            if f is None:
+                self.missing += 1
+                continue
+            items.append((c, f, solve_warp(f, c.point_transform, self.warp)))
+        if not items:
+            return []
+        t1 = time.perf_counter()
+        zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom)
+        t2 = time.perf_counter()
+        out = [StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, float(z)), c, float(z), mesh,
+                               f.color if self.keep_inputs else None)
+               for (c, f, mesh), z in zip(items, zooms)]
+        t3 = time.perf_counter()
+        n = len(items)
+        for _ in range(n):  # per-frame samples (the batch's average)
+            self.timer.add("warp", (t1 - t0) * 1e3 / n)
+            self.timer.add("framing", (t2 - t1) * 1e3 / n)
+            self.timer.add("render", (t3 - t2) * 1e3 / n)
+        return out
