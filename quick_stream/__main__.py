@@ -1,3 +1,4 @@
+"""``python -m quick_stream`` = the ``quick-stream`` command."""
 import sys
 
 from .cli import main

@@ -87,6 +87,11 @@ class Recorder:
         if time.monotonic() - self._last_flush >= self.flush_s:
             self.flush()
 
+    def maybe_flush(self) -> None:
+        """Flush if ``flush_s`` has passed since the last flush (call when idle)."""
+        if time.monotonic() - self._last_flush >= self.flush_s:
+            self.flush()
+
     def flush(self) -> None:
         """Write the open chunk and flush the file (what a kill can lose is what came after)."""
         self._writer.flush()

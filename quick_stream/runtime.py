@@ -18,6 +18,7 @@ loops: take messages from its inboxes, call the library stage, publish.
 """
 from __future__ import annotations
 
+import argparse
 import logging
 import signal
 import threading
@@ -218,3 +219,20 @@ class ServiceRuntime:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
+    """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
+    from .transport import add_zenoh_args
+
+    p = argparse.ArgumentParser(prog=f"quick-stream-{service}", description=description,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--stream", default="cam0", help="stream (camera) id; one per camera (default cam0)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    add_zenoh_args(p)
+    return p
+
+
+def setup_logging(service: str, verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format=f"%(asctime)s {service} %(levelname)s: %(message)s")

@@ -203,6 +203,17 @@ class RenderStage:
             out.extend(self._render([orphan_correction(seq)]))
         return out + self._render(corrections)
 
+    def has_frames(self, seqs: list[int]) -> bool:
+        return all(s in self._frames for s in seqs)
+
+    def flush(self) -> list[StabilizedFrame]:
+        """End of stream: render every frame still waiting as an orphan (no correction will come)."""
+        out: list[StabilizedFrame] = []
+        for seq in list(self._frames):
+            self.orphans += 1
+            out.extend(self._render([orphan_correction(seq)]))
+        return out
+
     def _render(self, corrections: list[Correction]) -> list[StabilizedFrame]:
         t0 = time.perf_counter()
         items = []

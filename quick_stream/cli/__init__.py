@@ -9,11 +9,11 @@ import argparse
 import logging
 import sys
 
-from . import bench_cmd, evaluate_cmd, motion_cmd, recover_cmd, stabilize_cmd
+from . import bench_cmd, evaluate_cmd, motion_cmd, recover_cmd, router_cmd, stabilize_cmd
 
 COMMANDS = {
     "stabilize": stabilize_cmd, "evaluate": evaluate_cmd, "motion": motion_cmd, "bench": bench_cmd,
-    "recover": recover_cmd,
+    "recover": recover_cmd, "router": router_cmd,
 }
 
 

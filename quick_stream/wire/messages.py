@@ -87,7 +87,7 @@ def _intrinsics(k: Intrinsics) -> dict[str, Any]:
             "width": int(k.width), "height": int(k.height)}
 
 
-def _read_intrinsics(r: Reader, name: str) -> Intrinsics:
+def read_intrinsics(r: Reader, name: str) -> Intrinsics:
     m = r.map(name)
     k = Intrinsics(m.float("fx", positive=True), m.float("fy", positive=True), m.float("cx"), m.float("cy"),
                    m.int("width", min=1), m.int("height", min=1))
@@ -123,7 +123,7 @@ def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality:
 
 
 def _decode_frame(r: Reader) -> Decoded:
-    k = _read_intrinsics(r, "intrinsics")
+    k = read_intrinsics(r, "intrinsics")
     t_ns = r.int("t_ns")
     color, cenc = decode_image(r, "color")
     depth, denc, scale = decode_depth(r, "depth")
@@ -173,8 +173,8 @@ def _decode_flow(r: Reader) -> Decoded:
         counts[key] = counts_r.int(key)
     flow = SceneFlowResult(
         r.seq, r.int("seq_next", min=0), arrays["points"], arrays["displacements"], arrays["weights"],
-        arrays["pixels"], arrays["pixels_next"], _read_intrinsics(r, "intrinsics"),
-        _read_intrinsics(r, "intrinsics_next"), counts, r.str("problem"),
+        arrays["pixels"], arrays["pixels_next"], read_intrinsics(r, "intrinsics"),
+        read_intrinsics(r, "intrinsics_next"), counts, r.str("problem"),
     )
     return Decoded("flow", flow, r.stream, r.seq)
 

@@ -1,0 +1,51 @@
+"""``quick-stream router``: a Zenoh router in a Python process (no ``zenohd`` needed).
+
+The hub the services connect to (``-e tcp/HOST:7447``). Listens on
+``tcp/0.0.0.0:7447`` unless ``-l`` says otherwise; the other standard zenoh flags
+(``-c``, ``--cfg``, ``--no-multicast-scouting``) apply. Runs until SIGTERM/SIGINT.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+
+import zenoh
+
+from ..transport import add_zenoh_args, config_from_args
+
+DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("router", help="run a Zenoh router (the services' hub)", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_zenoh_args(p)
+
+
+def router_config(args: argparse.Namespace) -> zenoh.Config:
+    """The router's config: the flags, forced to router mode, listening on 7447 by default."""
+    args.mode = "router"
+    if not args.listen and not args.config:
+        args.listen = [DEFAULT_LISTEN]
+    return config_from_args(args)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        conf = router_config(args)
+    except ValueError as e:
+        print(f"quick-stream router: {e}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    session = zenoh.open(conf)
+    try:
+        print(f"quick-stream router: up, zid {session.zid()}, listening on {', '.join(args.listen or ['(config)'])}",
+              file=sys.stderr, flush=True)
+        stop.wait()
+    finally:
+        session.close()
+    return 0

@@ -1,0 +1,89 @@
+"""The Foxglove-viewable side of a recording, derived from the wire messages as they are logged.
+
+For each stream: input and stabilized images (``foxglove.CompressedImage``, the
+JPEG bytes reused without re-encoding), the calibration whenever it changes and
+once a second (``foxglove.CameraCalibration``), the camera pose integrated from
+the motions and the stabilized (virtual camera) pose, camera pose times the
+frame's correction g_s (``foxglove.PoseInFrame`` in ``world``; docs/conventions.md).
+Used by the ``recorder`` service and by anyone converting a recording.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+
+from . import foxglove
+from .wire import WireError, decode
+from .wire.codec import unpack
+from .wire.messages import read_intrinsics
+
+_KEEP = 512  # frames of timestamps/poses kept for matching motions and corrections
+
+
+class FoxgloveView:
+    """Turns one stream's wire messages into (topic, bytes) Foxglove messages."""
+
+    def __init__(self, stream: str) -> None:
+        self.stream = stream
+        self.topics = {name: foxglove.topic(stream, name) for name in foxglove.STREAM_CHANNELS}
+        self._t_ns: OrderedDict[int, int] = OrderedDict()
+        self._pose: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._calib: tuple | None = None
+        self._calib_t = -(1 << 62)
+
+    @staticmethod
+    def _remember(d: OrderedDict, k: int, v) -> None:
+        d[k] = v
+        while len(d) > _KEEP:
+            d.popitem(last=False)
+
+    def convert(self, stage: str, payload: bytes) -> list[tuple[str, bytes]]:
+        """Foxglove messages for one wire message of ``stage`` (none for stages without a view).
+
+        Raises :class:`~quick_stream.wire.WireError` for a message that does not decode."""
+        if stage == "frame":
+            r = unpack(payload)
+            if r.type != "frame":
+                return []
+            out = [(self.topics["color"], foxglove.compressed_image_from_message(payload, self.stream))]
+            t_ns = r.int("t_ns")
+            self._remember(self._t_ns, r.seq, t_ns)
+            k = read_intrinsics(r, "intrinsics")
+            key = (k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+            if key != self._calib or t_ns - self._calib_t >= 1_000_000_000:
+                self._calib, self._calib_t = key, t_ns
+                out.append((self.topics["calibration"], foxglove.camera_calibration(k, t_ns, self.stream)))
+            return out
+        if stage == "stabilized":
+            r = unpack(payload)
+            if r.type != "stabilized":
+                return []
+            return [(self.topics["stabilized"],
+                     foxglove.compressed_image_from_message(payload, f"{self.stream}_stabilized"))]
+        if stage == "motion":
+            m = decode(payload)
+            if m.type != "motion":
+                return []
+            mo = m.obj
+            if not self._pose:
+                self._remember(self._pose, mo.seq, np.eye(4))
+            prev = self._pose.get(mo.seq)
+            if prev is None:  # the path has a hole: restart it here
+                prev = np.eye(4)
+            pose = prev @ mo.matrix
+            self._remember(self._pose, mo.seq_next, pose)
+            t = self._t_ns.get(mo.seq_next)
+            return [] if t is None else [(self.topics["camera_pose"], foxglove.pose_in_frame(pose, t))]
+        if stage == "correction":
+            c = decode(payload)
+            if c.type != "correction":
+                return []
+            pose, t = self._pose.get(c.seq), self._t_ns.get(c.seq)
+            if pose is None or t is None:
+                return []
+            return [(self.topics["stabilized_pose"], foxglove.pose_in_frame(pose @ c.obj.matrix, t))]
+        return []
+
+
+__all__ = ["FoxgloveView", "WireError"]

@@ -1,0 +1,118 @@
+"""``capture``: a frame source onto ``quick/@v1/<stream>/frame``.
+
+Any source spec (``synthetic[:...]``, ``tum:PATH``, ``mcap:FILE``) is read, paced
+at its own timestamps (``--pace realtime``, ``--speed`` to scale) or sent as fast
+as possible (``--pace fast``), encoded as ``frame`` messages (JPEG or raw colour,
+raw or zstd depth at the source's own depth scale) and published. A frame the
+source cannot deliver is logged with its reason and counted; the stream goes on.
+At the end an ``end`` message follows the last frame. ``--wait-for`` holds the
+first frame until the named services are up, so a run loses nothing at start-up.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import zenoh
+
+from quick_stream import keys
+from quick_stream.frame import BadFrame
+from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.sources import SourceError, open_source
+from quick_stream.transport import config_from_args
+from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
+
+log = logging.getLogger("capture")
+
+
+def build_parser():
+    p = service_parser("capture", __doc__)
+    p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
+    p.add_argument("--frames", type=int, default=None, help="send at most this many frames")
+    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
+                   help="realtime: at the frames' own timestamps (default); fast: as fast as possible")
+    p.add_argument("--speed", type=float, default=1.0, help="realtime pacing speed factor (default 1)")
+    p.add_argument("--fps", type=float, default=None, help="override the pacing rate (frames/s; realtime only)")
+    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="colour encoding (default jpeg)")
+    p.add_argument("--quality", type=int, default=90, help="JPEG quality (default 90)")
+    p.add_argument("--depth", choices=("raw", "zstd"), default="zstd", help="depth encoding (default zstd)")
+    p.add_argument("--wait-for", default="", metavar="S1,S2",
+                   help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
+    p.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for them (default 30)")
+    return p
+
+
+def run(args, conf: zenoh.Config) -> int:
+    try:
+        source = open_source(args.source)
+    except SourceError as e:
+        log.error("%s", e)
+        return 2
+    depth_scale = float(getattr(source, "depth_scale", 1000.0))
+    with ServiceRuntime("capture", args.stream, conf) as rt:
+        pub = rt.publisher("frame")
+        wait = [s for s in args.wait_for.split(",") if s]
+        if wait:
+            missing = rt.wait_for(wait, args.wait_timeout)
+            if missing and not rt.stop.is_set():
+                log.error("services not up after %.0f s: %s", args.wait_timeout, ", ".join(sorted(missing)))
+                return 3
+        meter, bad, sent, last_seq = RateMeter(), 0, 0, -1
+        behind_ms = 0.0
+        t_start, ts0 = time.monotonic(), None
+        period = None if args.fps is None else 1.0 / args.fps
+
+        def stats():
+            return {"state": "running", "sent": sent, "bad_frames": bad, "behind_ms": round(behind_ms, 1),
+                    **meter.take("send")}
+
+        for i, fr in enumerate(source):
+            if rt.stop.is_set() or (args.frames is not None and i >= args.frames):
+                break
+            if isinstance(fr, BadFrame):
+                bad += 1
+                log.error("%s: skipped: %s", fr.label, fr.error)
+                continue
+            if args.pace == "realtime":
+                if ts0 is None:
+                    ts0 = fr.timestamp_ns
+                due = t_start + (i * period if period else (fr.timestamp_ns - ts0) / 1e9 / args.speed)
+                delay = due - time.monotonic()
+                if delay > 0:
+                    rt.stop.wait(delay)
+                behind_ms = max(0.0, -delay * 1e3)
+            t0 = time.perf_counter()
+            try:
+                data = encode_frame(fr, args.stream, color=args.color, quality=args.quality, depth=args.depth,
+                                    depth_scale=depth_scale, pub_ns=time.time_ns())
+            except WireError as e:
+                bad += 1
+                log.error("%s: cannot encode: %s", fr.label, e)
+                continue
+            pub.put(data)
+            sent += 1
+            last_seq = fr.seq
+            meter.add((time.perf_counter() - t0) * 1e3)
+            rt.maybe_stats(stats)
+        reason = "stopped" if rt.stop.is_set() else "source exhausted"
+        rt.session.put(keys.key(args.stream, "frame"), encode_end(EndOfStream(last_seq, reason), args.stream),
+                       congestion_control=zenoh.CongestionControl.BLOCK)
+        rt.publish_stats({**stats(), "state": "ended"})
+        log.info("sent %d frames (%d bad); %s", sent, bad, reason)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging("capture", args.verbose)
+    try:
+        conf = config_from_args(args)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
+    return run(args, conf)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""``flow``: scene flow of consecutive frames, ``frame`` -> ``flow``.
+
+Reads frames through a drop-oldest inbox (``--queue``, default 8: if this stage
+falls that far behind, the oldest frames are dropped and counted, and the next
+flow spans the gap), runs :class:`quick_stream.stages.FlowStage` and publishes
+each pair's ``flow`` message (lossless: the motion stage needs every pair it can
+get). Undecodable or out-of-order frames are logged and counted; the ``end``
+marker is forwarded once the last flow is out.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import cv2
+import zenoh
+
+from quick_stream import keys
+from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
+from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.stages import FlowStage
+from quick_stream.transport import config_from_args
+from quick_stream.wire import WireError, decode, encode_end, encode_flow
+
+log = logging.getLogger("flow")
+
+
+def build_parser():
+    p = service_parser("flow", __doc__)
+    p.add_argument("--queue", type=int, default=8, help="frames held before the oldest is dropped (default 8)")
+    add_stabilizer_args(p)
+    return p
+
+
+def run(args, conf: zenoh.Config) -> int:
+    stage = FlowStage(stabilizer_params(args).flow)
+    with ServiceRuntime("flow", args.stream, conf) as rt:
+        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue)
+        pub = rt.publisher("flow", lossless=True)
+        meter = RateMeter()
+        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0}
+
+        def stats():
+            return {"state": "running", **errors, **meter.take("flow")}
+
+        while not rt.stop.is_set():
+            rt.maybe_stats(stats)
+            item = inbox.pop()
+            if item is None:
+                rt.wait(0.2)
+                continue
+            try:
+                msg = decode(item[1])
+            except WireError as e:
+                errors["decode_errors"] += 1
+                log.error("frame message on %s rejected: %s", item[0], e)
+                continue
+            if msg.type == "end":
+                pub.put(encode_end(msg.obj, args.stream))
+                log.info("end of stream after frame %d", msg.obj.seq)
+                stage = FlowStage(stage.flow.params)  # a new stream may follow
+                continue
+            if msg.type != "frame":
+                errors["decode_errors"] += 1
+                log.error("unexpected %s message on %s", msg.type, item[0])
+                continue
+            t0 = time.perf_counter()
+            try:
+                flow = stage.push(msg.obj)
+            except ValueError as e:
+                errors["refused_frames"] += 1
+                log.error("%s: %s", msg.obj.label, e)
+                continue
+            if flow is None:
+                continue
+            if flow.problem:
+                errors["empty_flows"] += 1
+                log.warning("flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
+            pub.put(encode_flow(flow, args.stream))
+            meter.add((time.perf_counter() - t0) * 1e3)
+        rt.publish_stats({**stats(), "state": "stopped"})
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging("flow", args.verbose)
+    cv2.setNumThreads(1)
+    try:
+        conf = config_from_args(args)
+        stabilizer_params(args)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
+    return run(args, conf)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

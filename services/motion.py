@@ -1,0 +1,119 @@
+"""``motion``: camera motion, keyframes and the optimal path, ``flow`` -> ``motion`` + ``correction``.
+
+Runs :class:`quick_stream.stages.MotionStage` on every flow (lossless inbox and
+publishers: a lost correction would leave frames unrendered). Publishes each
+pair's ``motion`` and, one segment late, the ``correction`` of every frame of a
+closed segment, tagged with its planner release (``batch``) so the renderer
+frames each release as a whole. A flow that skips frames (upstream drops or a
+restarted flow service) becomes an invalid motion: the path restarts there and
+those frames are flagged. On ``end`` the last segment is closed and released,
+then ``end`` is forwarded on ``correction``.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import zenoh
+
+from quick_stream import keys
+from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
+from quick_stream.path.planner import Correction
+from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.stages import MotionStage
+from quick_stream.transport import config_from_args
+from quick_stream.wire import WireError, decode, encode_correction, encode_end, encode_motion
+
+log = logging.getLogger("motion")
+
+
+def build_parser():
+    p = service_parser("motion", __doc__)
+    p.add_argument("--queue", type=int, default=100_000, help="flow messages held (lossless; default 100000)")
+    add_stabilizer_args(p)
+    return p
+
+
+class Releaser:
+    """Publishes correction batches with their release id."""
+
+    def __init__(self, pub: zenoh.Publisher, stream: str) -> None:
+        self.pub, self.stream, self.release, self.sent = pub, stream, 0, 0
+
+    def __call__(self, batches: list[list[Correction]]) -> None:
+        for b in batches:
+            for i, c in enumerate(b):
+                self.pub.put(encode_correction(c, self.stream, batch=(self.release, i, len(b))))
+                self.sent += 1
+            self.release += 1
+
+
+def run(args, conf: zenoh.Config) -> int:
+    params = stabilizer_params(args)
+    stage = MotionStage(params.motion, params.planner)
+    with ServiceRuntime("motion", args.stream, conf) as rt:
+        inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue)
+        motion_pub = rt.publisher("motion", lossless=True)
+        release = Releaser(rt.publisher("correction", lossless=True), args.stream)
+        meter = RateMeter()
+        errors = {"decode_errors": 0, "refused_flows": 0, "invalid_motions": 0}
+
+        def stats():
+            return {"state": "running", **errors, "gaps": stage.gaps, "segments": len(stage.planner.segments),
+                    "corrections": release.sent, **meter.take("motion")}
+
+        while not rt.stop.is_set():
+            rt.maybe_stats(stats)
+            item = inbox.pop()
+            if item is None:
+                rt.wait(0.2)
+                continue
+            try:
+                msg = decode(item[1])
+            except WireError as e:
+                errors["decode_errors"] += 1
+                log.error("flow message on %s rejected: %s", item[0], e)
+                continue
+            if msg.type == "end":
+                release(stage.finish())
+                release.pub.put(encode_end(msg.obj, args.stream))
+                log.info("end of stream: %d segments, %d corrections", len(stage.planner.segments), release.sent)
+                stage = MotionStage(params.motion, params.planner)  # a new stream may follow
+                continue
+            if msg.type != "flow":
+                errors["decode_errors"] += 1
+                log.error("unexpected %s message on %s", msg.type, item[0])
+                continue
+            t0 = time.perf_counter()
+            try:
+                motions, batches = stage.push(msg.obj)
+            except ValueError as e:
+                errors["refused_flows"] += 1
+                log.error("flow %d->%d refused: %s", msg.obj.seq, msg.obj.seq_next, e)
+                continue
+            for m in motions:
+                if not m.valid:
+                    errors["invalid_motions"] += 1
+                    log.warning("motion %d->%d invalid: %s", m.seq, m.seq_next, m.reason)
+                motion_pub.put(encode_motion(m, args.stream))
+            release(batches)
+            meter.add((time.perf_counter() - t0) * 1e3)
+        rt.publish_stats({**stats(), "state": "stopped"})
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging("motion", args.verbose)
+    try:
+        conf = config_from_args(args)
+        stabilizer_params(args)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
+    return run(args, conf)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

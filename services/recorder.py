@@ -1,0 +1,99 @@
+"""``recorder``: every stage's messages of a stream (or of all streams) into one MCAP file.
+
+Subscribes ``quick/@v1/<stream>/*`` (``--all-streams``: ``quick/@v1/*/*``) and
+logs each message's exact bytes on a msgpack channel named after its key (exact
+replay: ``capture --source mcap:FILE``, ``quick-stream rerun``), plus the
+Foxglove-viewable channels derived from them (images, calibration, camera and
+stabilized poses; :mod:`quick_stream.foxglove_view`). The file's open chunk is
+written out every ``--flush`` seconds (default 1), so a killed recorder loses at
+most about that much; ``quick-stream recover`` repairs the footer-less file.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import zenoh
+
+from quick_stream import foxglove, keys
+from quick_stream.foxglove_view import FoxgloveView
+from quick_stream.recording import Recorder
+from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.transport import config_from_args
+from quick_stream.wire import WireError
+
+log = logging.getLogger("recorder")
+
+
+def build_parser():
+    p = service_parser("recorder", __doc__)
+    p.add_argument("--output", default="out/recording.mcap", help="MCAP file (default out/recording.mcap)")
+    p.add_argument("--all-streams", action="store_true", help="record every stream, not only --stream")
+    p.add_argument("--flush", type=float, default=1.0, help="seconds between chunk flushes (default 1)")
+    p.add_argument("--no-foxglove", action="store_true", help="msgpack channels only")
+    p.add_argument("--queue", type=int, default=4096, help="messages held before the oldest is dropped")
+    return p
+
+
+def run(args, conf: zenoh.Config) -> int:
+    views: dict[str, FoxgloveView] = {}
+    with ServiceRuntime("recorder", args.stream, conf) as rt, Recorder(args.output, flush_s=args.flush) as rec:
+        sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
+        inbox = rt.inbox(sub_key, args.queue)
+        meter = RateMeter()
+        errors = {"bad_keys": 0, "view_errors": 0}
+        logged_bytes = 0
+
+        def stats():
+            return {"state": "running", "messages": rec.messages, "bytes": logged_bytes, **errors,
+                    **meter.take("log")}
+
+        while not rt.stop.is_set():
+            rt.maybe_stats(stats)
+            rec.maybe_flush()
+            item = inbox.pop()
+            if item is None:
+                rt.wait(0.2)
+                continue
+            key_expr, payload = item
+            try:
+                stream, stage = keys.parse(key_expr)
+            except ValueError as e:
+                errors["bad_keys"] += 1
+                log.error("%s", e)
+                continue
+            t0 = time.perf_counter()
+            now = time.time_ns()
+            rec.write(key_expr, payload, log_time_ns=now)
+            logged_bytes += len(payload)
+            if not args.no_foxglove:
+                view = views.get(stream)
+                if view is None:
+                    view = views[stream] = FoxgloveView(stream)
+                    foxglove.register_channels(rec, stream)
+                try:
+                    for topic, data in view.convert(stage, payload):
+                        rec.write(topic, data, log_time_ns=now)
+                except WireError as e:
+                    errors["view_errors"] += 1
+                    log.error("%s: no Foxglove view: %s", key_expr, e)
+            meter.add((time.perf_counter() - t0) * 1e3)
+        rt.publish_stats({**stats(), "state": "stopped"})
+    log.info("closed %s: %d messages", args.output, rec.messages)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging("recorder", args.verbose)
+    try:
+        conf = config_from_args(args)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
+    return run(args, conf)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

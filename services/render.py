@@ -1,0 +1,209 @@
+"""``render``: stabilized frames, ``frame`` + ``correction`` -> ``stabilized`` (+ MP4/PNG).
+
+Frames are held (compressed, as received; decoded only when rendered) until their
+correction arrives, one segment later; corrections are collected per planner
+release and each release is warped, framed and rendered as a whole by
+:class:`quick_stream.stages.RenderStage`. A release is rendered once all its
+frames are here, or a newer frame has arrived (a missing one is lost: counted),
+or after ``--frame-wait`` seconds. Frames that no correction will reach (skipped
+upstream) are rendered uncorrected and flagged. ``--max-frames`` bounds what is
+held: beyond it the oldest frame is dropped and counted. Each stabilized frame
+carries its latency stamps (see docs/wire-format.md); ``--output``/``--png``
+also write it to disk. On ``end`` (on ``correction``) everything left is
+rendered, the file closed, and ``end`` forwarded on ``stabilized``.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+import time
+
+import cv2
+import zenoh
+
+from quick_stream import keys
+from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
+from quick_stream.path.planner import Correction
+from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.sinks import VideoSink
+from quick_stream.stages import RenderStage, StabilizedFrame
+from quick_stream.transport import config_from_args
+from quick_stream.wire import StabilizedImage, WireError, decode, encode_end, encode_stabilized
+from quick_stream.wire.codec import unpack
+
+log = logging.getLogger("render")
+
+
+def build_parser():
+    p = service_parser("render", __doc__)
+    p.add_argument("--output", default="", help="also write an MP4 here")
+    p.add_argument("--png", default="", metavar="DIR", help="also write every frame as PNG here")
+    p.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate (default 30)")
+    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="published image encoding")
+    p.add_argument("--quality", type=int, default=90, help="JPEG quality (default 90)")
+    p.add_argument("--max-frames", type=int, default=240, help="frames held for corrections (default 240)")
+    p.add_argument("--frame-wait", type=float, default=1.0,
+                   help="seconds a complete release waits for missing frames (default 1)")
+    add_stabilizer_args(p)
+    return p
+
+
+class Releases:
+    """Corrections grouped by planner release; yields complete releases in order."""
+
+    def __init__(self) -> None:
+        self._open: dict[int, tuple[int, dict[int, Correction]]] = {}
+        self.ready: list[tuple[int, list[Correction], float]] = []  # (release, batch, completed at)
+        self.unbatched = 0
+
+    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
+        if batch is None:  # a sender without release tags: each correction is its own batch
+            self.unbatched += 1
+            self.ready.append((-1, [c], time.monotonic()))
+            return
+        rel, idx, size = batch
+        _, got = self._open.setdefault(rel, (size, {}))
+        got[idx] = c
+        if len(got) == size:
+            del self._open[rel]
+            self.ready.append((rel, [got[i] for i in range(size)], time.monotonic()))
+            self.ready.sort(key=lambda r: r[1][0].seq)
+
+    def flush_incomplete(self) -> int:
+        """End of stream: hand over partial releases (what arrived of them); returns how many."""
+        n = len(self._open)
+        for rel, (_, got) in sorted(self._open.items()):
+            self.ready.append((rel, [got[i] for i in sorted(got)], time.monotonic()))
+        self._open.clear()
+        self.ready.sort(key=lambda r: r[1][0].seq)
+        return n
+
+
+def run(args, conf: zenoh.Config) -> int:
+    params = stabilizer_params(args)
+    stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)
+    with ServiceRuntime("render", args.stream, conf) as rt, VideoSink(args.output, args.png, args.fps) as sink:
+        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256)
+        corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000)
+        pub = rt.publisher("stabilized")
+        releases = Releases()
+        pub_ns: dict[int, int] = {}
+        newest = -1
+        meter = RateMeter()
+        errors = {"decode_errors": 0, "refused_frames": 0}
+        flagged = 0
+
+        def stats():
+            return {"state": "running", **errors, "buffered": stage.buffered, "dropped": stage.dropped,
+                    "missing": stage.missing, "orphans": stage.orphans, "bad_frames": len(stage.bad),
+                    "flagged": flagged, "pending_releases": len(releases.ready), **meter.take("render")}
+
+        def publish(out: list[StabilizedFrame], ready_seq: int | None) -> None:
+            nonlocal flagged
+            for sf in out:
+                src = pub_ns.pop(sf.seq, None)
+                ready = pub_ns.get(ready_seq, src) if ready_seq is not None else src
+                pub.put(encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags),
+                                          args.stream, color=args.color, quality=args.quality,
+                                          src_pub_ns=src, ready_pub_ns=ready))
+                sink.write(sf.seq, sf.image)
+                flagged += bool(sf.flags)
+
+        def take_frame(data: bytes) -> None:
+            nonlocal newest
+            try:
+                r = unpack(data)
+            except WireError as e:
+                errors["decode_errors"] += 1
+                log.error("frame message rejected: %s", e)
+                return
+            if r.type == "end":
+                return
+            if r.type != "frame":
+                errors["decode_errors"] += 1
+                log.error("unexpected %s message on frame", r.type)
+                return
+            try:
+                stage.add_frame(r.seq, lambda d=data: decode(d).obj)
+            except ValueError as e:
+                errors["refused_frames"] += 1
+                log.error("frame %d: %s", r.seq, e)
+                return
+            newest = r.seq
+            pub_ns[r.seq] = r.d.get("pub_ns") or 0
+            while len(pub_ns) > args.max_frames + 64:
+                pub_ns.pop(next(iter(pub_ns)))
+
+        def render_ready(force: bool) -> None:
+            while releases.ready:
+                rel, batch, t_done = releases.ready[0]
+                seqs = [c.seq for c in batch]
+                if not (force or stage.has_frames(seqs) or newest > max(seqs)
+                        or time.monotonic() - t_done > args.frame_wait):
+                    return
+                releases.ready.pop(0)
+                t0 = time.perf_counter()
+                nbad = len(stage.bad)
+                out = stage.render_batch(batch)
+                for b in stage.bad[nbad:]:
+                    log.error("frame %d cannot be rendered: %s", b["seq"], b["error"])
+                publish(out, max(seqs))
+                for _ in out:
+                    meter.add((time.perf_counter() - t0) * 1e3 / max(len(out), 1))
+
+        ended = False
+        while not rt.stop.is_set():
+            rt.maybe_stats(stats)
+            got = False
+            while (item := frames_in.pop()) is not None:
+                got = True
+                take_frame(item[1])
+            item = corr_in.pop()
+            if item is not None:
+                got = True
+                try:
+                    msg = decode(item[1])
+                except WireError as e:
+                    errors["decode_errors"] += 1
+                    log.error("correction message rejected: %s", e)
+                    msg = None
+                if msg is not None and msg.type == "correction":
+                    releases.add(msg.obj, msg.extra.get("batch"))
+                elif msg is not None and msg.type == "end":
+                    ended = True
+            render_ready(force=False)
+            if ended:
+                while (item := frames_in.pop()) is not None:
+                    take_frame(item[1])
+                n = releases.flush_incomplete()
+                if n:
+                    log.warning("end of stream with %d incomplete releases", n)
+                render_ready(force=True)
+                publish(stage.flush(), None)
+                pub.put(encode_end(msg.obj, args.stream))
+                log.info("end of stream: %d frames written, %d flagged, %d orphans, %d missing",
+                         sink.frames, flagged, stage.orphans, stage.missing)
+                ended = False
+                stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)  # a new stream may follow
+                continue
+            if not got:
+                rt.wait(0.05)
+        rt.publish_stats({**stats(), "state": "stopped"})
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging("render", args.verbose)
+    cv2.setNumThreads(1)
+    try:
+        conf = config_from_args(args)
+        stabilizer_params(args)
+    except ValueError as e:
+        log.error("%s", e)
+        return 2
+    return run(args, conf)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
