@@ -14,7 +14,7 @@ from collections import OrderedDict
 import numpy as np
 
 from . import foxglove
-from .wire import WireError, decode
+from .wire import decode
 from .wire.codec import unpack
 from .wire.messages import read_intrinsics
 
@@ -22,13 +22,20 @@ _KEEP = 512  # frames of timestamps/poses kept for matching motions and correcti
 
 
 class FoxgloveView:
-    """Turns one stream's wire messages into (topic, bytes) Foxglove messages."""
+    """Turns one stream's wire messages into (topic, bytes) Foxglove messages.
+
+    Messages of different stages reach a recorder by different routes, so a pose is
+    emitted as soon as everything it needs (the frame's timestamp, the integrated
+    camera pose, for the stabilized pose the correction) has arrived, in any order.
+    """
 
     def __init__(self, stream: str) -> None:
         self.stream = stream
         self.topics = {name: foxglove.topic(stream, name) for name in foxglove.STREAM_CHANNELS}
         self._t_ns: OrderedDict[int, int] = OrderedDict()
         self._pose: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._corr: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._sent: OrderedDict[int, set] = OrderedDict()
         self._calib: tuple | None = None
         self._calib_t = -(1 << 62)
 
@@ -37,6 +44,25 @@ class FoxgloveView:
         d[k] = v
         while len(d) > _KEEP:
             d.popitem(last=False)
+
+    def _poses(self, seq: int) -> list[tuple[str, bytes]]:
+        """The pose messages of frame ``seq`` that have become complete and were not sent yet."""
+        t, pose = self._t_ns.get(seq), self._pose.get(seq)
+        if t is None or pose is None:
+            return []
+        sent = self._sent.get(seq)
+        if sent is None:
+            sent = set()
+            self._remember(self._sent, seq, sent)
+        out = []
+        if "camera" not in sent:
+            sent.add("camera")
+            out.append((self.topics["camera_pose"], foxglove.pose_in_frame(pose, t)))
+        corr = self._corr.get(seq)
+        if corr is not None and "stabilized" not in sent:
+            sent.add("stabilized")
+            out.append((self.topics["stabilized_pose"], foxglove.pose_in_frame(pose @ corr, t)))
+        return out
 
     def convert(self, stage: str, payload: bytes) -> list[tuple[str, bytes]]:
         """Foxglove messages for one wire message of ``stage`` (none for stages without a view).
@@ -54,7 +80,7 @@ class FoxgloveView:
             if key != self._calib or t_ns - self._calib_t >= 1_000_000_000:
                 self._calib, self._calib_t = key, t_ns
                 out.append((self.topics["calibration"], foxglove.camera_calibration(k, t_ns, self.stream)))
-            return out
+            return out + self._poses(r.seq)
         if stage == "stabilized":
             r = unpack(payload)
             if r.type != "stabilized":
@@ -71,19 +97,16 @@ class FoxgloveView:
             prev = self._pose.get(mo.seq)
             if prev is None:  # the path has a hole: restart it here
                 prev = np.eye(4)
-            pose = prev @ mo.matrix
-            self._remember(self._pose, mo.seq_next, pose)
-            t = self._t_ns.get(mo.seq_next)
-            return [] if t is None else [(self.topics["camera_pose"], foxglove.pose_in_frame(pose, t))]
+                self._remember(self._pose, mo.seq, prev)
+            self._remember(self._pose, mo.seq_next, prev @ mo.matrix)
+            return self._poses(mo.seq) + self._poses(mo.seq_next)
         if stage == "correction":
             c = decode(payload)
             if c.type != "correction":
                 return []
-            pose, t = self._pose.get(c.seq), self._t_ns.get(c.seq)
-            if pose is None or t is None:
-                return []
-            return [(self.topics["stabilized_pose"], foxglove.pose_in_frame(pose @ c.obj.matrix, t))]
+            self._remember(self._corr, c.seq, c.obj.matrix)
+            return self._poses(c.seq)
         return []
 
 
-__all__ = ["FoxgloveView", "WireError"]
+__all__ = ["FoxgloveView"]

@@ -91,6 +91,25 @@ class RateMeter:
         return out
 
 
+class Percentiles:
+    """Samples of one quantity over the last stats period: p50/p99/max on take."""
+
+    def __init__(self) -> None:
+        self._v: list[float] = []
+
+    def add(self, v: float) -> None:
+        self._v.append(v)
+
+    def take(self, prefix: str) -> dict[str, float]:
+        if not self._v:
+            return {}
+        a = np.asarray(self._v)
+        self._v = []
+        return {f"{prefix}_p50": round(float(np.percentile(a, 50)), 2),
+                f"{prefix}_p99": round(float(np.percentile(a, 99)), 2),
+                f"{prefix}_max": round(float(a.max()), 2), f"{prefix}_n": int(a.size)}
+
+
 class ServiceRuntime:
     """One service process's zenoh session and life cycle (use as a context manager)."""
 

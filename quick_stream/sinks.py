@@ -44,3 +44,50 @@ class VideoSink:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class BackgroundSink:
+    """A :class:`VideoSink` written from a worker thread (OpenCV encodes without the GIL), so
+    publishing a frame never waits for the file. The queue is bounded; when it is full
+    ``write`` waits (frames are never dropped from the file). Errors surface on close."""
+
+    def __init__(self, sink: VideoSink, max_queued: int = 64) -> None:
+        import queue
+        import threading
+
+        self.sink = sink
+        self._q: "queue.Queue[tuple[int, np.ndarray] | None]" = queue.Queue(max_queued)
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="video-sink", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (item := self._q.get()) is not None:
+            if self._error is None:
+                try:
+                    self.sink.write(*item)
+                except BaseException as e:  # noqa: BLE001 - reported on close
+                    self._error = e
+
+    @property
+    def frames(self) -> int:
+        return self.sink.frames
+
+    def write(self, seq: int, image: np.ndarray) -> None:
+        if self._error is not None:
+            raise self._error
+        self._q.put((seq, image))
+
+    def close(self) -> None:
+        if self._thread.is_alive():
+            self._q.put(None)
+            self._thread.join()
+        self.sink.close()
+        if self._error is not None:
+            raise self._error
+
+    def __enter__(self) -> "BackgroundSink":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -25,7 +25,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -193,15 +193,34 @@ class RenderStage:
             return None
 
     def render_batch(self, corrections: list[Correction]) -> list[StabilizedFrame]:
-        """Render one correction batch, preceded by any orphans older than it (each their own batch)."""
+        """Render one correction batch and the orphans it reveals, in seq order (see :meth:`iter_batch`)."""
+        return list(self.iter_batch(corrections))
+
+    def iter_batch(self, corrections: list[Correction]) -> Iterator[StabilizedFrame]:
+        """Render one correction batch and the orphans it reveals, yielding frames in seq order.
+
+        Warps and the batch's zoom track are solved first (cheap); each frame is then
+        rendered only when the caller asks for it, so a service can publish the first
+        frame while the rest of the batch waits. Orphans are held frames older than the
+        batch's newest that the batch does not cover (skipped upstream: no correction
+        will ever come); each is framed on its own, uncorrected and flagged."""
         if not corrections:
-            return []
-        first = min(c.seq for c in corrections)
-        out: list[StabilizedFrame] = []
-        for seq in [s for s in self._frames if s < first]:
+            return
+        last = max(c.seq for c in corrections)
+        covered = {c.seq for c in corrections}
+        plans: list[tuple[Correction, RGBDFrame, MeshWarp, float]] = []
+        for seq in [s for s in self._frames if s < last and s not in covered]:
             self.orphans += 1
-            out.extend(self._render([orphan_correction(seq)]))
-        return out + self._render(corrections)
+            plans += self._plan([orphan_correction(seq)])
+        plans += self._plan(corrections)
+        if len(plans) > len(corrections):
+            plans.sort(key=lambda x: x[0].seq)
+        for c, f, mesh, z in plans:
+            t0 = time.perf_counter()
+            sf = StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
+                                 f.color if self.keep_inputs else None)
+            self.timer.add("render", (time.perf_counter() - t0) * 1e3)
+            yield sf
 
     def has_frames(self, seqs: list[int]) -> bool:
         return all(s in self._frames for s in seqs)
@@ -211,10 +230,13 @@ class RenderStage:
         out: list[StabilizedFrame] = []
         for seq in list(self._frames):
             self.orphans += 1
-            out.extend(self._render([orphan_correction(seq)]))
+            for c, f, mesh, z in self._plan([orphan_correction(seq)]):
+                out.append(StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
+                                           f.color if self.keep_inputs else None))
         return out
 
-    def _render(self, corrections: list[Correction]) -> list[StabilizedFrame]:
+    def _plan(self, corrections: list[Correction]) -> list[tuple[Correction, RGBDFrame, MeshWarp, float]]:
+        """Load the frames, solve their warps and the batch's zoom track."""
         t0 = time.perf_counter()
         items = []
         for c in corrections:
@@ -228,13 +250,8 @@ class RenderStage:
         t1 = time.perf_counter()
         zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom)
         t2 = time.perf_counter()
-        out = [StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, float(z)), c, float(z), mesh,
-                               f.color if self.keep_inputs else None)
-               for (c, f, mesh), z in zip(items, zooms)]
-        t3 = time.perf_counter()
         n = len(items)
         for _ in range(n):  # per-frame samples (the batch's average)
             self.timer.add("warp", (t1 - t0) * 1e3 / n)
             self.timer.add("framing", (t2 - t1) * 1e3 / n)
-            self.timer.add("render", (t3 - t2) * 1e3 / n)
-        return out
+        return [(c, f, mesh, float(z)) for (c, f, mesh), z in zip(items, zooms)]

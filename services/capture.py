@@ -5,6 +5,8 @@ at its own timestamps (``--pace realtime``, ``--speed`` to scale) or sent as fas
 as possible (``--pace fast``), encoded as ``frame`` messages (JPEG or raw colour,
 raw or zstd depth at the source's own depth scale) and published. A frame the
 source cannot deliver is logged with its reason and counted; the stream goes on.
+A recording (``mcap:``) is replayed exactly: each frame message is sent as
+recorded (only re-addressed to ``--stream`` and re-stamped), unless ``--reencode``.
 At the end an ``end`` message follows the last frame. ``--wait-for`` holds the
 first frame until the named services are up, so a run loses nothing at start-up.
 """
@@ -22,6 +24,7 @@ from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setu
 from quick_stream.sources import SourceError, open_source
 from quick_stream.transport import config_from_args
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
+from quick_stream.wire.messages import restamp_frame
 
 log = logging.getLogger("capture")
 
@@ -37,6 +40,8 @@ def build_parser():
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="colour encoding (default jpeg)")
     p.add_argument("--quality", type=int, default=90, help="JPEG quality (default 90)")
     p.add_argument("--depth", choices=("raw", "zstd"), default="zstd", help="depth encoding (default zstd)")
+    p.add_argument("--reencode", action="store_true",
+                   help="mcap sources: re-encode frames with --color/--depth instead of sending the recorded bytes")
     p.add_argument("--wait-for", default="", metavar="S1,S2",
                    help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
     p.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for them (default 30)")
@@ -67,7 +72,9 @@ def run(args, conf: zenoh.Config) -> int:
             return {"state": "running", "sent": sent, "bad_frames": bad, "behind_ms": round(behind_ms, 1),
                     **meter.take("send")}
 
-        for i, fr in enumerate(source):
+        replay = getattr(source, "iter_with_messages", None)
+        items = replay() if replay is not None and not args.reencode else ((f, None) for f in source)
+        for i, (fr, recorded) in enumerate(items):
             if rt.stop.is_set() or (args.frames is not None and i >= args.frames):
                 break
             if isinstance(fr, BadFrame):
@@ -84,8 +91,11 @@ def run(args, conf: zenoh.Config) -> int:
                 behind_ms = max(0.0, -delay * 1e3)
             t0 = time.perf_counter()
             try:
-                data = encode_frame(fr, args.stream, color=args.color, quality=args.quality, depth=args.depth,
-                                    depth_scale=depth_scale, pub_ns=time.time_ns())
+                if recorded is not None:  # a recording: its exact bytes, re-stamped
+                    data = restamp_frame(recorded, args.stream, time.time_ns())
+                else:
+                    data = encode_frame(fr, args.stream, color=args.color, quality=args.quality,
+                                        depth=args.depth, depth_scale=depth_scale, pub_ns=time.time_ns())
             except WireError as e:
                 bad += 1
                 log.error("%s: cannot encode: %s", fr.label, e)

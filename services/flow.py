@@ -1,6 +1,6 @@
 """``flow``: scene flow of consecutive frames, ``frame`` -> ``flow``.
 
-Reads frames through a drop-oldest inbox (``--queue``, default 8: if this stage
+Reads frames through a drop-oldest inbox (``--queue``, default 30: if this stage
 falls that far behind, the oldest frames are dropped and counted, and the next
 flow spans the gap), runs :class:`quick_stream.stages.FlowStage` and publishes
 each pair's ``flow`` message (lossless: the motion stage needs every pair it can
@@ -28,7 +28,8 @@ log = logging.getLogger("flow")
 
 def build_parser():
     p = service_parser("flow", __doc__)
-    p.add_argument("--queue", type=int, default=8, help="frames held before the oldest is dropped (default 8)")
+    p.add_argument("--queue", type=int, default=30,
+                   help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)")
     add_stabilizer_args(p)
     return p
 

@@ -1,15 +1,15 @@
 """``render``: stabilized frames, ``frame`` + ``correction`` -> ``stabilized`` (+ MP4/PNG).
 
-Frames are held (compressed, as received; decoded only when rendered) until their
-correction arrives, one segment later; corrections are collected per planner
+Frames are decoded as they arrive and held until their correction arrives, one segment later; corrections are collected per planner
 release and each release is warped, framed and rendered as a whole by
 :class:`quick_stream.stages.RenderStage`. A release is rendered once all its
 frames are here, or a newer frame has arrived (a missing one is lost: counted),
 or after ``--frame-wait`` seconds. Frames that no correction will reach (skipped
 upstream) are rendered uncorrected and flagged. ``--max-frames`` bounds what is
 held: beyond it the oldest frame is dropped and counted. Each stabilized frame
-carries its latency stamps (see docs/wire-format.md); ``--output``/``--png``
-also write it to disk. On ``end`` (on ``correction``) everything left is
+is published as soon as it is rendered (the batch's warps and zoom track are
+solved first), with its latency stamps (docs/wire-format.md); ``--output``/``--png``
+also write it to disk from a worker thread. On ``end`` (on ``correction``) everything left is
 rendered, the file closed, and ``end`` forwarded on ``stabilized``.
 """
 from __future__ import annotations
@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from collections.abc import Iterable
 
 import cv2
 import zenoh
@@ -24,8 +25,8 @@ import zenoh
 from quick_stream import keys
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.path.planner import Correction
-from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
-from quick_stream.sinks import VideoSink
+from quick_stream.runtime import Percentiles, RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.sinks import BackgroundSink, VideoSink
 from quick_stream.stages import RenderStage, StabilizedFrame
 from quick_stream.transport import config_from_args
 from quick_stream.wire import StabilizedImage, WireError, decode, encode_end, encode_stabilized
@@ -41,7 +42,8 @@ def build_parser():
     p.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate (default 30)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="published image encoding")
     p.add_argument("--quality", type=int, default=90, help="JPEG quality (default 90)")
-    p.add_argument("--max-frames", type=int, default=240, help="frames held for corrections (default 240)")
+    p.add_argument("--max-frames", type=int, default=150,
+                   help="frames held for corrections (default 150, 5 s at 30 fps)")
     p.add_argument("--frame-wait", type=float, default=1.0,
                    help="seconds a complete release waits for missing frames (default 1)")
     add_stabilizer_args(p)
@@ -82,7 +84,8 @@ class Releases:
 def run(args, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)
-    with ServiceRuntime("render", args.stream, conf) as rt, VideoSink(args.output, args.png, args.fps) as sink:
+    with ServiceRuntime("render", args.stream, conf) as rt, \
+            BackgroundSink(VideoSink(args.output, args.png, args.fps)) as sink:
         frames_in = rt.inbox(keys.key(args.stream, "frame"), 256)
         corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000)
         pub = rt.publisher("stabilized")
@@ -92,22 +95,33 @@ def run(args, conf: zenoh.Config) -> int:
         meter = RateMeter()
         errors = {"decode_errors": 0, "refused_frames": 0}
         flagged = 0
+        ended_streams = 0
+        lat_proc, lat_total = Percentiles(), Percentiles()
 
         def stats():
             return {"state": "running", **errors, "buffered": stage.buffered, "dropped": stage.dropped,
                     "missing": stage.missing, "orphans": stage.orphans, "bad_frames": len(stage.bad),
-                    "flagged": flagged, "pending_releases": len(releases.ready), **meter.take("render")}
+                    "flagged": flagged, "pending_releases": len(releases.ready), "ended": ended_streams,
+                    **meter.take("render"), **lat_proc.take("lat_proc_ms"), **lat_total.take("lat_total_ms")}
 
-        def publish(out: list[StabilizedFrame], ready_seq: int | None) -> None:
+        def publish(out: Iterable[StabilizedFrame], ready_seq: int | None) -> None:
             nonlocal flagged
             for sf in out:
+                t0 = time.perf_counter()
                 src = pub_ns.pop(sf.seq, None)
                 ready = pub_ns.get(ready_seq, src) if ready_seq is not None else src
                 pub.put(encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags),
                                           args.stream, color=args.color, quality=args.quality,
                                           src_pub_ns=src, ready_pub_ns=ready))
+                now = time.time_ns()
                 sink.write(sf.seq, sf.image)
                 flagged += bool(sf.flags)
+                if ready:
+                    lat_proc.add((now - ready) / 1e6)
+                if src:
+                    lat_total.add((now - src) / 1e6)
+                meter.add((time.perf_counter() - t0) * 1e3)
+                rt.maybe_stats(stats)
 
         def take_frame(data: bytes) -> None:
             nonlocal newest
@@ -124,7 +138,12 @@ def run(args, conf: zenoh.Config) -> int:
                 log.error("unexpected %s message on frame", r.type)
                 return
             try:
-                stage.add_frame(r.seq, lambda d=data: decode(d).obj)
+                frame = decode(data).obj  # now, not in the burst when the segment's corrections come
+                stage.add_frame(r.seq, frame)
+            except WireError as e:
+                errors["decode_errors"] += 1
+                log.error("frame message rejected: %s", e)
+                return
             except ValueError as e:
                 errors["refused_frames"] += 1
                 log.error("frame %d: %s", r.seq, e)
@@ -142,14 +161,10 @@ def run(args, conf: zenoh.Config) -> int:
                         or time.monotonic() - t_done > args.frame_wait):
                     return
                 releases.ready.pop(0)
-                t0 = time.perf_counter()
                 nbad = len(stage.bad)
-                out = stage.render_batch(batch)
+                publish(stage.iter_batch(batch), max(seqs))
                 for b in stage.bad[nbad:]:
                     log.error("frame %d cannot be rendered: %s", b["seq"], b["error"])
-                publish(out, max(seqs))
-                for _ in out:
-                    meter.add((time.perf_counter() - t0) * 1e3 / max(len(out), 1))
 
         ended = False
         while not rt.stop.is_set():
@@ -184,6 +199,9 @@ def run(args, conf: zenoh.Config) -> int:
                 log.info("end of stream: %d frames written, %d flagged, %d orphans, %d missing",
                          sink.frames, flagged, stage.orphans, stage.missing)
                 ended = False
+                newest = -1
+                ended_streams += 1
+                rt.publish_stats(stats())
                 stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)  # a new stream may follow
                 continue
             if not got:

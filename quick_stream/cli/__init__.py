@@ -9,11 +9,11 @@ import argparse
 import logging
 import sys
 
-from . import bench_cmd, evaluate_cmd, motion_cmd, recover_cmd, router_cmd, stabilize_cmd
+from . import bench_cmd, evaluate_cmd, motion_cmd, recover_cmd, rerun_cmd, router_cmd, stabilize_cmd, up_cmd
 
 COMMANDS = {
     "stabilize": stabilize_cmd, "evaluate": evaluate_cmd, "motion": motion_cmd, "bench": bench_cmd,
-    "recover": recover_cmd, "router": router_cmd,
+    "recover": recover_cmd, "rerun": rerun_cmd, "router": router_cmd, "up": up_cmd,
 }
 
 

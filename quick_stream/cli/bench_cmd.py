@@ -30,9 +30,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     ps = b.add_parser("path", help="optimal-path solver ms per frame for every group")
     for q in (s, o, m, q, ps):
         q.add_argument("--json", action="store_true", help="print one JSON object")
+    pl = b.add_parser("pipeline", help="the services under load: latency, throughput, drops, CPU and memory")
+    pl.add_argument("--fps", default="30", help="comma-separated capture rates; 'fast' = as fast as possible")
+    pl.add_argument("--seconds", type=float, default=120.0, help="measured seconds per rate (default 120)")
+    pl.add_argument("--no-record", action="store_true", help="run without the recorder")
+    pl.add_argument("--out", default="out/bench-pipeline", help="folder for recordings and logs")
+    pl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.bench == "pipeline":
+        from ..bench import pipeline
+
+        rates = [None if x.strip() == "fast" else float(x) for x in args.fps.split(",")]
+        return pipeline.main(rates, args.seconds, args.out, args.json, record=not args.no_record)
     if args.bench == "speed":
         from ..bench import speed
 

@@ -195,6 +195,11 @@ class McapSource:
         return self._count
 
     def __iter__(self) -> Iterator[FrameOrGap]:
+        for item, _data in self.iter_with_messages():
+            yield item
+
+    def iter_with_messages(self) -> Iterator[tuple[FrameOrGap, bytes]]:
+        """Each frame (or BadFrame) with the recorded message bytes it came from (exact replay)."""
         period_ns = round(1e9 / self.fps)
         prev: tuple[int, int] | None = None  # (seq, timestamp_ns) of the last item yielded
         for index, (log_time, data) in enumerate(self._messages()):
@@ -207,10 +212,10 @@ class McapSource:
                 gap = self._gap(index, log_time, data, e, prev, period_ns)
                 log.warning("%s", gap.error)
                 prev = (gap.seq, gap.timestamp_ns)
-                yield gap
+                yield gap, data
                 continue
             prev = (frame.seq, frame.timestamp_ns)
-            yield frame
+            yield frame, data
 
     def __repr__(self) -> str:
         return (f"McapSource({str(self.path)!r}, stream={self.stream!r}, frames={len(self)}, "

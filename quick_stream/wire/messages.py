@@ -122,6 +122,17 @@ def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality:
     return pack(f, "frame", stream, frame.seq)
 
 
+def restamp_frame(data: bytes, stream: str, pub_ns: int) -> bytes:
+    """A recorded ``frame`` message re-addressed to ``stream`` with a new ``pub_ns``; everything
+    else (the compressed images included) byte for byte as recorded (exact replay)."""
+    r = unpack(data)
+    if r.type != "frame":
+        raise r.error("type", f"expected a 'frame' message, got {r.type!r}")
+    fields = {k: v for k, v in r.d.items() if k not in ("v", "type", "stream", "seq")}
+    fields["pub_ns"] = int(pub_ns)
+    return pack(fields, "frame", stream, r.seq)
+
+
 def _decode_frame(r: Reader) -> Decoded:
     k = read_intrinsics(r, "intrinsics")
     t_ns = r.int("t_ns")

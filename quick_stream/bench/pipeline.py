@@ -1,0 +1,208 @@
+"""``quick-stream bench pipeline``: the streaming service under load, measured from outside.
+
+Runs the router and every service as separate processes (the ``up`` layout, recording
+on) with the capture at a fixed rate (``--fps``) or as fast as it can (``--fast``),
+and measures from a monitor session:
+
+* **latency** of each stabilized frame from its stamps (docs/wire-format.md):
+  total = received - source published; *segment wait* = when the frame that closed
+  its segment was published - source published; *processing* = total - wait
+  (scene flow of the closing pair, motion, path, transport, warp, render, encode);
+* **throughput and drops**: frames sent, stabilized, flagged (orphans: frames some
+  stage dropped), per-service inbox drops and render's dropped/missing counters;
+* **CPU and memory per process** from ``/proc``: mean CPU % over the run, RSS at the
+  start and end of the measured window and the peak (VmHWM).
+
+Prints a table and writes JSON (``--json``). Numbers are for the machine it runs on.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from .. import keys
+from ..launcher import StatusBoard, ServiceSpec, Supervisor
+from ..wire import WireError
+from ..wire.codec import unpack
+
+CLK = os.sysconf("SC_CLK_TCK")
+
+
+def proc_sample(pid: int) -> tuple[float, int, int] | None:
+    """(CPU seconds used, RSS bytes, peak RSS bytes) of a process, None if it is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    cpu = (int(stat[11]) + int(stat[12])) / CLK
+    vals = {ln.split(":")[0]: int(ln.split()[1]) * 1024 for ln in status.splitlines()
+            if ln.startswith(("VmRSS", "VmHWM"))}
+    return cpu, vals.get("VmRSS", 0), vals.get("VmHWM", 0)
+
+
+@dataclass
+class Monitor:
+    """Receives stabilized frames (envelope and stamps only) and records their latency."""
+
+    total_ms: list[float] = field(default_factory=list)
+    wait_ms: list[float] = field(default_factory=list)
+    proc_ms: list[float] = field(default_factory=list)
+    first_ms: list[float] = field(default_factory=list)  # processing of each batch's first frame
+    seqs: list[int] = field(default_factory=list)
+    flagged: int = 0
+    ended: bool = False
+    t_first: float | None = None
+    t_last: float | None = None
+    _last_ready: int | None = None
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        now = time.time_ns()
+        try:
+            r = unpack(sample.payload.to_bytes())
+        except WireError:
+            return
+        with self._lock:
+            if r.type == "end":
+                self.ended = True
+                return
+            if r.type != "stabilized":
+                return
+            src, ready = r.d.get("src_pub_ns"), r.d.get("ready_pub_ns")
+            self.seqs.append(r.seq)
+            self.flagged += bool(r.d.get("flags"))
+            t = time.monotonic()
+            self.t_first = self.t_first or t
+            self.t_last = t
+            if src and ready:
+                self.total_ms.append((now - src) / 1e6)
+                self.wait_ms.append((ready - src) / 1e6)
+                self.proc_ms.append((now - ready) / 1e6)
+                if ready != self._last_ready:
+                    self.first_ms.append((now - ready) / 1e6)
+                    self._last_ready = ready
+
+
+def _pct(a: list[float]) -> dict[str, float]:
+    if not a:
+        return {}
+    x = np.asarray(a)
+    return {"p50": float(np.percentile(x, 50)), "p90": float(np.percentile(x, 90)),
+            "p99": float(np.percentile(x, 99)), "max": float(x.max()), "n": int(x.size)}
+
+
+def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
+                 record: bool = True, warmup_s: float = 5.0) -> dict:
+    """One measured run; ``fps`` None = capture as fast as possible. Returns the report dict."""
+    from ..cli.up_cmd import free_port, open_when_up
+
+    out.mkdir(parents=True, exist_ok=True)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    z = ["-e", endpoint, "--no-multicast-scouting"]
+    frames = int((fps or 120) * (seconds + warmup_s)) + 1
+    src = f"synthetic:frames={frames},width={width},height={height}"
+    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
+    if record:
+        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]))
+    specs += [ServiceSpec("flow", ["-m", "services.flow", *z]),
+              ServiceSpec("motion", ["-m", "services.motion", *z]),
+              ServiceSpec("render", ["-m", "services.render", *z, "--output", str(out / "stabilized.mp4")])]
+    wait = ",".join(s.name for s in specs[1:])
+    cap = ["-m", "services.capture", *z, "--source", src, "--wait-for", wait]
+    cap += ["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)]
+    specs.append(ServiceSpec("capture", cap, may_finish=True))
+    sup = Supervisor(specs, out / "logs")
+    sup.start("router")
+    session = open_when_up(endpoint, 20)
+    mon = Monitor()
+    sub = session.declare_subscriber(keys.key("cam0", "stabilized"), mon.on_sample)
+    board = StatusBoard(session)
+    samples: dict[str, list[tuple[float, float, int, int]]] = {}
+    try:
+        for s in specs[1:]:
+            sup.start(s.name)
+        t_start = None
+        deadline = time.monotonic() + seconds + warmup_s + 120
+        while time.monotonic() < deadline:
+            time.sleep(1.0)
+            sup.poll()
+            now = time.monotonic()
+            if t_start is None and mon.seqs:
+                t_start = now
+            for name in sup.children:
+                pid = sup.pid(name)
+                got = proc_sample(pid) if pid else None
+                if got:
+                    samples.setdefault(name, []).append((now, *got))
+            if mon.ended or (t_start and now - t_start > seconds + warmup_s + 30):
+                break
+        stats = board.snapshot()
+    finally:
+        sub.undeclare()
+        board.close()
+        session.close()
+        sup.stop(["capture", "flow", "motion", "render", "recorder", "router"][:])
+    return _report(fps, seconds, warmup_s, width, height, mon, stats, samples, record)
+
+
+def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples, record) -> dict:
+    n = len(mon.seqs)
+    skip = int(round((fps or 0) * warmup_s)) if fps else min(n // 5, 150)
+    lat = {"total_ms": _pct(mon.total_ms[skip:]), "segment_wait_ms": _pct(mon.wait_ms[skip:]),
+           "processing_ms": _pct(mon.proc_ms[skip:]),
+           "processing_first_of_batch_ms": _pct(mon.first_ms[max(1, skip // 30):])}
+    cap = stats.get(("cam0", "capture"), {})
+    sent = int(cap.get("sent", 0))
+    drops = {f"{svc}.{k}": v for (_, svc), vals in stats.items() for k, v in vals.items()
+             if (k.endswith("_dropped") or k in ("dropped", "missing", "orphans")) and v}
+    span = (mon.t_last - mon.t_first) if mon.t_first and mon.t_last and n > 1 else 0.0
+    procs = {}
+    for name, rows in samples.items():
+        a = np.array(rows, dtype=float)
+        if len(a) < 2:
+            continue
+        cpu = 100.0 * (a[-1, 1] - a[0, 1]) / max(a[-1, 0] - a[0, 0], 1e-9)
+        k = max(1, len(a) // 10)
+        procs[name] = {"cpu_pct": round(cpu, 1), "rss_mb_start": round(a[:k, 2].mean() / 2**20, 1),
+                       "rss_mb_end": round(a[-k:, 2].mean() / 2**20, 1), "peak_rss_mb": round(a[:, 3].max() / 2**20, 1)}
+    return {"fps_target": fps or "fast", "seconds": seconds, "size": f"{width}x{height}", "recording": record,
+            "frames_sent": sent, "frames_stabilized": n, "frames_flagged": mon.flagged,
+            "unique_out_of_order": int(np.sum(np.diff(mon.seqs) <= 0)) if n > 1 else 0,
+            "stabilized_fps": round((n - 1) / span, 2) if span else 0.0,
+            "send_fps": cap.get("send_fps"), "behind_ms": cap.get("behind_ms"),
+            "drops": drops, "latency": lat, "processes": procs}
+
+
+def format_report(r: dict) -> str:
+    lines = [f"pipeline {r['size']} at {r['fps_target']} fps for {r['seconds']:g} s, recording "
+             f"{'on' if r['recording'] else 'off'}: sent {r['frames_sent']}, stabilized {r['frames_stabilized']} "
+             f"({r['stabilized_fps']} fps), flagged {r['frames_flagged']}, drops {r['drops'] or 'none'}"]
+    for k, v in r["latency"].items():
+        if v:
+            lines.append(f"  latency {k:<29} p50 {v['p50']:7.1f}  p90 {v['p90']:7.1f}  p99 {v['p99']:7.1f}  "
+                         f"max {v['max']:7.1f} ms  (n={v['n']})")
+    lines.append(f"  {'process':<9} {'CPU %':>6} {'RSS start':>10} {'RSS end':>8} {'peak RSS':>9} (MB)")
+    for name, p in r["processes"].items():
+        lines.append(f"  {name:<9} {p['cpu_pct']:>6.1f} {p['rss_mb_start']:>10.1f} {p['rss_mb_end']:>8.1f} "
+                     f"{p['peak_rss_mb']:>9.1f}")
+    return "\n".join(lines)
+
+
+def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
+         record: bool = True) -> int:
+    reports = []
+    for fps in fps_list:
+        r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, record=record)
+        reports.append(r)
+        print(format_report(r), flush=True)
+    if json_path:
+        Path(json_path).write_text(json.dumps(reports, indent=1))
+    return 0

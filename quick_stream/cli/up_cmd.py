@@ -1,0 +1,202 @@
+"""``quick-stream up``: the whole streaming stabilizer on this host, with live status.
+
+Starts a Zenoh router (a Python process, no ``zenohd``) and the services as
+separate processes, all on loopback: recorder, flow, motion, render, then
+capture (which waits until the others are up). Shows fps, ms per item, drops and
+restarts per service once a second; restarts a service that dies; stops
+everything cleanly when the source is exhausted and the last frame is rendered,
+after ``--duration`` seconds, or on Ctrl-C. Leaves the MCAP recording, the
+stabilized MP4 and the services' logs (``<out>/logs``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import sys
+import time
+from pathlib import Path
+
+import zenoh
+
+from ..launcher import ServiceSpec, StatusBoard, Supervisor
+from .settings import add_stabilizer_args, settings_argv, stabilizer_params
+
+SERVICES = ("recorder", "flow", "motion", "render", "capture")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("up", help="run router + all services locally, with live status", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
+    p.add_argument("--frames", type=int, default=None, help="stop the source after this many frames")
+    p.add_argument("--duration", type=float, default=None, help="stop everything after this many seconds")
+    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime")
+    p.add_argument("--fps", type=float, default=None, help="capture rate override (realtime pacing)")
+    p.add_argument("--stream", default="cam0")
+    p.add_argument("--out", default="out", help="folder for recording.mcap, stabilized.mp4 and logs (default out)")
+    p.add_argument("--no-record", action="store_true", help="do not run the recorder")
+    p.add_argument("--port", type=int, default=0, help="router port on 127.0.0.1 (default: a free one)")
+    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="frame colour encoding on the wire")
+    p.add_argument("--png", default=None, metavar="DIR", help="render also writes every frame as PNG here")
+    p.add_argument("--quiet", action="store_true", help="no live status")
+    add_stabilizer_args(p)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[ServiceSpec]:
+    """Router first, then the services in start order, each with the zenoh flags to reach the router."""
+    z = ["-e", endpoint, "--no-multicast-scouting", "--stream", args.stream]
+    st = settings_argv(args)
+    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
+    if not args.no_record:
+        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]))
+    specs += [
+        ServiceSpec("flow", ["-m", "services.flow", *z, *st]),
+        ServiceSpec("motion", ["-m", "services.motion", *z, *st]),
+        ServiceSpec("render", ["-m", "services.render", *z, *st, "--output", str(out / "stabilized.mp4")]
+                    + (["--png", args.png] if args.png else [])),
+    ]
+    wait = ",".join(s.name for s in specs[1:])
+    cap = ["-m", "services.capture", *z, "--source", args.source, "--pace", args.pace, "--color", args.color,
+           "--wait-for", wait]
+    if args.frames is not None:
+        cap += ["--frames", str(args.frames)]
+    if args.fps is not None:
+        cap += ["--fps", str(args.fps)]
+    specs.append(ServiceSpec("capture", cap, may_finish=True))
+    return specs
+
+
+COLUMNS = (("fps", ("send_fps", "flow_fps", "motion_fps", "render_fps", "log_fps")),
+           ("ms p50", ("send_ms_p50", "flow_ms_p50", "motion_ms_p50", "render_ms_p50", "log_ms_p50")),
+           ("ms p99", ("send_ms_p99", "flow_ms_p99", "motion_ms_p99", "render_ms_p99", "log_ms_p99")))
+
+
+def _first(v: dict, names: tuple[str, ...]) -> str:
+    for n in names:
+        if n in v:
+            return f"{v[n]:.1f}" if isinstance(v[n], float) else str(v[n])
+    return "-"
+
+
+def open_when_up(endpoint: str, timeout_s: float) -> zenoh.Session:
+    """A client session to the router at ``endpoint``, retried until it answers or ``timeout_s``."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+
+
+def status_lines(board: StatusBoard, sup: Supervisor, stream: str, t0: float) -> list[str]:
+    lines = [f"quick-stream up: {time.monotonic() - t0:6.1f} s   stream {stream}",
+             f"{'service':<9} {'state':<8} {'fps':>6} {'ms p50':>7} {'ms p99':>7} {'drops':>6} {'restarts':>8}  notes"]
+    for name in SERVICES:
+        if name not in sup.children:
+            continue
+        v = board.get(stream, name)
+        c = sup.children[name]
+        state = "up" if sup.running(name) else ("done" if c.finished else "down")
+        drops = sum(int(x) for k, x in v.items() if k.endswith("_dropped") or k == "dropped")
+        notes = []
+        for k in ("bad_frames", "decode_errors", "gaps", "invalid_motions", "orphans", "missing", "flagged"):
+            if v.get(k):
+                notes.append(f"{k} {v[k]}")
+        if "lat_proc_ms_p99" in v:
+            notes.append(f"latency processing p50/p99 {v.get('lat_proc_ms_p50', 0):.0f}/{v['lat_proc_ms_p99']:.0f} ms")
+        lines.append(f"{name:<9} {state:<8} {_first(v, COLUMNS[0][1]):>6} {_first(v, COLUMNS[1][1]):>7} "
+                     f"{_first(v, COLUMNS[2][1]):>7} {drops:>6} {c.restarts:>8}  {', '.join(notes)}")
+    return lines
+
+
+def write_status(path: Path, board: StatusBoard, sup: Supervisor, stream: str, reason: str | None) -> None:
+    """Machine-readable live status (``<out>/logs/status.json``): pids, states, restarts, latest stats."""
+    doc = {"time": time.time(), "stream": stream, "stopped": reason, "events": sup.events, "services": {
+        n: {"pid": sup.pid(n), "running": sup.running(n), "restarts": c.restarts, "finished": c.finished,
+            "stats": board.get(stream, n)} for n, c in sup.children.items()}}
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(doc, indent=1))
+    tmp.replace(path)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        stabilizer_params(args)
+    except ValueError as e:
+        print(f"quick-stream up: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
+    sup = Supervisor(service_specs(args, endpoint, out), out / "logs")
+    sup.start("router")
+    try:
+        session = open_when_up(endpoint, timeout_s=20.0)
+    except zenoh.ZError as e:
+        sup.stop()
+        print(f"quick-stream up: router did not come up on {endpoint}: {e} (see {out / 'logs' / 'router.log'})",
+              file=sys.stderr)
+        return 1
+    for name in sup.children:
+        if name != "router":
+            sup.start(name)
+    board = StatusBoard(session)
+    t0 = time.monotonic()
+    status_path = out / "logs" / "status.json"
+    tty = sys.stdout.isatty() and not args.quiet
+    shown = 0
+    reason = "?"
+    try:
+        while True:
+            time.sleep(0.25)
+            sup.poll()
+            write_status(status_path, board, sup, args.stream, None)
+            render = board.get(args.stream, "render")
+            if render.get("ended", 0) >= 1 and sup.children["capture"].finished:
+                reason = "source exhausted, last frame rendered"
+                break
+            if args.duration is not None and time.monotonic() - t0 >= args.duration:
+                reason = f"--duration {args.duration:g} s"
+                break
+            if sup.children["capture"].finished and sup.children["capture"].exits[-1][1] != 0:
+                reason = "capture failed (see logs/capture.log)"
+                break
+            if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
+                lines = status_lines(board, sup, args.stream, t0)
+                if tty and shown:
+                    sys.stdout.write(f"\x1b[{shown}F")
+                sys.stdout.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
+                sys.stdout.flush()
+                shown = len(lines)
+    except KeyboardInterrupt:
+        reason = "Ctrl-C"
+    finally:
+        final = status_lines(board, sup, args.stream, t0)
+        order = [n for n in ("capture", "flow", "motion", "render", "recorder", "router") if n in sup.children]
+        codes = sup.stop(order)
+        write_status(status_path, board, sup, args.stream, reason)
+        board.close()
+        session.close()
+    print(f"stopped: {reason}")
+    print("\n".join(final))
+    bad = {n: c for n, c in codes.items() if c not in (0, None)}
+    if bad:
+        print("exit codes: " + ", ".join(f"{n} {c}" for n, c in bad.items()), file=sys.stderr)
+    for e in sup.events:
+        print(f"event: {e['service']} {e['event']}")
+    files = [out / "stabilized.mp4"] + ([] if args.no_record else [out / "recording.mcap"])
+    print("wrote " + ", ".join(str(f) for f in files if f.exists()) + f" (logs in {out / 'logs'})")
+    return 0 if reason != "capture failed (see logs/capture.log)" else 1

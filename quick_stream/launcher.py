@@ -1,0 +1,169 @@
+"""Starting, watching and restarting the service processes of one host (``quick-stream up``).
+
+* :class:`Supervisor` runs each service as a child process (``python -m
+  services.<name>``; never a fork of a process holding a zenoh session,
+  transport-facts.md), writes its output to ``<log_dir>/<name>.log``, restarts
+  it when it dies (any exit but a clean one of a service allowed to finish),
+  and stops everything in order: SIGTERM, then SIGKILL after a grace period.
+* :class:`StatusBoard` listens to every service's ``stats`` messages and keeps
+  the latest per service, for the live status and the final summary.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from . import keys
+from .wire import WireError, decode
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ServiceSpec:
+    """One child process: ``argv`` after ``python``; ``may_finish``: exit code 0 means done, not crashed."""
+
+    name: str
+    argv: list[str]
+    may_finish: bool = False
+    restart: bool = True
+
+
+@dataclass
+class Child:
+    spec: ServiceSpec
+    proc: subprocess.Popen | None = None
+    started: float = 0.0
+    restarts: int = 0
+    finished: bool = False
+    exits: list[tuple[float, int]] = field(default_factory=list)  # (time, returncode) of each death
+
+
+class Supervisor:
+    """Runs and restarts a set of service processes."""
+
+    def __init__(self, specs: list[ServiceSpec], log_dir: str | Path, restart_delay_s: float = 0.1,
+                 max_restarts: int = 20, env: dict[str, str] | None = None) -> None:
+        self.children = {s.name: Child(s) for s in specs}
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.restart_delay_s = restart_delay_s
+        self.max_restarts = max_restarts
+        self.env = {**os.environ, **(env or {})}
+        self.events: list[dict[str, Any]] = []
+        self._lock = threading.Lock()
+
+    def _spawn(self, c: Child) -> None:
+        logf = open(self.log_dir / f"{c.spec.name}.log", "ab")
+        c.proc = subprocess.Popen([sys.executable, *c.spec.argv], stdout=logf, stderr=subprocess.STDOUT,
+                                  stdin=subprocess.DEVNULL, env=self.env, start_new_session=True)
+        logf.close()
+        c.started = time.monotonic()
+
+    def start(self, name: str | None = None) -> None:
+        """Start one service (or all, in the order given)."""
+        for c in ([self.children[name]] if name else self.children.values()):
+            self._spawn(c)
+
+    def poll(self) -> list[str]:
+        """Restart crashed services; returns the names restarted now."""
+        out = []
+        with self._lock:
+            for c in self.children.values():
+                if c.proc is None or c.finished:
+                    continue
+                rc = c.proc.poll()
+                if rc is None:
+                    continue
+                c.exits.append((time.monotonic(), rc))
+                if rc == 0 and c.spec.may_finish:
+                    c.finished = True
+                    self.events.append({"t": time.time(), "service": c.spec.name, "event": "finished"})
+                    continue
+                if not c.spec.restart or c.restarts >= self.max_restarts:
+                    c.finished = True
+                    self.events.append({"t": time.time(), "service": c.spec.name, "event": f"died ({rc}), not restarted"})
+                    log.error("%s exited with %s; not restarting", c.spec.name, rc)
+                    continue
+                time.sleep(self.restart_delay_s)
+                c.restarts += 1
+                self._spawn(c)
+                self.events.append({"t": time.time(), "service": c.spec.name, "event": f"died ({rc}), restarted"})
+                log.warning("%s exited with %s; restarted (%d)", c.spec.name, rc, c.restarts)
+                out.append(c.spec.name)
+        return out
+
+    def pid(self, name: str) -> int | None:
+        p = self.children[name].proc
+        return None if p is None else p.pid
+
+    def running(self, name: str) -> bool:
+        c = self.children[name]
+        return c.proc is not None and c.proc.poll() is None
+
+    def stop(self, order: list[str] | None = None, grace_s: float = 5.0) -> dict[str, int | None]:
+        """SIGTERM the services in ``order`` (default: reverse start order), each waited for up to
+        ``grace_s`` before SIGKILL; returns their exit codes."""
+        names = order or list(reversed(self.children))
+        codes: dict[str, int | None] = {}
+        with self._lock:
+            for n in names:
+                self.children[n].finished = True
+            for n in names:
+                p = self.children[n].proc
+                if p is None:
+                    continue
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+                    try:
+                        p.wait(grace_s)
+                    except subprocess.TimeoutExpired:
+                        log.error("%s did not stop within %.0f s of SIGTERM; killing it", n, grace_s)
+                        p.kill()
+                        p.wait()
+                codes[n] = p.returncode
+        return codes
+
+
+class StatusBoard:
+    """Latest ``stats`` of every service of every stream, from a zenoh subscription."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.latest: dict[tuple[str, str], dict[str, Any]] = {}
+        self.updated: dict[tuple[str, str], float] = {}
+        self.errors = 0
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(keys.all_streams("stats"), self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            m = decode(sample.payload.to_bytes())
+        except WireError:
+            self.errors += 1
+            return
+        if m.type != "stats":
+            return
+        with self._lock:
+            self.latest[(m.stream, m.obj.service)] = dict(m.obj.values)
+            self.updated[(m.stream, m.obj.service)] = time.monotonic()
+
+    def get(self, stream: str, service: str) -> dict[str, Any]:
+        with self._lock:
+            return dict(self.latest.get((stream, service), {}))
+
+    def snapshot(self) -> dict[tuple[str, str], dict[str, Any]]:
+        with self._lock:
+            return {k: dict(v) for k, v in self.latest.items()}
+
+    def close(self) -> None:
+        self._sub.undeclare()

@@ -1,0 +1,92 @@
+"""The pipeline stages the services drive: gaps, orphans, order and bounds (quick_stream/stages.py)."""
+from __future__ import annotations
+
+import pytest
+
+from quick_stream.sources import open_source
+from quick_stream.stages import FlowStage, MotionStage, RenderStage
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return list(open_source("synthetic:frames=40,width=160,height=120"))
+
+
+def test_flow_stage_refuses_frames_out_of_order(frames):
+    st = FlowStage()
+    assert st.push(frames[3]) is None
+    assert st.push(frames[4]).seq_next == 4
+    with pytest.raises(ValueError, match="not after"):
+        st.push(frames[2])
+
+
+def run_with_gap(frames, skip: range, restart: bool):
+    """Flow/motion/render over the frames, the flow stage never seeing ``skip``: dropped from its
+    queue (it then pairs across them) or, with ``restart``, lost with a killed flow service."""
+    flow, motion, render = FlowStage(), MotionStage(), RenderStage()
+    out = []
+    for f in frames:
+        render.add_frame(f.seq, f)
+        if f.seq in skip:
+            continue
+        if restart and f.seq == skip.stop:
+            flow = FlowStage()  # the restarted service starts over
+        fl = flow.push(f)
+        if fl is None:
+            batches = [] if motion.started else [motion.start(f.seq)]
+        else:
+            _, batches = motion.push(fl)
+        for b in batches:
+            out += render.render_batch(b)
+    for b in motion.finish():
+        out += render.render_batch(b)
+    out += render.flush()
+    return motion, render, out
+
+
+def test_a_restart_gap_restarts_the_path_and_every_frame_comes_out_in_order_flagged(frames):
+    motion, render, out = run_with_gap(frames, range(12, 17), restart=True)
+    assert [sf.seq for sf in out] == list(range(40))
+    flagged = [sf.seq for sf in out if sf.flags]
+    # the gap (no correction) and the restarted flow's first frame, where the path restarts
+    assert flagged == list(range(12, 18))
+    assert all("skipped upstream" in out[s].flags[0] for s in range(12, 17))
+    assert "invalid" in out[17].flags[0]
+    assert motion.gaps == 1 and render.orphans == 5 and render.missing == 0
+
+
+def test_frames_dropped_before_flow_come_out_in_order_flagged(frames):
+    motion, render, out = run_with_gap(frames, range(12, 17), restart=False)
+    assert [sf.seq for sf in out] == list(range(40))
+    assert [sf.seq for sf in out if sf.flags] == list(range(12, 17))  # the path spans them
+    assert motion.gaps == 0 and render.orphans == 5
+
+
+def test_motion_stage_refuses_stale_flows(frames):
+    flow, motion = FlowStage(), MotionStage()
+    flow.push(frames[0])
+    f01 = flow.push(frames[1])
+    motion.push(f01)
+    with pytest.raises(ValueError, match="stale or duplicate"):
+        motion.push(f01)
+
+
+def test_render_stage_bounds_what_it_holds(frames):
+    r = RenderStage(max_frames=5)
+    for f in frames[:8]:
+        r.add_frame(f.seq, f)
+    assert r.buffered == 5 and r.dropped == 3
+    m = MotionStage()
+    out = r.render_batch(m.start(0))  # frame 0 was dropped: counted missing, the rest waits
+    assert out == [] and r.missing == 1 and r.buffered == 5
+
+
+def test_render_stage_reports_a_frame_that_cannot_be_loaded(frames):
+    r = RenderStage()
+
+    def broken():
+        raise ValueError("truncated JPEG")
+
+    r.add_frame(0, broken)
+    assert r.render_batch(MotionStage().start(0)) == []
+    assert r.bad == [{"seq": 0, "error": "ValueError: truncated JPEG"}]
