@@ -158,6 +158,10 @@ class ServiceRuntime:
         self._inboxes.append(box)
         return box
 
+    def subscribe(self, key_expr: str, callback: Callable[[zenoh.Sample], None]) -> None:
+        """A plain callback subscriber (kept referenced until close); the callback must be quick."""
+        self._subs.append(self.session.declare_subscriber(key_expr, callback))
+
     def wait(self, timeout_s: float) -> None:
         """Sleep until any inbox has a message, a stop signal, or ``timeout_s``."""
         with self._cond:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import threading
 import time
 
 import zenoh
@@ -24,6 +25,7 @@ from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setu
 from quick_stream.sources import SourceError, open_source
 from quick_stream.transport import config_from_args
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
+from quick_stream.wire.codec import unpack
 from quick_stream.wire.messages import restamp_frame
 
 log = logging.getLogger("capture")
@@ -34,7 +36,11 @@ def build_parser():
     p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
     p.add_argument("--frames", type=int, default=None, help="send at most this many frames")
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
-                   help="realtime: at the frames' own timestamps (default); fast: as fast as possible")
+                   help="realtime: at the frames' own timestamps (default); fast: as fast as the pipeline "
+                        "takes them (at most --window frames ahead of the last stabilized one)")
+    p.add_argument("--window", type=int, default=60,
+                   help="fast pace: frames in flight before waiting for stabilized output (default 60; "
+                        "a third of it for the motion stage; 0: no limit)")
     p.add_argument("--speed", type=float, default=1.0, help="realtime pacing speed factor (default 1)")
     p.add_argument("--fps", type=float, default=None, help="override the pacing rate (frames/s; realtime only)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="colour encoding (default jpeg)")
@@ -46,6 +52,51 @@ def build_parser():
                    help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
     p.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for them (default 30)")
     return p
+
+
+class OutputCredit:
+    """Flow control for ``--pace fast``: hold frame ``seq`` until the stabilized output has reached
+    ``seq - window`` and the motion stage ``seq - window // 3``, so a replay runs as fast as the
+    slowest stage without overrunning its drop-oldest queue (flow holds 30 frames; output lags
+    by a segment, so the output window must be wider). After ``stall_s`` with no progress (no
+    renderer or motion stage running) it stops waiting and says so."""
+
+    def __init__(self, rt: ServiceRuntime, stream: str, window: int, stall_s: float = 10.0) -> None:
+        self.rt, self.window, self.stall_s = rt, window, stall_s
+        self.done = {"stabilized": -1, "motion": -1}
+        self.waits = 0
+        self._cond = threading.Condition()
+        if window > 0:
+            for stage in self.done:
+                rt.subscribe(keys.key(stream, stage), self._on_output)
+
+    def _on_output(self, sample: zenoh.Sample) -> None:
+        try:
+            r = unpack(sample.payload.to_bytes())
+        except WireError:
+            return
+        seq = r.d.get("seq_next") if r.type == "motion" else r.seq
+        if r.type in self.done and isinstance(seq, int):
+            with self._cond:
+                self.done[r.type] = max(self.done[r.type], seq)
+                self._cond.notify_all()
+
+    def _blocked(self, seq: int) -> bool:
+        return seq - self.done["stabilized"] > self.window or seq - self.done["motion"] > self.window // 3
+
+    def wait_for(self, seq: int) -> None:
+        if self.window <= 0:
+            return
+        deadline = time.monotonic() + self.stall_s
+        with self._cond:
+            if self._blocked(seq):
+                self.waits += 1
+            while self._blocked(seq) and not self.rt.stop.is_set():
+                if time.monotonic() > deadline:
+                    log.warning("no pipeline progress for %.0f s: sending without flow control", self.stall_s)
+                    self.window = 0
+                    return
+                self._cond.wait(0.05)
 
 
 def run(args, conf: zenoh.Config) -> int:
@@ -63,6 +114,7 @@ def run(args, conf: zenoh.Config) -> int:
             if missing and not rt.stop.is_set():
                 log.error("services not up after %.0f s: %s", args.wait_timeout, ", ".join(sorted(missing)))
                 return 3
+        credit = OutputCredit(rt, args.stream, args.window if args.pace == "fast" else 0)
         meter, bad, sent, last_seq = RateMeter(), 0, 0, -1
         behind_ms = 0.0
         t_start, ts0 = time.monotonic(), None
@@ -70,7 +122,7 @@ def run(args, conf: zenoh.Config) -> int:
 
         def stats():
             return {"state": "running", "sent": sent, "bad_frames": bad, "behind_ms": round(behind_ms, 1),
-                    **meter.take("send")}
+                    "credit_waits": credit.waits, **meter.take("send")}
 
         replay = getattr(source, "iter_with_messages", None)
         items = replay() if replay is not None and not args.reencode else ((f, None) for f in source)
@@ -89,6 +141,7 @@ def run(args, conf: zenoh.Config) -> int:
                 if delay > 0:
                     rt.stop.wait(delay)
                 behind_ms = max(0.0, -delay * 1e3)
+            credit.wait_for(fr.seq)
             t0 = time.perf_counter()
             try:
                 if recorded is not None:  # a recording: its exact bytes, re-stamped

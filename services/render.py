@@ -30,7 +30,6 @@ from quick_stream.sinks import BackgroundSink, VideoSink
 from quick_stream.stages import RenderStage, StabilizedFrame
 from quick_stream.transport import config_from_args
 from quick_stream.wire import StabilizedImage, WireError, decode, encode_end, encode_stabilized
-from quick_stream.wire.codec import unpack
 
 log = logging.getLogger("render")
 
@@ -126,30 +125,25 @@ def run(args, conf: zenoh.Config) -> int:
         def take_frame(data: bytes) -> None:
             nonlocal newest
             try:
-                r = unpack(data)
+                msg = decode(data)  # now, not in the burst when the segment's corrections come
             except WireError as e:
                 errors["decode_errors"] += 1
                 log.error("frame message rejected: %s", e)
                 return
-            if r.type == "end":
+            if msg.type == "end":
                 return
-            if r.type != "frame":
+            if msg.type != "frame":
                 errors["decode_errors"] += 1
-                log.error("unexpected %s message on frame", r.type)
+                log.error("unexpected %s message on frame", msg.type)
                 return
             try:
-                frame = decode(data).obj  # now, not in the burst when the segment's corrections come
-                stage.add_frame(r.seq, frame)
-            except WireError as e:
-                errors["decode_errors"] += 1
-                log.error("frame message rejected: %s", e)
-                return
+                stage.add_frame(msg.seq, msg.obj)
             except ValueError as e:
                 errors["refused_frames"] += 1
-                log.error("frame %d: %s", r.seq, e)
+                log.error("frame %d: %s", msg.seq, e)
                 return
-            newest = r.seq
-            pub_ns[r.seq] = r.d.get("pub_ns") or 0
+            newest = msg.seq
+            pub_ns[msg.seq] = msg.extra.get("pub_ns") or 0
             while len(pub_ns) > args.max_frames + 64:
                 pub_ns.pop(next(iter(pub_ns)))
 

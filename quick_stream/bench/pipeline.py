@@ -99,9 +99,28 @@ def _pct(a: list[float]) -> dict[str, float]:
             "p99": float(np.percentile(x, 99)), "max": float(x.max()), "n": int(x.size)}
 
 
+def prerecord(path: Path, spec: str) -> str:
+    """Encode a source's frames once into an MCAP (as capture would send them); returns its spec.
+
+    Replaying it (``capture --source mcap:FILE`` sends the recorded bytes) costs the capture
+    almost nothing, like a camera driver handing over frames, so the numbers show the
+    pipeline without the synthetic renderer's CPU."""
+    from ..recording import Recorder
+    from ..sources import open_source
+    from ..wire import encode_frame
+
+    src = open_source(spec)
+    with Recorder(path) as rec:
+        for f in src:
+            rec.write(keys.key("cam0", "frame"), encode_frame(f, "cam0", depth="zstd", depth_scale=src.depth_scale),
+                      log_time_ns=f.timestamp_ns)
+    return f"mcap:{path}"
+
+
 def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
-                 record: bool = True, warmup_s: float = 5.0) -> dict:
-    """One measured run; ``fps`` None = capture as fast as possible. Returns the report dict."""
+                 record: bool = True, warmup_s: float = 5.0, replay: bool = False) -> dict:
+    """One measured run; ``fps`` None = capture as fast as possible; ``replay``: the capture sends a
+    pre-encoded recording instead of rendering synthetic frames live. Returns the report dict."""
     from ..cli.up_cmd import free_port, open_when_up
 
     out.mkdir(parents=True, exist_ok=True)
@@ -109,6 +128,8 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     z = ["-e", endpoint, "--no-multicast-scouting"]
     frames = int((fps or 120) * (seconds + warmup_s)) + 1
     src = f"synthetic:frames={frames},width={width},height={height}"
+    if replay:
+        src = prerecord(out / "source.mcap", src)
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
     if record:
         specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]))
@@ -150,7 +171,8 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         board.close()
         session.close()
         sup.stop(["capture", "flow", "motion", "render", "recorder", "router"][:])
-    return _report(fps, seconds, warmup_s, width, height, mon, stats, samples, record)
+    return {**_report(fps, seconds, warmup_s, width, height, mon, stats, samples, record),
+            "capture": "replay of a pre-encoded recording" if replay else "synthetic, rendered live"}
 
 
 def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples, record) -> dict:
@@ -171,8 +193,10 @@ def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples,
             continue
         cpu = 100.0 * (a[-1, 1] - a[0, 1]) / max(a[-1, 0] - a[0, 0], 1e-9)
         k = max(1, len(a) // 10)
+        every = max(1, len(a) // 8)
         procs[name] = {"cpu_pct": round(cpu, 1), "rss_mb_start": round(a[:k, 2].mean() / 2**20, 1),
-                       "rss_mb_end": round(a[-k:, 2].mean() / 2**20, 1), "peak_rss_mb": round(a[:, 3].max() / 2**20, 1)}
+                       "rss_mb_end": round(a[-k:, 2].mean() / 2**20, 1), "peak_rss_mb": round(a[:, 3].max() / 2**20, 1),
+                       "rss_mb_series": [round(x / 2**20, 1) for x in a[::every, 2]]}
     return {"fps_target": fps or "fast", "seconds": seconds, "size": f"{width}x{height}", "recording": record,
             "frames_sent": sent, "frames_stabilized": n, "frames_flagged": mon.flagged,
             "unique_out_of_order": int(np.sum(np.diff(mon.seqs) <= 0)) if n > 1 else 0,
@@ -182,25 +206,25 @@ def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples,
 
 
 def format_report(r: dict) -> str:
-    lines = [f"pipeline {r['size']} at {r['fps_target']} fps for {r['seconds']:g} s, recording "
+    lines = [f"pipeline {r['size']} at {r['fps_target']} fps for {r['seconds']:g} s ({r['capture']}), recording "
              f"{'on' if r['recording'] else 'off'}: sent {r['frames_sent']}, stabilized {r['frames_stabilized']} "
              f"({r['stabilized_fps']} fps), flagged {r['frames_flagged']}, drops {r['drops'] or 'none'}"]
     for k, v in r["latency"].items():
         if v:
             lines.append(f"  latency {k:<29} p50 {v['p50']:7.1f}  p90 {v['p90']:7.1f}  p99 {v['p99']:7.1f}  "
                          f"max {v['max']:7.1f} ms  (n={v['n']})")
-    lines.append(f"  {'process':<9} {'CPU %':>6} {'RSS start':>10} {'RSS end':>8} {'peak RSS':>9} (MB)")
+    lines.append(f"  {'process':<9} {'CPU %':>6} {'RSS start':>10} {'RSS end':>8} {'peak RSS':>9} (MB)   RSS over the run")
     for name, p in r["processes"].items():
         lines.append(f"  {name:<9} {p['cpu_pct']:>6.1f} {p['rss_mb_start']:>10.1f} {p['rss_mb_end']:>8.1f} "
-                     f"{p['peak_rss_mb']:>9.1f}")
+                     f"{p['peak_rss_mb']:>9.1f}        {' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
     return "\n".join(lines)
 
 
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
-         record: bool = True) -> int:
+         record: bool = True, replay: bool = False) -> int:
     reports = []
     for fps in fps_list:
-        r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, record=record)
+        r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, record=record, replay=replay)
         reports.append(r)
         print(format_report(r), flush=True)
     if json_path:

@@ -34,6 +34,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--fps", default="30", help="comma-separated capture rates; 'fast' = as fast as possible")
     pl.add_argument("--seconds", type=float, default=120.0, help="measured seconds per rate (default 120)")
     pl.add_argument("--no-record", action="store_true", help="run without the recorder")
+    pl.add_argument("--replay", action="store_true",
+                    help="capture replays a pre-encoded recording (camera-like cost) instead of rendering live")
     pl.add_argument("--out", default="out/bench-pipeline", help="folder for recordings and logs")
     pl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
 
@@ -43,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
         from ..bench import pipeline
 
         rates = [None if x.strip() == "fast" else float(x) for x in args.fps.split(",")]
-        return pipeline.main(rates, args.seconds, args.out, args.json, record=not args.no_record)
+        return pipeline.main(rates, args.seconds, args.out, args.json, record=not args.no_record,
+                             replay=args.replay)
     if args.bench == "speed":
         from ..bench import speed
 
