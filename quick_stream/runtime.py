@@ -19,7 +19,9 @@ loops: take messages from its inboxes, call the library stage, publish.
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
+import os
 import signal
 import threading
 import time
@@ -131,6 +133,9 @@ class ServiceRuntime:
         self.session = zenoh.open(conf)
         self._token = self.session.liveliness().declare_token(keys.health_key(stream, service))
         self._stats_pub = self.publisher("stats", lossless=False)
+        # Everything allocated so far (modules, OpenCV/zenoh objects) lives for the whole run:
+        # keep it out of the collector's generations so collections stay short.
+        gc.freeze()
 
     def _on_signal(self, signum: int, _frame: Any) -> None:
         log.info("%s/%s: signal %d, stopping", self.stream, self.service, signum)
@@ -254,6 +259,13 @@ def service_parser(service: str, description: str | None) -> argparse.ArgumentPa
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     add_zenoh_args(p)
     return p
+
+
+def lower_priority(niceness: int) -> None:
+    """Raise this process's nice value by ``niceness`` (background work such as recording yields
+    the CPU to the live path on a busy machine; its queue absorbs the wait)."""
+    if niceness > 0:
+        os.nice(niceness)
 
 
 def setup_logging(service: str, verbose: bool) -> None:

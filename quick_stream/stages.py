@@ -34,6 +34,7 @@ from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motio
 from .motion_pipeline import StageTimer
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
+from .render.warp import WarpInput, prepare_warp
 from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
 
 FrameLoader = Callable[[], RGBDFrame]
@@ -164,6 +165,7 @@ class RenderStage:
         self.keep_inputs = keep_inputs
         self.timer = StageTimer()
         self._frames: OrderedDict[int, RGBDFrame | FrameLoader] = OrderedDict()
+        self._prepared: dict[int, WarpInput] = {}  # warp inputs of decoded frames, made on arrival
         self.dropped = 0
         self.missing = 0
         self.orphans = 0
@@ -178,8 +180,11 @@ class RenderStage:
         if self._frames and seq <= next(reversed(self._frames)):
             raise ValueError(f"frame {seq} is not after the newest buffered frame (out of order or duplicate)")
         self._frames[seq] = frame
+        if isinstance(frame, RGBDFrame):
+            self._prepared[seq] = prepare_warp(frame, self.warp)
         while len(self._frames) > self.max_frames:
-            self._frames.popitem(last=False)
+            old, _ = self._frames.popitem(last=False)
+            self._prepared.pop(old, None)
             self.dropped += 1
 
     def _load(self, seq: int) -> RGBDFrame | None:
@@ -244,7 +249,7 @@ class RenderStage:
             if f is None:
                 self.missing += 1
                 continue
-            items.append((c, f, solve_warp(f, c.point_transform, self.warp)))
+            items.append((c, f, solve_warp(f, c.point_transform, self.warp, self._prepared.pop(c.seq, None))))
         if not items:
             return []
         t1 = time.perf_counter()

@@ -225,3 +225,34 @@ def test_each_stage_reruns_from_the_recording_to_the_same_output(live_run, stage
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "OK" in r.stdout
+
+
+def test_ctrl_c_stops_every_process_and_leaves_a_complete_recording(tmp_path):
+    p = subprocess.Popen([*UP, "--out", str(tmp_path), "--source", "synthetic:frames=900,width=320,height=240"],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    status = tmp_path / "logs" / "status.json"
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            time.sleep(0.2)
+            try:
+                st = json.loads(status.read_text())
+            except (OSError, ValueError):
+                continue
+            if st["services"]["capture"]["stats"].get("sent", 0) >= 40:
+                break
+        p.send_signal(signal.SIGINT)
+        text, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, text
+    assert "stopped: Ctrl-C" in text and "exit codes" not in text
+    st = json.loads(status.read_text())
+    for name, svc in st["services"].items():
+        assert not svc["running"], name
+        if svc["pid"]:
+            assert not Path(f"/proc/{svc['pid']}").exists() or "zombie" in Path(f"/proc/{svc['pid']}/status").read_text()
+    with open(tmp_path / "recording.mcap", "rb") as f:  # closed with its footer: the indexed reader opens it
+        n = sum(1 for _ in make_reader(f).iter_messages(topics=["quick/@v1/cam0/frame"]))
+    assert 40 <= n < 900

@@ -7,7 +7,12 @@ and measures from a monitor session:
 * **latency** of each stabilized frame from its stamps (docs/wire-format.md):
   total = received - source published; *segment wait* = when the frame that closed
   its segment was published - source published; *processing* = total - wait
-  (scene flow of the closing pair, motion, path, transport, warp, render, encode);
+  (scene flow of the closing pair, motion, path, transport, warp, render, encode,
+  and the wait for the frames before it in the same segment, rendered in order);
+  *processing, first of batch* = the same for the first frame of each released
+  segment (nothing ahead of it); *beyond longest wait* = total - the longest segment
+  wait seen: what a player showing every frame at one fixed delay needs on top of
+  the one-segment latency (later frames of a batch have a frame period of slack each);
 * **throughput and drops**: frames sent, stabilized, flagged (orphans: frames some
   stage dropped), per-service inbox drops and render's dropped/missing counters;
 * **CPU and memory per process** from ``/proc``: mean CPU % over the run, RSS at the
@@ -178,7 +183,9 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
 def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples, record) -> dict:
     n = len(mon.seqs)
     skip = int(round((fps or 0) * warmup_s)) if fps else min(n // 5, 150)
+    w_max = max(mon.wait_ms[skip:], default=0.0)
     lat = {"total_ms": _pct(mon.total_ms[skip:]), "segment_wait_ms": _pct(mon.wait_ms[skip:]),
+           "beyond_longest_wait_ms": _pct([t - w_max for t in mon.total_ms[skip:]]),
            "processing_ms": _pct(mon.proc_ms[skip:]),
            "processing_first_of_batch_ms": _pct(mon.first_ms[max(1, skip // 30):])}
     cap = stats.get(("cam0", "capture"), {})

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import socket
 import sys
 import time
@@ -138,6 +139,14 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"quick-stream up: {e}", file=sys.stderr)
         return 2
+    stop: list[str] = []
+
+    def on_signal(signum: int, _frame) -> None:
+        stop.append("Ctrl-C" if signum == signal.SIGINT else f"signal {signal.Signals(signum).name}")
+
+    # explicit handlers: also when started with SIGINT ignored (a background job) and for SIGTERM
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
@@ -168,6 +177,9 @@ def run(args: argparse.Namespace) -> int:
             if render.get("ended", 0) >= 1 and sup.children["capture"].finished:
                 reason = "source exhausted, last frame rendered"
                 break
+            if stop:
+                reason = stop[0]
+                break
             if args.duration is not None and time.monotonic() - t0 >= args.duration:
                 reason = f"--duration {args.duration:g} s"
                 break
@@ -181,8 +193,6 @@ def run(args: argparse.Namespace) -> int:
                 sys.stdout.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
                 sys.stdout.flush()
                 shown = len(lines)
-    except KeyboardInterrupt:
-        reason = "Ctrl-C"
     finally:
         final = status_lines(board, sup, args.stream, t0)
         order = [n for n in ("capture", "flow", "motion", "render", "recorder", "router") if n in sup.children]

@@ -193,19 +193,25 @@ def control_pixels(depth: np.ndarray, max_points: int, min_depth: float = 0.0) -
         step += 1
 
 
-def solve_warp(frame: RGBDFrame, point_transform: np.ndarray, params: WarpParams | None = None) -> MeshWarp:
-    """Mesh warp moving each valid-depth pixel to where the virtual camera sees its 3D point.
+@dataclass
+class WarpInput:
+    """What :func:`solve_warp` needs of a frame before its correction is known: the control
+    pixels, their 3D points and the data term's design matrix. A renderer computes it when a
+    frame arrives, so the work left when the correction comes is small (same arithmetic)."""
 
-    ``point_transform`` (4x4 affine) maps real-camera coordinates to
-    virtual-camera coordinates; the virtual camera has the frame's intrinsics.
-    """
+    width: int
+    height: int
+    pixels: np.ndarray  # (N, 2) control pixels
+    points: np.ndarray  # (N, 3) their 3D points, camera coordinates
+    B: np.ndarray  # (N, n) bilinear weights of each pixel on the mesh vertices
+    BtB: np.ndarray  # (n, n) B^T B / N
+
+
+def prepare_warp(frame: RGBDFrame, params: WarpParams | None = None) -> WarpInput:
+    """The correction-independent part of :func:`solve_warp` for ``frame``."""
     p = params or WarpParams()
     p.validate()
     h, w = frame.depth.shape
-    T = np.asarray(point_transform, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"point_transform must be a finite 4x4 matrix, got shape {T.shape}")
-    gx, gy = (int(g) for g in p.grid)
     K = frame.intrinsics
     idx, z = control_pixels(frame.depth, p.max_control_points, p.min_depth)
     u = (idx % w).astype(np.float64)
@@ -214,14 +220,37 @@ def solve_warp(frame: RGBDFrame, point_transform: np.ndarray, params: WarpParams
     x[:, 0] = (u - K.cx) * (z / K.fx)
     x[:, 1] = (v - K.cy) * (z / K.fy)
     x[:, 2] = z
-    y = x @ T[:3, :3].T + T[:3, 3]
+    pixels = np.column_stack((u, v))
+    B, BtB = _design(pixels, w, h, p)
+    return WarpInput(w, h, pixels, x, B, BtB)
+
+
+def solve_warp(frame: RGBDFrame, point_transform: np.ndarray, params: WarpParams | None = None,
+               prepared: WarpInput | None = None) -> MeshWarp:
+    """Mesh warp moving each valid-depth pixel to where the virtual camera sees its 3D point.
+
+    ``point_transform`` (4x4 affine) maps real-camera coordinates to
+    virtual-camera coordinates; the virtual camera has the frame's intrinsics.
+    ``prepared`` (from :func:`prepare_warp` with the same params) skips recomputing it.
+    """
+    p = params or WarpParams()
+    p.validate()
+    T = np.asarray(point_transform, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"point_transform must be a finite 4x4 matrix, got shape {T.shape}")
+    wi = prepared if prepared is not None else prepare_warp(frame, p)
+    K = frame.intrinsics
+    y = wi.points @ T[:3, :3].T + T[:3, 3]
     front = y[:, 2] > p.min_target_z
-    if not np.all(front):
-        u, v, y = u[front], v[front], y[front]
-    tgt = np.empty((u.size, 2))
+    every = bool(np.all(front))
+    if not every:
+        y = y[front]
+    tgt = np.empty((y.shape[0], 2))
     tgt[:, 0] = K.fx * y[:, 0] / y[:, 2] + K.cx
     tgt[:, 1] = K.fy * y[:, 1] / y[:, 2] + K.cy
-    return solve_mesh(np.column_stack((u, v)), tgt, w, h, p)
+    if every:
+        return _solve(wi.B, wi.BtB, tgt, wi.width, wi.height, p)
+    return solve_mesh(wi.pixels[front], tgt, wi.width, wi.height, p)
 
 
 def bilinear_weights(pixels: np.ndarray, geo: GridGeometry) -> tuple[np.ndarray, np.ndarray]:
@@ -250,17 +279,33 @@ def solve_mesh(pixels: np.ndarray, targets: np.ndarray, width: int, height: int,
     directly. See the module docstring for the energy and its normalisation.
     """
     p = params or WarpParams()
+    B, BtB = _design(pixels, width, height, p)
+    return _solve(B, BtB, targets, width, height, p)
+
+
+def _design(pixels: np.ndarray, width: int, height: int, p: WarpParams) -> tuple[np.ndarray, np.ndarray]:
+    """The data term's design matrix B (N, n) and B^T B / N."""
     gx, gy = (int(g) for g in p.grid)
     geo = grid_geometry(width, height, gx, gy)
     n = (gx + 1) * (gy + 1)
     N = len(pixels)
+    B = np.zeros((N, n))
+    if N == 0:
+        return B, np.zeros((n, n))
+    ks, ws = bilinear_weights(pixels, geo)
+    np.put_along_axis(B, ks, ws, axis=1)  # the 4 indices of a row are distinct
+    return B, (B.T @ B) / N
+
+
+def _solve(B: np.ndarray, BtB: np.ndarray, targets: np.ndarray, width: int, height: int,
+           p: WarpParams) -> MeshWarp:
+    gx, gy = (int(g) for g in p.grid)
+    geo = grid_geometry(width, height, gx, gy)
+    n = (gx + 1) * (gy + 1)
+    N = len(B)
     if N < p.min_control_points:
         return MeshWarp.identity(width, height, (gx, gy), f"too few control points ({N} < {p.min_control_points})", N)
-    ks, ws = bilinear_weights(pixels, geo)
-    B = np.zeros((N, n))
-    np.put_along_axis(B, ks, ws, axis=1)  # the 4 indices of a row are distinct
     G = np.zeros((2 * n, 2 * n))
-    BtB = (B.T @ B) / N
     G[:n, :n] = BtB
     G[n:, n:] = BtB
     G += p.alpha * geo.sim_normal
