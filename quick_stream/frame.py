@@ -75,6 +75,7 @@ class RGBDFrame:
     pose: np.ndarray | None = None
     origin: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
+    capture: dict[str, int | float | str] = field(default_factory=dict)
 
     @property
     def label(self) -> str:

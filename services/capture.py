@@ -33,7 +33,9 @@ log = logging.getLogger("capture")
 
 def build_parser():
     p = service_parser("capture", __doc__)
-    p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
+    p.add_argument("--source", default="synthetic",
+                   help="synthetic[:k=v,...] (default), tum:PATH, mcap:FILE or depthai[:DEVICE_ID][,width=W,height=H,fps=F]")
+    p.add_argument("--list-devices", action="store_true", help="list the OAK (depthai) devices visible and exit")
     p.add_argument("--frames", type=int, default=None, help="send at most this many frames")
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
                    help="realtime: at the frames' own timestamps (default); fast: as fast as the pipeline "
@@ -99,6 +101,22 @@ class OutputCredit:
                 self._cond.wait(0.05)
 
 
+def list_devices() -> int:
+    from quick_stream.sources.oak_device import list_devices as devices
+
+    try:
+        found = devices()
+    except ImportError as e:
+        log.error("%s", e)
+        return 2
+    if not found:
+        print("no OAK device found (check the USB cable, the udev rule, or Docker's /dev/bus/usb mapping)")
+        return 1
+    for d in found:
+        print(f"{d['id']}  {d['name']}  {d['state']}  {d['platform']}")
+    return 0
+
+
 def run(args, conf: zenoh.Config) -> int:
     try:
         source = open_source(args.source)
@@ -115,60 +133,81 @@ def run(args, conf: zenoh.Config) -> int:
                 log.error("services not up after %.0f s: %s", args.wait_timeout, ", ".join(sorted(missing)))
                 return 3
         credit = OutputCredit(rt, args.stream, args.window if args.pace == "fast" else 0)
-        meter, bad, sent, last_seq = RateMeter(), 0, 0, -1
-        behind_ms = 0.0
-        t_start, ts0 = time.monotonic(), None
-        period = None if args.fps is None else 1.0 / args.fps
-
-        def stats():
-            return {"state": "running", "sent": sent, "bad_frames": bad, "behind_ms": round(behind_ms, 1),
-                    "credit_waits": credit.waits, **meter.take("send")}
-
+        st = CaptureStats(credit)
         replay = getattr(source, "iter_with_messages", None)
         items = replay() if replay is not None and not args.reencode else ((f, None) for f in source)
-        for i, (fr, recorded) in enumerate(items):
-            if rt.stop.is_set() or (args.frames is not None and i >= args.frames):
-                break
-            if isinstance(fr, BadFrame):
-                bad += 1
-                log.error("%s: skipped: %s", fr.label, fr.error)
-                continue
-            if args.pace == "realtime":
-                if ts0 is None:
-                    ts0 = fr.timestamp_ns
-                due = t_start + (i * period if period else (fr.timestamp_ns - ts0) / 1e9 / args.speed)
-                delay = due - time.monotonic()
-                if delay > 0:
-                    rt.stop.wait(delay)
-                behind_ms = max(0.0, -delay * 1e3)
-            credit.wait_for(fr.seq)
-            t0 = time.perf_counter()
-            try:
-                if recorded is not None:  # a recording: its exact bytes, re-stamped
-                    data = restamp_frame(recorded, args.stream, time.time_ns())
-                else:
-                    data = encode_frame(fr, args.stream, color=args.color, quality=args.quality,
-                                        depth=args.depth, depth_scale=depth_scale, pub_ns=time.time_ns())
-            except WireError as e:
-                bad += 1
-                log.error("%s: cannot encode: %s", fr.label, e)
-                continue
-            pub.put(data)
-            sent += 1
-            last_seq = fr.seq
-            meter.add((time.perf_counter() - t0) * 1e3)
-            rt.maybe_stats(stats)
-        reason = "stopped" if rt.stop.is_set() else "source exhausted"
-        rt.session.put(keys.key(args.stream, "frame"), encode_end(EndOfStream(last_seq, reason), args.stream),
+        try:
+            reason = send_all(args, rt, pub, items, credit, st, depth_scale)
+        except Exception as e:  # noqa: BLE001 - a source that fails for good ends the stream, said loudly
+            log.error("source %s failed: %s", args.source, e)
+            reason = f"source failed: {e}"
+        rt.session.put(keys.key(args.stream, "frame"), encode_end(EndOfStream(st.last_seq, reason), args.stream),
                        congestion_control=zenoh.CongestionControl.BLOCK)
-        rt.publish_stats({**stats(), "state": "ended"})
-        log.info("sent %d frames (%d bad); %s", sent, bad, reason)
-    return 0
+        rt.publish_stats({**st.values(), "state": "ended"})
+        log.info("sent %d frames (%d bad); %s", st.sent, st.bad, reason)
+    return 1 if reason.startswith("source failed") else 0
+
+
+class CaptureStats:
+    """Capture's counters, published as its stats."""
+
+    def __init__(self, credit: OutputCredit) -> None:
+        self.credit = credit
+        self.meter = RateMeter()
+        self.bad = self.sent = 0
+        self.last_seq = -1
+        self.behind_ms = 0.0
+
+    def values(self) -> dict:
+        return {"state": "running", "sent": self.sent, "bad_frames": self.bad, "behind_ms": round(self.behind_ms, 1),
+                "credit_waits": self.credit.waits, **self.meter.take("send")}
+
+
+def send_all(args, rt: ServiceRuntime, pub: zenoh.Publisher, items, credit: OutputCredit, st: CaptureStats,
+             depth_scale: float) -> str:
+    """Pace, encode and publish every frame; returns why it stopped."""
+    t_start, ts0 = time.monotonic(), None
+    period = None if args.fps is None else 1.0 / args.fps
+    for i, (fr, recorded) in enumerate(items):
+        if rt.stop.is_set() or (args.frames is not None and i >= args.frames):
+            break
+        if isinstance(fr, BadFrame):
+            st.bad += 1
+            log.error("%s: skipped: %s", fr.label, fr.error)
+            continue
+        if args.pace == "realtime":
+            if ts0 is None:
+                ts0 = fr.timestamp_ns
+            due = t_start + (i * period if period else (fr.timestamp_ns - ts0) / 1e9 / args.speed)
+            delay = due - time.monotonic()
+            if delay > 0:
+                rt.stop.wait(delay)
+            st.behind_ms = max(0.0, -delay * 1e3)
+        credit.wait_for(fr.seq)
+        t0 = time.perf_counter()
+        try:
+            if recorded is not None:  # a recording: its exact bytes, re-stamped
+                data = restamp_frame(recorded, args.stream, time.time_ns())
+            else:
+                data = encode_frame(fr, args.stream, color=args.color, quality=args.quality,
+                                    depth=args.depth, depth_scale=depth_scale, pub_ns=time.time_ns())
+        except WireError as e:
+            st.bad += 1
+            log.error("%s: cannot encode: %s", fr.label, e)
+            continue
+        pub.put(data)
+        st.sent += 1
+        st.last_seq = fr.seq
+        st.meter.add((time.perf_counter() - t0) * 1e3)
+        rt.maybe_stats(st.values)
+    return "stopped" if rt.stop.is_set() else "source exhausted"
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging("capture", args.verbose)
+    if args.list_devices:
+        return list_devices()
     try:
         conf = config_from_args(args)
     except ValueError as e:

@@ -167,7 +167,6 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
 def test_recorder_killed_with_sigkill_leaves_a_recoverable_file(tmp_path):
     """SIGKILL the recorder mid-stream: `quick-stream recover` repairs the file and keeps every
     message logged more than ~1 s (the flush period) before the kill."""
-    import zenoh
 
     from quick_stream.cli.up_cmd import free_port, open_when_up
     from quick_stream.launcher import ServiceSpec, Supervisor

@@ -3,13 +3,14 @@
 Specs: ``synthetic`` or ``synthetic:key=value,...`` (the embedded default, no
 data needed) and ``tum:PATH`` or ``tum:PATH,key=value,...`` (a TUM-layout
 folder) and ``mcap:FILE`` or ``mcap:FILE,stream=ID`` (replay of a recording's
-``frame`` messages). Later sources (depthai cameras) register here too.
+``frame`` messages) and ``depthai[:DEVICE][,key=value,...]`` (a live OAK camera, or
+``fake=...`` for the scripted stand-in; :mod:`~quick_stream.sources.oak`).
 """
 from __future__ import annotations
 
 from .base import FrameOrGap, Source, SourceError
 
-SOURCE_KINDS = ("synthetic", "tum", "mcap")
+SOURCE_KINDS = ("synthetic", "tum", "mcap", "depthai")
 
 
 def _split_options(text: str) -> tuple[list[str], dict[str, str]]:
@@ -40,6 +41,14 @@ def open_source(spec: str, **overrides: object) -> Source:
             _, options = _split_options(rest)
             options.update(opts_extra)
             return SyntheticSource.from_spec(options)
+        if kind == "depthai":
+            from .oak import open_oak
+
+            positional, options = _split_options(rest)
+            options.update(opts_extra)
+            if len(positional) > 1:
+                raise SourceError(f"depthai source takes one device id, got {positional}")
+            return open_oak(positional[0] if positional else "", options)
         if kind == "tum":
             from .tum import TumSource
 
@@ -62,6 +71,8 @@ def open_source(spec: str, **overrides: object) -> Source:
             return McapSource.from_spec(path, options)
     except SourceError:
         raise
+    except ImportError as e:  # an optional extra is missing; the message names it
+        raise SourceError(f"source {spec!r}: {e}") from None
     except (ValueError, OSError) as e:
         raise SourceError(f"source {spec!r}: {e}") from None
     raise SourceError(f"unknown source kind {kind!r} in {spec!r}; expected one of {', '.join(SOURCE_KINDS)}")

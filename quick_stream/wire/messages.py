@@ -118,8 +118,24 @@ def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality:
         "depth": encode_depth(frame.depth, depth, depth_scale),
         "pose": None if frame.pose is None else float_list("pose", frame.pose, 16),
         "origin": _str("origin", frame.origin),
+        "capture": _capture(frame.capture) if frame.capture else None,
     }
     return pack(f, "frame", stream, frame.seq)
+
+
+_CAPTURE_TYPES = (int, float, str)
+
+
+def _capture(meta: dict) -> dict:
+    out = {}
+    for k, v in meta.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        if not isinstance(k, str) or isinstance(v, bool) or not isinstance(v, _CAPTURE_TYPES):
+            raise WireError(f"capture metadata must be str -> int/float/str, got {k!r}: {type(v).__name__}",
+                            field=f"capture.{k}")
+        out[k] = v
+    return out
 
 
 def restamp_frame(data: bytes, stream: str, pub_ns: int) -> bytes:
@@ -143,8 +159,15 @@ def _decode_frame(r: Reader) -> Decoded:
     if depth.shape != (k.height, k.width):
         raise r.error("depth", f"depth is {depth.shape[1]}x{depth.shape[0]} but intrinsics say {k.width}x{k.height}")
     pose = r.floats("pose", 16, optional=True)
+    capture = {}
+    if r.has("capture"):
+        cr = r.map("capture")
+        for key_, v in cr.d.items():
+            if not isinstance(key_, str) or isinstance(v, bool) or not isinstance(v, _CAPTURE_TYPES):
+                raise cr.error(str(key_), f"expected int/float/str, got {type(v).__name__}")
+            capture[key_] = v
     frame = RGBDFrame(color, depth, k, t_ns, r.seq, None if pose is None else pose.reshape(4, 4),
-                      r.str("origin", optional=True) or "")
+                      r.str("origin", optional=True) or "", capture=capture)
     return Decoded("frame", frame, r.stream, r.seq,
                    extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale,
                           "pub_ns": r.int("pub_ns", optional=True)})

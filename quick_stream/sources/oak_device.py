@@ -1,0 +1,132 @@
+"""The real OAK backend: a depthai v3 pipeline with colour and stereo depth aligned to it.
+
+Needs the optional extra (``pip install 'quick-stream[depthai]'``); without it every
+entry point raises an ImportError naming the extra. Pipeline (depthai v3):
+
+    Camera CAM_A  --requestOutput((W, H), BGR888i, fps)--> colour queue
+                  \\--> StereoDepth.inputAlignTo          (depth resampled to the colour view)
+    Camera CAM_B/CAM_C --requestOutput--> StereoDepth.left/right --depth (uint16 mm)--> depth queue
+
+Queues are non-blocking with a few messages each, so a slow host drops old frames
+on the device side instead of stalling it. A device that stops delivering for
+``read`` timeout, or raises from depthai, is reported as :class:`DeviceGone`.
+"""
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from .oak import EXTRA_HINT, DeviceGone, NoDevice
+
+log = logging.getLogger("quick_stream.sources.oak_device")
+
+
+def import_depthai() -> Any:
+    """The depthai module, or ImportError naming the extra to install."""
+    try:
+        import depthai
+    except ImportError as e:
+        raise ImportError(f"the depthai source needs the depthai package (3.x): {EXTRA_HINT} ({e})") from None
+    major = int(str(getattr(depthai, "__version__", "0")).split(".")[0] or 0)
+    if major < 3:
+        raise ImportError(f"depthai {depthai.__version__} is too old: the depthai source needs 3.x; {EXTRA_HINT}")
+    return depthai
+
+
+def list_devices() -> list[dict[str, str]]:
+    """Connected OAK devices: id, name, state, platform (empty list when none)."""
+    dai = import_depthai()
+    out = []
+    for info in dai.Device.getAllAvailableDevices():
+        out.append({"id": info.getDeviceId(), "name": str(getattr(info, "name", "")),
+                    "state": str(getattr(info, "state", "")).rsplit(".", 1)[-1],
+                    "platform": str(getattr(info, "platform", "")).rsplit(".", 1)[-1]})
+    return out
+
+
+class DepthaiBackend:
+    """Colour + aligned stereo depth from one OAK device (``device_id`` None: the first found)."""
+
+    def __init__(self, device_id: str | None, width: int = 640, height: int = 400, fps: float = 30.0,
+                 queue_size: int = 4) -> None:
+        self.dai = import_depthai()
+        self.device_id = device_id or "first available"
+        self._want = device_id
+        self.width, self.height, self.fps, self.queue_size = width, height, fps, queue_size
+        self._pipeline = None
+        self._device = None
+        self._qc = self._qd = None
+
+    def _find(self) -> Any:
+        dai = self.dai
+        found = dai.Device.getAllAvailableDevices()
+        if not found:
+            raise NoDevice("no OAK device found (check the USB cable, the udev rule, or Docker's "
+                           "/dev/bus/usb mapping; `capture --list-devices` lists what is visible)")
+        if self._want is None:
+            return found[0]
+        for info in found:
+            if info.getDeviceId() == self._want:
+                return info
+        ids = ", ".join(i.getDeviceId() for i in found)
+        raise NoDevice(f"no OAK device with id {self._want!r} (found: {ids})")
+
+    def open(self) -> None:
+        dai = self.dai
+        info = self._find()
+        self.device_id = info.getDeviceId()
+        try:
+            device = dai.Device(info)
+            pipeline = dai.Pipeline(device)
+            cam = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_A)
+            left = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
+            right = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
+            stereo = pipeline.create(dai.node.StereoDepth)
+            stereo.setLeftRightCheck(True)
+            stereo.setRectifyEdgeFillColor(0)
+            size = (self.width, self.height)
+            rgb = cam.requestOutput(size, dai.ImgFrame.Type.BGR888i, fps=self.fps)
+            left.requestOutput(size, fps=self.fps).link(stereo.left)
+            right.requestOutput(size, fps=self.fps).link(stereo.right)
+            rgb.link(stereo.inputAlignTo)  # depth resampled to the colour camera's view and size
+            self._qc = rgb.createOutputQueue(maxSize=self.queue_size, blocking=False)
+            self._qd = stereo.depth.createOutputQueue(maxSize=self.queue_size, blocking=False)
+            pipeline.start()
+        except Exception as e:  # noqa: BLE001 - depthai raises RuntimeError subclasses of its own
+            raise DeviceGone(f"cannot start the pipeline on {self.device_id}: {e}") from None
+        self._device, self._pipeline = device, pipeline
+        log.info("depthai %s: streaming %dx%d at %g fps", self.device_id, self.width, self.height, self.fps)
+
+    def read(self, timeout_s: float) -> tuple[list[Any], list[Any]]:
+        import time
+
+        if self._pipeline is None:
+            raise DeviceGone("not open")
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                if not self._pipeline.isRunning():
+                    raise DeviceGone("pipeline stopped")
+                colors = self._qc.tryGetAll() or []
+                depths = self._qd.tryGetAll() or []
+                if colors or depths:
+                    return list(colors), list(depths)
+                if time.monotonic() > deadline:
+                    raise DeviceGone(f"no frames for {timeout_s:g} s")
+                time.sleep(0.002)
+        except DeviceGone:
+            raise
+        except Exception as e:  # noqa: BLE001 - XLink errors surface as RuntimeError
+            raise DeviceGone(str(e)) from None
+
+    def close(self) -> None:
+        for obj in (self._pipeline, self._device):
+            try:
+                if obj is not None:
+                    (obj.stop if hasattr(obj, "stop") else obj.close)()
+            except Exception:  # noqa: BLE001 - closing a dead device may raise; nothing to do
+                pass
+        self._pipeline = self._device = self._qc = self._qd = None
+
+    def __repr__(self) -> str:
+        return f"DepthaiBackend({self.device_id}, {self.width}x{self.height}@{self.fps:g})"

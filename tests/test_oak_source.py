@@ -1,0 +1,232 @@
+"""The depthai (OAK) source: adapter, pairing, faults and reconnection (issue 5).
+
+No camera is attached here, so the adapter runs on (a) the scripted fake device
+(quick_stream/sources/oak_fake.py) and (b) real ``depthai.ImgFrame`` objects coming
+out of a host-only depthai pipeline (``ReplayVideo`` replaying an MP4, no device).
+"""
+from __future__ import annotations
+
+import datetime
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from quick_stream.frame import BadFrame, RGBDFrame, dequantize_depth, quantize_depth
+from quick_stream.sources import SourceError, open_source
+from quick_stream.sources.oak import DeviceGone, FramePairer, NoDevice, OakSource
+from quick_stream.sources.oak_fake import FakeImgFrame, FakeOakBackend, parse_script
+from quick_stream.sources.synthetic import SyntheticSource
+from quick_stream.wire import decode, encode_frame
+
+W, H = 160, 120
+
+
+def fake_spec(script: str = "1", frames: int = 20) -> str:
+    return f"depthai:fake0,fake={script},frames={frames},width={W},height={H}"
+
+
+def test_clean_fake_device_gives_metric_depth_per_frame_intrinsics_and_capture_metadata():
+    frames = list(open_source(fake_spec(frames=6)))
+    truth = SyntheticSource(width=W, height=H, frames=6)
+    assert [f.seq for f in frames] == list(range(6)) and all(isinstance(f, RGBDFrame) for f in frames)
+    for f in frames:
+        t = truth.frame(f.seq)
+        assert np.array_equal(f.color, t.color)
+        assert np.array_equal(f.depth, dequantize_depth(quantize_depth(t.depth)))  # mm -> m, 0 stays invalid
+        assert f.intrinsics == truth.intrinsics_at(f.seq)
+        c = f.capture
+        assert c["device_id"] == "fake0" and c["seq_color"] == c["seq_depth"] == f.seq
+        assert c["t_host_ns"] == f.timestamp_ns and c["depth_skew_ns"] == 300_000
+    assert np.all(np.diff([f.timestamp_ns for f in frames]) > 0)
+
+
+def test_scripted_faults_cost_single_frames_and_the_stream_goes_on():
+    script = "drop_color:3+drop_depth:5+mismatch:7+late_depth:9+intrinsics:12+disconnect:15"
+    src = open_source(fake_spec(script, frames=25))
+    out = list(src)
+    seqs = [f.seq for f in out]
+    assert seqs == list(range(25))
+    colour_seq = [f.capture.get("seq_color") if isinstance(f, RGBDFrame) else None for f in out]
+    # frame 3's colour and frame 5's depth never arrived: those device frames are missing
+    assert 3 not in colour_seq[:12] and 5 not in colour_seq[:12]
+    assert src.pairer.stats.unpaired_color == 1 and src.pairer.stats.paired_by_time == 1  # the mismatch
+    gaps = [f for f in out if isinstance(f, BadFrame)]
+    assert len(gaps) == 1 and "disconnected" in gaps[0].error and "reconnected after" in gaps[0].error
+    assert src.reconnects and src.connections == 2
+    after = out[out.index(gaps[0]) + 1]
+    assert after.capture["seq_color"] == 0 and after.capture["connection"] == 1  # the device restarted
+    fx = [f.intrinsics.fx for f in out if isinstance(f, RGBDFrame)]
+    assert fx[0] == pytest.approx(fx[9]) and fx[-1] == pytest.approx(1.1 * fx[0])  # new K from the frames
+    stamps = [f.timestamp_ns for f in out if isinstance(f, RGBDFrame)]
+    assert np.all(np.diff(stamps) > 0)
+
+
+def test_reconnection_gives_up_after_bounded_retries():
+    class Dead(FakeOakBackend):
+        def open(self):
+            raise DeviceGone("X_LINK_DEVICE_NOT_FOUND")
+
+    src = OakSource(Dead(W, H), W, H, retries=2, retry_delay_s=0.01)
+    t0 = time.monotonic()
+    with pytest.raises(NoDevice, match="could not open after 3 attempts"):
+        next(iter(src))
+    assert time.monotonic() - t0 < 2
+
+
+def test_pairing_by_sequence_then_time_and_giving_up_on_lost_partners():
+    K = np.eye(3)
+    img, dep = np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4), np.uint16)
+
+    def c(seq, t_ms):
+        return FakeImgFrame(img, seq, 0, int(t_ms * 1e6), K)
+
+    def d(seq, t_ms):
+        return FakeImgFrame(dep, seq, 0, int(t_ms * 1e6), K)
+
+    p = FramePairer(tolerance_ms=5)
+    assert [(a.seq, b.seq) for a, b in p.add([c(0, 0), c(1, 33)], [d(1, 33), d(0, 0)])] == [(0, 0), (1, 1)]
+    assert p.add([c(2, 66)], [d(99, 67)])[0][1].seq == 99  # other seq, within tolerance: by time
+    assert p.add([c(3, 100)], []) == []  # waits for its depth ...
+    assert p.add([], [d(5, 166)]) == []  # ... which is gone: a newer depth arrived
+    assert p.stats.unpaired_color == 1
+    assert p.add([c(5, 166)], [])[0][1].seq == 5
+    assert (p.stats.paired_by_seq, p.stats.paired_by_time) == (3, 1)
+
+
+def test_bad_options_and_missing_extra_are_named(monkeypatch):
+    with pytest.raises(SourceError, match="unknown option"):
+        open_source("depthai:,bogus=1")
+    with pytest.raises(SourceError, match="fake depthai script"):
+        open_source("depthai:,fake=explode:3")
+    monkeypatch.setitem(sys.modules, "depthai", None)  # as if the extra were not installed
+    with pytest.raises(SourceError, match=r"quick-stream\[depthai\]"):
+        open_source("depthai")
+
+
+def test_capture_metadata_travels_on_the_wire():
+    f = next(iter(open_source(fake_spec(frames=1))))
+    g = decode(encode_frame(f, "cam0")).obj
+    assert g.capture == f.capture
+
+
+def test_parse_script():
+    assert parse_script("1") == {}
+    assert parse_script("drop_color:3+disconnect:3") == {3: {"drop_color", "disconnect"}}
+
+
+# --- real depthai objects, host-only pipeline (no device) ----------------------------------------
+
+dai = pytest.importorskip("depthai")  # in the test extra; absent only outside `pip install -e '.[test]'`
+
+
+class ReplayBackend:
+    """Colour from a host-only depthai pipeline (ReplayVideo of an MP4), depth as real ImgFrames.
+
+    The colour ImgFrames are depthai's own; each gets the camera matrix as its
+    transformation, as the device attaches it, and a RAW16 depth ImgFrame with the same
+    sequence number and timestamps (one is dropped, one mismatched, to drive pairing)."""
+
+    device_id = "host-replay"
+
+    def __init__(self, mp4: Path, depth_mm: list[np.ndarray], K: np.ndarray, size: tuple[int, int]) -> None:
+        self.mp4, self.depth_mm, self.K, self.size = mp4, depth_mm, K, size
+        self.pipeline = None
+        self.sent = 0
+
+    def open(self) -> None:
+        p = dai.Pipeline(createImplicitDevice=False)
+        r = p.create(dai.node.ReplayVideo)
+        r.setReplayVideoFile(self.mp4)
+        r.setOutFrameType(dai.ImgFrame.Type.BGR888i)
+        r.setSize(*self.size)
+        r.setFps(30)
+        r.setLoop(False)
+        self.q = r.out.createOutputQueue(maxSize=64, blocking=True)
+        p.start()
+        self.pipeline = p
+
+    def read(self, timeout_s: float):
+        deadline = time.monotonic() + timeout_s
+        while (m := self.q.tryGet()) is None:
+            if time.monotonic() > deadline or self.sent >= len(self.depth_mm):
+                raise DeviceGone("replay finished")
+            time.sleep(0.005)
+        i = self.sent
+        self.sent += 1
+        m.setTransformation(dai.ImgTransformation(self.size[0], self.size[1], self.K.tolist()))
+        m.setSequenceNum(i)
+        m.setTimestampDevice(datetime.timedelta(milliseconds=33 * i))
+        m.setTimestamp(datetime.timedelta(seconds=100, milliseconds=33 * i))
+        d = dai.ImgFrame()
+        d.setCvFrame(self.depth_mm[i], dai.ImgFrame.Type.RAW16)
+        d.setSequenceNum(i + (500 if i == 4 else 0))  # mismatched number: paired by time
+        d.setTimestampDevice(datetime.timedelta(milliseconds=33 * i + 1))
+        d.setTimestamp(datetime.timedelta(seconds=100, milliseconds=33 * i + 1))
+        d.setTransformation(dai.ImgTransformation(self.size[0], self.size[1], self.K.tolist()))
+        return [m], ([] if i == 6 else [d])
+
+    def close(self) -> None:
+        if self.pipeline is not None:
+            self.pipeline.stop()
+            self.pipeline = None
+
+
+def test_adapter_on_real_depthai_imgframes_from_a_host_only_pipeline(tmp_path):
+    syn = SyntheticSource(width=W, height=H, frames=10)
+    mp4 = tmp_path / "colour.mp4"
+    vw = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), 30, (W, H))
+    for i in range(10):
+        vw.write(syn.frame(i).color)
+    vw.release()
+    depth = [quantize_depth(syn.frame(i).depth) for i in range(10)]
+    K = syn.intrinsics.K
+    backend = ReplayBackend(mp4, depth, K, (W, H))
+    src = OakSource(backend, W, H, retries=0, read_timeout_s=5.0, frames=9)
+    got = list(src)
+    frames = [f for f in got if isinstance(f, RGBDFrame)]
+    assert len(frames) == 9  # 10 colour frames; the one whose depth was dropped is skipped
+    assert src.pairer.stats.paired_by_time == 1 and src.pairer.stats.unpaired_color == 1
+    for f in frames:
+        i = f.capture["seq_color"]
+        assert f.intrinsics.K == pytest.approx(K) and (f.intrinsics.width, f.intrinsics.height) == (W, H)
+        assert np.array_equal(f.depth, dequantize_depth(depth[i]))
+        assert f.color.shape == (H, W, 3) and f.color.dtype == np.uint8
+        assert np.abs(f.color.astype(int) - syn.frame(i).color).mean() < 12  # mp4 round trip
+        assert f.capture["t_device_ns"] == 33_000_000 * i and f.capture["depth_skew_ns"] == 1_000_000
+    assert 6 not in [f.capture["seq_color"] for f in frames]
+
+
+# --- end to end: the fake device feeds capture, the pipeline stabilizes, the recording replays -------
+
+def test_fake_device_through_the_services_and_replay_gives_the_same_output(tmp_path):
+    spec = "depthai:fake0,fake=drop_depth:12+disconnect:40,frames=70,width=320,height=240"
+    up = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
+    a, b = tmp_path / "live", tmp_path / "replay"
+    r = subprocess.run([*up, "--out", str(a), "--source", spec, "--png", str(a / "png")],
+                       capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stdout + r.stderr
+    log = (a / "logs" / "capture.log").read_text()
+    assert "device lost" in log and "reconnected after" in log
+    r = subprocess.run([*up, "--out", str(b), "--source", f"mcap:{a / 'recording.mcap'}", "--png", str(b / "png")],
+                       capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stdout + r.stderr
+    pa, pb = sorted((a / "png").glob("*.png")), sorted((b / "png").glob("*.png"))
+    assert [p.name for p in pa] == [p.name for p in pb] and len(pa) >= 60
+    assert all(np.array_equal(cv2.imread(str(x)), cv2.imread(str(y))) for x, y in zip(pa, pb))
+
+
+def test_real_backend_without_a_camera_says_no_device_found():
+    from quick_stream.sources.oak_device import list_devices
+
+    assert list_devices() == []  # no OAK on these machines
+    src = open_source("depthai:,retries=0")
+    with pytest.raises(NoDevice, match="no OAK device found"):
+        next(iter(src))
+    r = subprocess.run([sys.executable, "-m", "services.capture", "--list-devices"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 1 and "no OAK device found" in r.stdout
