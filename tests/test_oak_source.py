@@ -124,21 +124,55 @@ def test_parse_script():
 dai = pytest.importorskip("depthai")  # in the test extra; absent only outside `pip install -e '.[test]'`
 
 
-class ReplayBackend:
-    """Colour from a host-only depthai pipeline (ReplayVideo of an MP4), depth as real ImgFrames.
+from quick_stream.sources.oak_device import PipelineBackend  # noqa: E402 - needs depthai
 
-    The colour ImgFrames are depthai's own; each gets the camera matrix as its
-    transformation, as the device attaches it, and a RAW16 depth ImgFrame with the same
-    sequence number and timestamps (one is dropped, one mismatched, to drive pairing)."""
+
+class DeviceEmulator(dai.node.HostNode):
+    """A host node standing in for the device's outputs: it stamps each replayed colour frame
+    as the device would (camera matrix as its transformation, sequence number, device and
+    host timestamps) and sends it with a RAW16 depth frame on two outputs. Depth 6 is
+    dropped and depth 4 carries another sequence number, to drive the pairing."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        kind = [dai.Node.DatatypeHierarchy(dai.DatatypeEnum.ImgFrame, True)]
+        self.color_out = self.createOutput(possibleDatatypes=kind)
+        self.depth_out = self.createOutput(possibleDatatypes=kind)
+        self.i = 0
+
+    def build(self, src, depth_mm, K):
+        self.link_args(src)
+        self.depth_mm, self.K = depth_mm, K
+        return self
+
+    def process(self, m):
+        i, self.i = self.i, self.i + 1
+        h, w = self.depth_mm[i].shape
+        m.setTransformation(dai.ImgTransformation(w, h, self.K.tolist()))
+        m.setSequenceNum(i)
+        m.setTimestampDevice(datetime.timedelta(milliseconds=33 * i))
+        m.setTimestamp(datetime.timedelta(seconds=100, milliseconds=33 * i))
+        d = dai.ImgFrame()
+        d.setCvFrame(self.depth_mm[i], dai.ImgFrame.Type.RAW16)
+        d.setSequenceNum(i + (500 if i == 4 else 0))
+        d.setTimestampDevice(datetime.timedelta(milliseconds=33 * i + 1))
+        d.setTimestamp(datetime.timedelta(seconds=100, milliseconds=33 * i + 1))
+        d.setTransformation(dai.ImgTransformation(w, h, self.K.tolist()))
+        self.color_out.send(m)
+        if i != 6:
+            self.depth_out.send(d)
+
+
+class HostReplayBackend(PipelineBackend):
+    """The real backend's reading code on a host-only pipeline: ReplayVideo -> DeviceEmulator."""
 
     device_id = "host-replay"
 
     def __init__(self, mp4: Path, depth_mm: list[np.ndarray], K: np.ndarray, size: tuple[int, int]) -> None:
+        super().__init__()
         self.mp4, self.depth_mm, self.K, self.size = mp4, depth_mm, K, size
-        self.pipeline = None
-        self.sent = 0
 
-    def open(self) -> None:
+    def build(self):
         p = dai.Pipeline(createImplicitDevice=False)
         r = p.create(dai.node.ReplayVideo)
         r.setReplayVideoFile(self.mp4)
@@ -146,34 +180,9 @@ class ReplayBackend:
         r.setSize(*self.size)
         r.setFps(30)
         r.setLoop(False)
-        self.q = r.out.createOutputQueue(maxSize=64, blocking=True)
-        p.start()
-        self.pipeline = p
-
-    def read(self, timeout_s: float):
-        deadline = time.monotonic() + timeout_s
-        while (m := self.q.tryGet()) is None:
-            if time.monotonic() > deadline or self.sent >= len(self.depth_mm):
-                raise DeviceGone("replay finished")
-            time.sleep(0.005)
-        i = self.sent
-        self.sent += 1
-        m.setTransformation(dai.ImgTransformation(self.size[0], self.size[1], self.K.tolist()))
-        m.setSequenceNum(i)
-        m.setTimestampDevice(datetime.timedelta(milliseconds=33 * i))
-        m.setTimestamp(datetime.timedelta(seconds=100, milliseconds=33 * i))
-        d = dai.ImgFrame()
-        d.setCvFrame(self.depth_mm[i], dai.ImgFrame.Type.RAW16)
-        d.setSequenceNum(i + (500 if i == 4 else 0))  # mismatched number: paired by time
-        d.setTimestampDevice(datetime.timedelta(milliseconds=33 * i + 1))
-        d.setTimestamp(datetime.timedelta(seconds=100, milliseconds=33 * i + 1))
-        d.setTransformation(dai.ImgTransformation(self.size[0], self.size[1], self.K.tolist()))
-        return [m], ([] if i == 6 else [d])
-
-    def close(self) -> None:
-        if self.pipeline is not None:
-            self.pipeline.stop()
-            self.pipeline = None
+        dev = p.create(DeviceEmulator).build(r.out, self.depth_mm, self.K)
+        return (p, dev.color_out.createOutputQueue(maxSize=64, blocking=True),
+                dev.depth_out.createOutputQueue(maxSize=64, blocking=True))
 
 
 def test_adapter_on_real_depthai_imgframes_from_a_host_only_pipeline(tmp_path):
@@ -185,7 +194,7 @@ def test_adapter_on_real_depthai_imgframes_from_a_host_only_pipeline(tmp_path):
     vw.release()
     depth = [quantize_depth(syn.frame(i).depth) for i in range(10)]
     K = syn.intrinsics.K
-    backend = ReplayBackend(mp4, depth, K, (W, H))
+    backend = HostReplayBackend(mp4, depth, K, (W, H))
     src = OakSource(backend, W, H, retries=0, read_timeout_s=5.0, frames=9)
     got = list(src)
     frames = [f for f in got if isinstance(f, RGBDFrame)]

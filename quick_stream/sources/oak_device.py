@@ -14,6 +14,7 @@ on the device side instead of stalling it. A device that stops delivering for
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 from .oak import EXTRA_HINT, DeviceGone, NoDevice
@@ -44,18 +45,72 @@ def list_devices() -> list[dict[str, str]]:
     return out
 
 
-class DepthaiBackend:
+class PipelineBackend:
+    """A started depthai pipeline with a colour and a depth output queue: ``open``/``read``/``close``.
+
+    Subclasses say how the pipeline is built (:meth:`build`); reading is shared, so the
+    device backend and a host-only pipeline (tests, replays) go through the same code."""
+
+    device_id = "pipeline"
+
+    def __init__(self) -> None:
+        self.dai = import_depthai()
+        self._pipeline = None
+        self._qc = self._qd = None
+
+    def build(self) -> tuple[Any, Any, Any]:
+        """(pipeline, colour queue, depth queue), not started."""
+        raise NotImplementedError
+
+    def open(self) -> None:
+        try:
+            pipeline, qc, qd = self.build()
+            pipeline.start()
+        except (NoDevice, DeviceGone):
+            raise
+        except Exception as e:  # noqa: BLE001 - depthai raises RuntimeError subclasses of its own
+            raise DeviceGone(f"cannot start the pipeline on {self.device_id}: {e}") from None
+        self._pipeline, self._qc, self._qd = pipeline, qc, qd
+
+    def read(self, timeout_s: float) -> tuple[list[Any], list[Any]]:
+        """Whatever colour and depth messages have arrived (waits up to ``timeout_s`` for any)."""
+        if self._pipeline is None:
+            raise DeviceGone("not open")
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                colors = self._qc.tryGetAll() or []
+                depths = self._qd.tryGetAll() or []
+                if colors or depths:
+                    return list(colors), list(depths)
+                if not self._pipeline.isRunning():
+                    raise DeviceGone("pipeline stopped")
+                if time.monotonic() > deadline:
+                    raise DeviceGone(f"no frames for {timeout_s:g} s")
+                time.sleep(0.002)
+        except DeviceGone:
+            raise
+        except Exception as e:  # noqa: BLE001 - XLink errors surface as RuntimeError
+            raise DeviceGone(str(e)) from None
+
+    def close(self) -> None:
+        p, self._pipeline, self._qc, self._qd = self._pipeline, None, None, None
+        try:
+            if p is not None:
+                p.stop()
+        except Exception:  # noqa: BLE001 - stopping a dead device may raise; nothing to do
+            pass
+
+
+class DepthaiBackend(PipelineBackend):
     """Colour + aligned stereo depth from one OAK device (``device_id`` None: the first found)."""
 
     def __init__(self, device_id: str | None, width: int = 640, height: int = 400, fps: float = 30.0,
                  queue_size: int = 4) -> None:
-        self.dai = import_depthai()
+        super().__init__()
         self.device_id = device_id or "first available"
         self._want = device_id
         self.width, self.height, self.fps, self.queue_size = width, height, fps, queue_size
-        self._pipeline = None
-        self._device = None
-        self._qc = self._qd = None
 
     def _find(self) -> Any:
         dai = self.dai
@@ -71,62 +126,26 @@ class DepthaiBackend:
         ids = ", ".join(i.getDeviceId() for i in found)
         raise NoDevice(f"no OAK device with id {self._want!r} (found: {ids})")
 
-    def open(self) -> None:
+    def build(self) -> tuple[Any, Any, Any]:
         dai = self.dai
         info = self._find()
         self.device_id = info.getDeviceId()
-        try:
-            device = dai.Device(info)
-            pipeline = dai.Pipeline(device)
-            cam = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_A)
-            left = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
-            right = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
-            stereo = pipeline.create(dai.node.StereoDepth)
-            stereo.setLeftRightCheck(True)
-            stereo.setRectifyEdgeFillColor(0)
-            size = (self.width, self.height)
-            rgb = cam.requestOutput(size, dai.ImgFrame.Type.BGR888i, fps=self.fps)
-            left.requestOutput(size, fps=self.fps).link(stereo.left)
-            right.requestOutput(size, fps=self.fps).link(stereo.right)
-            rgb.link(stereo.inputAlignTo)  # depth resampled to the colour camera's view and size
-            self._qc = rgb.createOutputQueue(maxSize=self.queue_size, blocking=False)
-            self._qd = stereo.depth.createOutputQueue(maxSize=self.queue_size, blocking=False)
-            pipeline.start()
-        except Exception as e:  # noqa: BLE001 - depthai raises RuntimeError subclasses of its own
-            raise DeviceGone(f"cannot start the pipeline on {self.device_id}: {e}") from None
-        self._device, self._pipeline = device, pipeline
+        pipeline = dai.Pipeline(dai.Device(info))
+        cam = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_A)
+        left = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
+        right = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
+        stereo = pipeline.create(dai.node.StereoDepth)
+        stereo.setLeftRightCheck(True)
+        stereo.setRectifyEdgeFillColor(0)
+        size = (self.width, self.height)
+        rgb = cam.requestOutput(size, dai.ImgFrame.Type.BGR888i, fps=self.fps)
+        left.requestOutput(size, fps=self.fps).link(stereo.left)
+        right.requestOutput(size, fps=self.fps).link(stereo.right)
+        rgb.link(stereo.inputAlignTo)  # depth resampled to the colour camera's view and size
+        qc = rgb.createOutputQueue(maxSize=self.queue_size, blocking=False)
+        qd = stereo.depth.createOutputQueue(maxSize=self.queue_size, blocking=False)
         log.info("depthai %s: streaming %dx%d at %g fps", self.device_id, self.width, self.height, self.fps)
-
-    def read(self, timeout_s: float) -> tuple[list[Any], list[Any]]:
-        import time
-
-        if self._pipeline is None:
-            raise DeviceGone("not open")
-        deadline = time.monotonic() + timeout_s
-        try:
-            while True:
-                if not self._pipeline.isRunning():
-                    raise DeviceGone("pipeline stopped")
-                colors = self._qc.tryGetAll() or []
-                depths = self._qd.tryGetAll() or []
-                if colors or depths:
-                    return list(colors), list(depths)
-                if time.monotonic() > deadline:
-                    raise DeviceGone(f"no frames for {timeout_s:g} s")
-                time.sleep(0.002)
-        except DeviceGone:
-            raise
-        except Exception as e:  # noqa: BLE001 - XLink errors surface as RuntimeError
-            raise DeviceGone(str(e)) from None
-
-    def close(self) -> None:
-        for obj in (self._pipeline, self._device):
-            try:
-                if obj is not None:
-                    (obj.stop if hasattr(obj, "stop") else obj.close)()
-            except Exception:  # noqa: BLE001 - closing a dead device may raise; nothing to do
-                pass
-        self._pipeline = self._device = self._qc = self._qd = None
+        return pipeline, qc, qd
 
     def __repr__(self) -> str:
         return f"DepthaiBackend({self.device_id}, {self.width}x{self.height}@{self.fps:g})"
