@@ -37,6 +37,7 @@ class ServiceSpec:
     argv: list[str]
     may_finish: bool = False
     restart: bool = True
+    prefix: list[str] = field(default_factory=list)  # e.g. ["ip", "netns", "exec", "cam"] (must exec)
 
 
 @dataclass
@@ -65,7 +66,7 @@ class Supervisor:
 
     def _spawn(self, c: Child) -> None:
         logf = open(self.log_dir / f"{c.spec.name}.log", "ab")
-        c.proc = subprocess.Popen([sys.executable, *c.spec.argv], stdout=logf, stderr=subprocess.STDOUT,
+        c.proc = subprocess.Popen([*c.spec.prefix, sys.executable, *c.spec.argv], stdout=logf, stderr=subprocess.STDOUT,
                                   stdin=subprocess.DEVNULL, env=self.env, start_new_session=True)
         logf.close()
         c.started = time.monotonic()

@@ -5,12 +5,27 @@ Flags as in the zenoh-python examples: ``-m/--mode``, ``-e/--connect``,
 (VALUE is JSON5, e.g. ``--cfg 'transport/shared_memory/enabled:false'``).
 Pitfalls measured here (design/transport-facts.md): peers that only connect to a
 router exchange no data unless they also listen, so a peer with ``-e`` and no
-``-l`` listens on ``tcp/127.0.0.1:0``; never enable ``transport/unicast/lowlatency``.
+``-l`` listens on an ephemeral port (``tcp/127.0.0.1:0`` when every endpoint it
+connects to is on loopback, else ``tcp/0.0.0.0:0``, so peers on other hosts can
+reach it); never enable ``transport/unicast/lowlatency``.
+
+Environment overrides (for containers and units; a CLI flag beats the variable,
+the variable beats the config file): ``QUICK_STREAM_ZENOH_CONFIG`` (file),
+``QUICK_STREAM_ZENOH_MODE``, ``QUICK_STREAM_ZENOH_CONNECT`` and
+``QUICK_STREAM_ZENOH_LISTEN`` (comma-separated endpoints),
+``QUICK_STREAM_ZENOH_TLS_DIR`` and ``QUICK_STREAM_ZENOH_TLS_NAME``.
+
+TLS: ``--tls-dir DIR --tls-name NAME`` uses DIR/ca.pem and DIR/NAME.pem/.key
+(as written by deploy/tls/make-certs.sh) with mutual authentication: the
+certificate is shown when connecting and, in router mode, when accepting.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
+from pathlib import Path
+from typing import Mapping
 
 import zenoh
 
@@ -26,14 +41,46 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-multicast-scouting", action="store_true", help="disable multicast scouting")
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
                    help="set a configuration key to a JSON5 value (repeatable)")
+    g.add_argument("--tls-dir", default=None, metavar="DIR",
+                   help="TLS with mutual authentication: DIR/ca.pem and DIR/<--tls-name>.pem/.key")
+    g.add_argument("--tls-name", default=None, metavar="NAME",
+                   help="this process's certificate name in --tls-dir (e.g. flow, router)")
 
 
-def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+ENV = "QUICK_STREAM_ZENOH_"
+
+
+def _env_list(environ: Mapping[str, str], name: str) -> list[str]:
+    return [x.strip() for x in environ.get(ENV + name, "").split(",") if x.strip()]
+
+
+def _loopback(endpoint: str) -> bool:
+    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    return host in ("127.0.0.1", "localhost", "::1")
+
+
+def tls_settings(tls_dir: str, name: str, mode: str) -> dict[str, object]:
+    """The zenoh ``transport/link/tls`` keys for certificates made by deploy/tls/make-certs.sh."""
+    d = Path(tls_dir)
+    for f in (d / "ca.pem", d / f"{name}.pem", d / f"{name}.key"):
+        if not f.is_file():
+            raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}")
+    out: dict[str, object] = {"root_ca_certificate": str(d / "ca.pem"), "enable_mtls": True,
+                              "connect_certificate": str(d / f"{name}.pem"),
+                              "connect_private_key": str(d / f"{name}.key")}
+    if mode in ("router", "peer"):
+        out.update(listen_certificate=str(d / f"{name}.pem"), listen_private_key=str(d / f"{name}.key"))
+    return out
+
+
+def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None = None) -> zenoh.Config:
     """Build the session configuration; errors name the flag or key at fault (ValueError)."""
+    env = os.environ if environ is None else environ
+    config = args.config or env.get(ENV + "CONFIG") or None
     try:
-        conf = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
+        conf = zenoh.Config.from_file(config) if config else zenoh.Config()
     except (zenoh.ZError, OSError, ValueError) as e:
-        raise ValueError(f"--config {args.config}: {e}") from None
+        raise ValueError(f"--config {config}: {e}") from None
 
     def put(key: str, value_json: str, flag: str) -> None:
         try:
@@ -41,16 +88,27 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
         except (zenoh.ZError, ValueError) as e:
             raise ValueError(f"{flag}: cannot set {key} to {value_json}: {e}") from None
 
-    if args.mode:
-        put("mode", json.dumps(args.mode), "--mode")
-    if args.connect:
-        put("connect/endpoints", json.dumps(args.connect), "--connect")
-    if args.listen:
-        put("listen/endpoints", json.dumps(args.listen), "--listen")
-    elif args.connect and (args.mode or "peer") == "peer":
-        put("listen/endpoints", json.dumps(["tcp/127.0.0.1:0"]), "--connect")
+    mode = args.mode or env.get(ENV + "MODE") or None
+    connect = list(args.connect) or _env_list(env, "CONNECT")
+    listen = list(args.listen) or _env_list(env, "LISTEN")
+    if mode:
+        put("mode", json.dumps(mode), "--mode")
+    if connect:
+        put("connect/endpoints", json.dumps(connect), "--connect")
+    if listen:
+        put("listen/endpoints", json.dumps(listen), "--listen")
+    elif connect and (mode or "peer") == "peer" and not config:
+        port0 = "tcp/127.0.0.1:0" if all(_loopback(e) for e in connect) else "tcp/0.0.0.0:0"
+        put("listen/endpoints", json.dumps([port0]), "--connect")
     if args.no_multicast_scouting:
         put("scouting/multicast/enabled", "false", "--no-multicast-scouting")
+    tls_dir = getattr(args, "tls_dir", None) or env.get(ENV + "TLS_DIR")
+    tls_name = getattr(args, "tls_name", None) or env.get(ENV + "TLS_NAME")
+    if tls_dir or tls_name:
+        if not (tls_dir and tls_name):
+            raise ValueError("--tls-dir and --tls-name go together")
+        for k, v in tls_settings(tls_dir, tls_name, mode or "peer").items():
+            put(f"transport/link/tls/{k}", json.dumps(v), "--tls-dir")
     for item in args.cfg:
         k, sep, v = item.partition(":")
         if not sep or not k:

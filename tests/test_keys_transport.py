@@ -1,7 +1,10 @@
 """Key expressions and the zenoh flag set; a router and two peers exchange a wire message on loopback."""
 import argparse
+import json
 import socket
+import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -72,3 +75,42 @@ def test_router_and_peers_exchange_a_motion_message_on_loopback():
     finally:
         for s in reversed(sessions):
             s.close()
+
+
+def _args(argv: list[str]):
+    p = argparse.ArgumentParser()
+    add_zenoh_args(p)
+    return p.parse_args(argv)
+
+
+def test_environment_overrides_and_cli_precedence(tmp_path):
+    cfg = tmp_path / "c.json5"
+    cfg.write_text('{mode: "peer", connect: {endpoints: ["tcp/10.0.0.9:7447"]}}')
+    env = {"QUICK_STREAM_ZENOH_CONFIG": str(cfg), "QUICK_STREAM_ZENOH_MODE": "client",
+           "QUICK_STREAM_ZENOH_CONNECT": "tcp/10.1.1.1:7447, tcp/10.1.1.2:7447"}
+    c = config_from_args(_args([]), env)
+    assert json.loads(c.get_json("mode")) == "client"
+    assert json.loads(c.get_json("connect/endpoints")) == ["tcp/10.1.1.1:7447", "tcp/10.1.1.2:7447"]
+    c = config_from_args(_args(["-m", "peer", "-e", "tcp/10.2.2.2:7447"]), env)  # flags beat the environment
+    assert json.loads(c.get_json("mode")) == "peer"
+    assert json.loads(c.get_json("connect/endpoints")) == ["tcp/10.2.2.2:7447"]
+
+
+def test_peer_listens_where_other_hosts_can_reach_it():
+    local = config_from_args(_args(["-e", "tcp/127.0.0.1:7447"]), {})
+    remote = config_from_args(_args(["-e", "tcp/10.77.0.1:7447"]), {})
+    assert json.loads(local.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+    assert json.loads(remote.get_json("listen/endpoints")) == ["tcp/0.0.0.0:0"]
+
+
+def test_tls_flags_use_the_certificates_and_name_what_is_missing(tmp_path):
+    with pytest.raises(ValueError, match="missing"):
+        config_from_args(_args(["--tls-dir", str(tmp_path), "--tls-name", "flow"]), {})
+    with pytest.raises(ValueError, match="go together"):
+        config_from_args(_args(["--tls-dir", str(tmp_path)]), {})
+    script = Path(__file__).resolve().parents[1] / "deploy" / "tls" / "make-certs.sh"
+    subprocess.run(["bash", str(script), str(tmp_path / "c")], check=True, capture_output=True)
+    c = config_from_args(_args(["-m", "client", "--tls-dir", str(tmp_path / "c"), "--tls-name", "flow"]), {})
+    tls = json.loads(c.get_json("transport/link/tls"))
+    assert tls["connect_certificate"].endswith("flow.pem") and tls["enable_mtls"] is True
+    assert tls["root_ca_certificate"].endswith("ca.pem")

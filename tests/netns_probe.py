@@ -1,0 +1,60 @@
+"""A zenoh session that subscribes or publishes for a while, run inside a network namespace by
+tests/test_netns.py. Prints one JSON line: {"opened": bool, "received": n, "sent": n, "error": str}.
+
+    python tests/netns_probe.py sub|pub ENDPOINT KEY SECONDS [TLS_DIR TLS_NAME]
+"""
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+
+import zenoh
+
+
+def main(argv: list[str]) -> int:
+    role, endpoint, key, seconds = argv[0], argv[1], argv[2], float(argv[3])
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if len(argv) > 5:
+        d, name = argv[4], argv[5]
+        for k, v in {"root_ca_certificate": f"{d}/ca.pem", "connect_certificate": f"{d}/{name}.pem",
+                     "connect_private_key": f"{d}/{name}.key", "enable_mtls": True}.items():
+            conf.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
+    out = {"opened": False, "received": 0, "sent": 0, "error": ""}
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:
+        out["error"] = str(e)[:300]
+        print(json.dumps(out))
+        return 0
+    out["opened"] = True
+    lock = threading.Lock()
+
+    def on_sample(_sample: zenoh.Sample) -> None:
+        with lock:
+            out["received"] += 1
+
+    try:
+        if role == "sub":
+            sub = session.declare_subscriber(key, on_sample)
+            time.sleep(seconds)
+            sub.undeclare()
+        else:
+            pub = session.declare_publisher(key)
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                pub.put(b"intruder")
+                out["sent"] += 1
+                time.sleep(0.05)
+    finally:
+        session.close()
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
