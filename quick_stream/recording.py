@@ -29,6 +29,17 @@ from mcap.writer import CompressionType, Writer
 PROFILE = "quick-stream"
 
 
+def fresh_path(path: str | os.PathLike) -> Path:
+    """``path``, or ``<stem>-1<suffix>``, ``-2``, ... if it exists: a restarted recorder never
+    overwrites the file its predecessor left (``quick-stream recover`` repairs that one)."""
+    base = Path(path)
+    p, n = base, 0
+    while p.exists():
+        n += 1
+        p = base.with_name(f"{base.stem}-{n}{base.suffix}")
+    return p
+
+
 class RecordingError(RuntimeError):
     """A recording cannot be read or repaired; the message names the file and the problem."""
 

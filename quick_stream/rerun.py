@@ -7,7 +7,7 @@ have dropped frames between). ``motion``: the logged flows in order through one
 ``MotionStage`` (``end``: finish); motions and release-numbered corrections
 (:class:`ReleaseNumbering`), the forwarded ``end`` included, compared in order. Both
 compare bytes. ``render``: corrections grouped into releases as the service does
-(:class:`ReleaseGroups`), rendered by one ``RenderStage`` per stream fed the logged frames
+(:class:`~quick_stream.stages.ReleaseGroups`), rendered by one ``RenderStage`` per stream fed the logged frames
 each release needs (orphans as the service renders them), each frame encoded as its logged
 message was and compared decoded (seq, t_ns, image, zoom, flags; the bytes carry wall-clock
 latency stamps). ``end`` messages split a channel into stream runs, paired in order across
@@ -29,7 +29,7 @@ from .path.planner import Correction
 from .recording import RecordingError, read_messages
 from .sceneflow import SceneFlow
 from .stabilizer import StabilizerParams
-from .stages import MotionStage, RenderStage, StabilizedFrame
+from .stages import MotionStage, ReleaseGroups, RenderStage, StabilizedFrame
 from .wire import StabilizedImage, WireError, decode
 from .wire.codec import unpack
 from .wire.messages import encode_correction, encode_end, encode_flow, encode_motion, encode_stabilized
@@ -106,34 +106,6 @@ class ReleaseNumbering:
             out.extend(encode_correction(c, stream, batch=(self.release, i, len(b))) for i, c in enumerate(b))
             self.release += 1
         return out
-
-
-class ReleaseGroups:
-    """Corrections grouped by release as the render service's ``Releases`` groups them:
-    complete releases go to ``ready``, kept sorted by their first correction's seq."""
-
-    def __init__(self) -> None:
-        self._open: dict[int, tuple[int, dict[int, Correction]]] = {}
-        self.ready: list[list[Correction]] = []
-
-    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
-        if batch is None:  # a sender without release tags: each correction is its own batch
-            self.ready.append([c])
-            return
-        rel, idx, size = batch
-        _, got = self._open.setdefault(rel, (size, {}))
-        got[idx] = c
-        if len(got) == size:
-            del self._open[rel]
-            self.ready.append([got[i] for i in range(size)])
-            self.ready.sort(key=lambda b: b[0].seq)
-
-    def flush_incomplete(self) -> None:
-        """End of stream: hand over what arrived of the partial releases."""
-        for _, (_, got) in sorted(self._open.items()):
-            self.ready.append([got[i] for i in sorted(got)])
-        self._open.clear()
-        self.ready.sort(key=lambda b: b[0].seq)
 
 
 @dataclass
@@ -316,7 +288,7 @@ def _render_run(frames: list[_Msg], corrections: list[_Msg], ended: bool, params
 
     def render_ready() -> None:
         while groups.ready:
-            batch = groups.ready.pop(0)
+            _, batch, _ = groups.ready.pop(0)
             feed(max(c.seq for c in batch))
             out.extend(stage.render_batch(batch))
 

@@ -131,7 +131,7 @@ class ServiceRuntime:
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
         self.session = zenoh.open(conf)
-        self._token = self.session.liveliness().declare_token(keys.health_key(stream, service))
+        self._token = None  # declared by ready(), once the service's subscribers exist
         self._stats_pub = self.publisher("stats", lossless=False)
         # Everything allocated so far (modules, OpenCV/zenoh objects) lives for the whole run:
         # keep it out of the collector's generations so collections stay short.
@@ -177,6 +177,12 @@ class ServiceRuntime:
     def wake(self) -> None:
         with self._cond:
             self._cond.notify_all()
+
+    def ready(self) -> None:
+        """Declare the liveliness token: call once the service's subscribers are declared, so
+        whoever waits for it (capture's ``--wait-for``) cannot publish before they exist."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(keys.health_key(self.stream, self.service))
 
     # --- liveliness --------------------------------------------------------------------------------
 
@@ -231,7 +237,8 @@ class ServiceRuntime:
                 pass
         self._subs.clear()
         try:
-            self._token.undeclare()
+            if self._token is not None:
+                self._token.undeclare()
         except zenoh.ZError:
             pass
         for p in self._pubs:

@@ -260,3 +260,49 @@ class RenderStage:
             self.timer.add("warp", (t1 - t0) * 1e3 / n)
             self.timer.add("framing", (t2 - t1) * 1e3 / n)
         return [(c, f, mesh, float(z)) for (c, f, mesh), z in zip(items, zooms)]
+
+
+class ReleaseGroups:
+    """Corrections grouped by planner release; yields complete releases in order.
+
+    The motion service sends a release's corrections back to back, so a release still
+    incomplete when another one starts arriving lost its sender mid-way (a killed motion
+    service): it is handed over with what arrived (``abandoned``). A restarted motion
+    service numbers releases from 0 again; a correction that does not fit the open release
+    of that number (other size, or an index already there) starts a new one.
+    """
+
+    def __init__(self) -> None:
+        self._open: dict[int, tuple[int, dict[int, Correction]]] = {}
+        self.ready: list[tuple[int, list[Correction], float]] = []  # (release, batch, completed at)
+        self.unbatched = 0
+        self.abandoned = 0
+
+    def _hand_over(self, rel: int) -> None:
+        _, got = self._open.pop(rel)
+        self.ready.append((rel, [got[i] for i in sorted(got)], time.monotonic()))
+        self.ready.sort(key=lambda r: r[1][0].seq)
+
+    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
+        if batch is None:  # a sender without release tags: each correction is its own batch
+            self.unbatched += 1
+            self.ready.append((-1, [c], time.monotonic()))
+            return
+        rel, idx, size = batch
+        for other in [r for r in self._open if r != rel]:
+            self.abandoned += 1
+            self._hand_over(other)
+        if rel in self._open and (self._open[rel][0] != size or idx in self._open[rel][1]):
+            self.abandoned += 1
+            self._hand_over(rel)
+        _, got = self._open.setdefault(rel, (size, {}))
+        got[idx] = c
+        if len(got) == size:
+            self._hand_over(rel)
+
+    def flush_incomplete(self) -> int:
+        """End of stream: hand over partial releases (what arrived of them); returns how many."""
+        n = len(self._open)
+        for rel in sorted(self._open):
+            self._hand_over(rel)
+        return n

@@ -126,6 +126,7 @@ def run(args, conf: zenoh.Config) -> int:
     depth_scale = float(getattr(source, "depth_scale", 1000.0))
     with ServiceRuntime("capture", args.stream, conf) as rt:
         pub = rt.publisher("frame")
+        rt.ready()
         wait = [s for s in args.wait_for.split(",") if s]
         if wait:
             missing = rt.wait_for(wait, args.wait_timeout)

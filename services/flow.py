@@ -39,6 +39,7 @@ def run(args, conf: zenoh.Config) -> int:
     with ServiceRuntime("flow", args.stream, conf) as rt:
         inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue)
         pub = rt.publisher("flow", lossless=True)
+        rt.ready()
         meter = RateMeter()
         errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0}
 

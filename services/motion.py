@@ -56,6 +56,7 @@ def run(args, conf: zenoh.Config) -> int:
         inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue)
         motion_pub = rt.publisher("motion", lossless=True)
         release = Releaser(rt.publisher("correction", lossless=True), args.stream)
+        rt.ready()
         meter = RateMeter()
         errors = {"decode_errors": 0, "refused_flows": 0, "invalid_motions": 0}
 

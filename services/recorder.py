@@ -6,7 +6,8 @@ replay: ``capture --source mcap:FILE``, ``quick-stream rerun``), plus the
 Foxglove-viewable channels derived from them (images, calibration, camera and
 stabilized poses; :mod:`quick_stream.foxglove_view`). The file's open chunk is
 written out every ``--flush`` seconds (default 1), so a killed recorder loses at
-most about that much; ``quick-stream recover`` repairs the footer-less file.
+most about that much; ``quick-stream recover`` repairs the footer-less file, and a
+restarted recorder writes to ``<name>-1.mcap`` (``-2``, ...) instead of overwriting it.
 """
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ import zenoh
 
 from quick_stream import foxglove, keys
 from quick_stream.foxglove_view import FoxgloveView
-from quick_stream.recording import Recorder
+from quick_stream.recording import Recorder, fresh_path
 from quick_stream.runtime import RateMeter, ServiceRuntime, lower_priority, service_parser, setup_logging
 from quick_stream.transport import config_from_args
 from quick_stream.wire import WireError
@@ -43,10 +44,14 @@ def build_parser():
 
 def run(args, conf: zenoh.Config) -> int:
     lower_priority(args.nice)
+    out = fresh_path(args.output)
+    if str(out) != args.output:
+        log.warning("%s exists (a previous run or a killed recorder): recording to %s", args.output, out)
     views: dict[str, FoxgloveView] = {}
-    with ServiceRuntime("recorder", args.stream, conf) as rt, Recorder(args.output, flush_s=args.flush, compression=args.compression) as rec:
+    with ServiceRuntime("recorder", args.stream, conf) as rt, Recorder(out, flush_s=args.flush, compression=args.compression) as rec:
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
         inbox = rt.inbox(sub_key, args.queue)
+        rt.ready()
         meter = RateMeter()
         errors = {"bad_keys": 0, "view_errors": 0}
         logged_bytes = 0
@@ -86,7 +91,7 @@ def run(args, conf: zenoh.Config) -> int:
                     log.error("%s: no Foxglove view: %s", key_expr, e)
             meter.add((time.perf_counter() - t0) * 1e3)
         rt.publish_stats({**stats(), "state": "stopped"})
-    log.info("closed %s: %d messages", args.output, rec.messages)
+    log.info("closed %s: %d messages", out, rec.messages)
     return 0
 
 

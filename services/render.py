@@ -24,10 +24,9 @@ import zenoh
 
 from quick_stream import keys
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
-from quick_stream.path.planner import Correction
 from quick_stream.runtime import Percentiles, RateMeter, ServiceRuntime, service_parser, setup_logging
 from quick_stream.sinks import BackgroundSink, VideoSink
-from quick_stream.stages import RenderStage, StabilizedFrame
+from quick_stream.stages import ReleaseGroups, RenderStage, StabilizedFrame
 from quick_stream.transport import config_from_args
 from quick_stream.wire import StabilizedImage, WireError, decode, encode_end, encode_stabilized
 
@@ -49,37 +48,6 @@ def build_parser():
     return p
 
 
-class Releases:
-    """Corrections grouped by planner release; yields complete releases in order."""
-
-    def __init__(self) -> None:
-        self._open: dict[int, tuple[int, dict[int, Correction]]] = {}
-        self.ready: list[tuple[int, list[Correction], float]] = []  # (release, batch, completed at)
-        self.unbatched = 0
-
-    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
-        if batch is None:  # a sender without release tags: each correction is its own batch
-            self.unbatched += 1
-            self.ready.append((-1, [c], time.monotonic()))
-            return
-        rel, idx, size = batch
-        _, got = self._open.setdefault(rel, (size, {}))
-        got[idx] = c
-        if len(got) == size:
-            del self._open[rel]
-            self.ready.append((rel, [got[i] for i in range(size)], time.monotonic()))
-            self.ready.sort(key=lambda r: r[1][0].seq)
-
-    def flush_incomplete(self) -> int:
-        """End of stream: hand over partial releases (what arrived of them); returns how many."""
-        n = len(self._open)
-        for rel, (_, got) in sorted(self._open.items()):
-            self.ready.append((rel, [got[i] for i in sorted(got)], time.monotonic()))
-        self._open.clear()
-        self.ready.sort(key=lambda r: r[1][0].seq)
-        return n
-
-
 def run(args, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)
@@ -88,7 +56,8 @@ def run(args, conf: zenoh.Config) -> int:
         frames_in = rt.inbox(keys.key(args.stream, "frame"), 256)
         corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000)
         pub = rt.publisher("stabilized")
-        releases = Releases()
+        rt.ready()
+        releases = ReleaseGroups()
         pub_ns: dict[int, int] = {}
         newest = -1
         meter = RateMeter()
@@ -101,6 +70,7 @@ def run(args, conf: zenoh.Config) -> int:
             return {"state": "running", **errors, "buffered": stage.buffered, "dropped": stage.dropped,
                     "missing": stage.missing, "orphans": stage.orphans, "bad_frames": len(stage.bad),
                     "flagged": flagged, "pending_releases": len(releases.ready), "ended": ended_streams,
+                    "abandoned_releases": releases.abandoned,
                     **meter.take("render"), **lat_proc.take("lat_proc_ms"), **lat_total.take("lat_total_ms")}
 
         def publish(out: Iterable[StabilizedFrame], ready_seq: int | None) -> None:

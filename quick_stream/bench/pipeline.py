@@ -58,6 +58,7 @@ class Monitor:
     """Receives stabilized frames (envelope and stamps only) and records their latency."""
 
     total_ms: list[float] = field(default_factory=list)
+    t_recv: list[float] = field(default_factory=list)  # monotonic receive time of each latency sample
     wait_ms: list[float] = field(default_factory=list)
     proc_ms: list[float] = field(default_factory=list)
     first_ms: list[float] = field(default_factory=list)  # processing of each batch's first frame
@@ -88,6 +89,7 @@ class Monitor:
             self.t_first = self.t_first or t
             self.t_last = t
             if src and ready:
+                self.t_recv.append(t)
                 self.total_ms.append((now - src) / 1e6)
                 self.wait_ms.append((ready - src) / 1e6)
                 self.proc_ms.append((now - ready) / 1e6)
@@ -204,7 +206,16 @@ def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples,
         procs[name] = {"cpu_pct": round(cpu, 1), "rss_mb_start": round(a[:k, 2].mean() / 2**20, 1),
                        "rss_mb_end": round(a[-k:, 2].mean() / 2**20, 1), "peak_rss_mb": round(a[:, 3].max() / 2**20, 1),
                        "rss_mb_series": [round(x / 2**20, 1) for x in a[::every, 2]]}
-    return {"fps_target": fps or "fast", "seconds": seconds, "size": f"{width}x{height}", "recording": record,
+    windows = []
+    if mon.t_recv:
+        t0 = mon.t_recv[0]
+        tt, tot = np.asarray(mon.t_recv[skip:]) - t0, np.asarray(mon.total_ms[skip:])
+        for w0 in np.arange(tt.min() if tt.size else 0, tt.max() if tt.size else 0, 60.0):
+            sel = (tt >= w0) & (tt < w0 + 60.0)
+            if sel.sum() > 30:
+                windows.append({"from_s": round(float(w0), 1), "total_p99_ms": round(float(np.percentile(tot[sel], 99)), 1),
+                                "n": int(sel.sum())})
+    return {"fps_target": fps or "fast", "latency_p99_per_minute": windows, "seconds": seconds, "size": f"{width}x{height}", "recording": record,
             "frames_sent": sent, "frames_stabilized": n, "frames_flagged": mon.flagged,
             "unique_out_of_order": int(np.sum(np.diff(mon.seqs) <= 0)) if n > 1 else 0,
             "stabilized_fps": round((n - 1) / span, 2) if span else 0.0,
@@ -220,6 +231,9 @@ def format_report(r: dict) -> str:
         if v:
             lines.append(f"  latency {k:<29} p50 {v['p50']:7.1f}  p90 {v['p90']:7.1f}  p99 {v['p99']:7.1f}  "
                          f"max {v['max']:7.1f} ms  (n={v['n']})")
+    if len(r.get("latency_p99_per_minute", [])) > 1:
+        lines.append("  total latency p99 per minute (ms): "
+                     + " ".join(f"{w['total_p99_ms']:.0f}" for w in r["latency_p99_per_minute"]))
     lines.append(f"  {'process':<9} {'CPU %':>6} {'RSS start':>10} {'RSS end':>8} {'peak RSS':>9} (MB)   RSS over the run")
     for name, p in r["processes"].items():
         lines.append(f"  {name:<9} {p['cpu_pct']:>6.1f} {p['rss_mb_start']:>10.1f} {p['rss_mb_end']:>8.1f} "

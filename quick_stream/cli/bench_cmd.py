@@ -30,6 +30,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     ps = b.add_parser("path", help="optimal-path solver ms per frame for every group")
     for q in (s, o, m, q, ps):
         q.add_argument("--json", action="store_true", help="print one JSON object")
+    fz = b.add_parser("fuzz", help="the wire decoder against mutated messages (crashes, hangs)")
+    fz.add_argument("--n", type=int, default=100_000, help="inputs (default 100000)")
+    fz.add_argument("--seed", type=int, default=0)
     pl = b.add_parser("pipeline", help="the services under load: latency, throughput, drops, CPU and memory")
     pl.add_argument("--fps", default="30", help="comma-separated capture rates; 'fast' = as fast as possible")
     pl.add_argument("--seconds", type=float, default=120.0, help="measured seconds per rate (default 120)")
@@ -47,6 +50,12 @@ def run(args: argparse.Namespace) -> int:
         rates = [None if x.strip() == "fast" else float(x) for x in args.fps.split(",")]
         return pipeline.main(rates, args.seconds, args.out, args.json, record=not args.no_record,
                              replay=args.replay)
+    if args.bench == "fuzz":
+        from ..bench import fuzz
+
+        r = fuzz.run(args.n, args.seed)
+        print(fuzz.format_report(r))
+        return 1 if r.crashes or r.hangs else 0
     if args.bench == "speed":
         from ..bench import speed
 

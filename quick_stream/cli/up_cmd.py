@@ -21,6 +21,7 @@ from pathlib import Path
 import zenoh
 
 from ..launcher import ServiceSpec, StatusBoard, Supervisor
+from ..recording import fresh_path
 from .settings import add_stabilizer_args, settings_argv, stabilizer_params
 
 SERVICES = ("recorder", "flow", "motion", "render", "capture")
@@ -56,7 +57,7 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
     st = settings_argv(args)
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
     if not args.no_record:
-        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]))
+        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(args.recording)]))
     specs += [
         ServiceSpec("flow", ["-m", "services.flow", *z, *st]),
         ServiceSpec("motion", ["-m", "services.motion", *z, *st]),
@@ -149,6 +150,9 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    # never overwrite a recording: an earlier run's stays, this one gets recording-1.mcap, ...
+    args.recording = fresh_path(out / "recording.mcap")
+    before = set(out.glob("recording*.mcap"))
     endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
     sup = Supervisor(service_specs(args, endpoint, out), out / "logs")
     sup.start("router")
@@ -207,6 +211,6 @@ def run(args: argparse.Namespace) -> int:
         print("exit codes: " + ", ".join(f"{n} {c}" for n, c in bad.items()), file=sys.stderr)
     for e in sup.events:
         print(f"event: {e['service']} {e['event']}")
-    files = [out / "stabilized.mp4"] + ([] if args.no_record else [out / "recording.mcap"])
+    files = [out / "stabilized.mp4"] + ([] if args.no_record else sorted(set(out.glob("recording*.mcap")) - before))
     print("wrote " + ", ".join(str(f) for f in files if f.exists()) + f" (logs in {out / 'logs'})")
     return 0 if reason != "capture failed (see logs/capture.log)" else 1

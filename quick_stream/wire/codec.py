@@ -20,6 +20,7 @@ import zstandard
 from ..frame import dequantize_depth, quantize_depth  # noqa: F401 - re-exported
 
 FORMAT_VERSION = 1
+MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1.0, 1e6  # raw depth units per metre (mm = 1000, TUM = 5000)
 MESSAGE_TYPES = ("frame", "flow", "motion", "correction", "stabilized", "stats", "end")
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
 MAX_IMAGE_SIDE = 16384  # decoded images larger than this in either dimension are rejected
@@ -337,8 +338,9 @@ def encode_depth(depth: np.ndarray, encoding: str = "raw", scale: float = 1000.0
     """Depth (metres) as ``{enc: raw|zstd, dtype <u2, shape, scale, data}``."""
     if not isinstance(depth, np.ndarray) or depth.ndim != 2:
         raise WireError(f"depth must be HxW, got {getattr(depth, 'shape', type(depth))}", field="depth")
-    if not (math.isfinite(scale) and scale > 0):
-        raise WireError(f"depth scale must be > 0, got {scale}", field="depth.scale")
+    if not (math.isfinite(scale) and MIN_DEPTH_SCALE <= scale <= MAX_DEPTH_SCALE):
+        raise WireError(f"depth scale must be in [{MIN_DEPTH_SCALE:g}, {MAX_DEPTH_SCALE:g}] units/m, got {scale}",
+                        field="depth.scale")
     q = quantize_depth(depth, scale)
     d = encode_array(q, "<u2")
     if encoding == "zstd":
@@ -355,6 +357,8 @@ def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
     m = r.map(name)
     enc = m.str("enc")
     scale = m.float("scale", positive=True)
+    if not MIN_DEPTH_SCALE <= scale <= MAX_DEPTH_SCALE:
+        raise m.error("scale", f"depth scale {scale:g} units/m is outside [{MIN_DEPTH_SCALE:g}, {MAX_DEPTH_SCALE:g}]")
     if enc == "raw":
         q = r.array(name, "<u2", 2, max_elems=MAX_IMAGE_SIDE**2)
         _check_side(m, q.shape)

@@ -1,0 +1,171 @@
+"""``quick-stream bench fuzz``: the wire decoder against malformed input, deterministically.
+
+Seeds are valid messages of every type (small images so each decode is cheap); each
+input is one seed mutated by one of: bit flips, byte overwrites, truncation,
+insertion or deletion of bytes, structured field changes (a field of the msgpack map
+replaced by a value of another type, NaN/inf, a huge or negative number, a long
+string, a deep nesting, a wrong version), or plain random bytes. The only acceptable
+outcomes are a decoded message or :class:`~quick_stream.wire.WireError`; any other
+exception is a crash, and a decode slower than ``hang_ms`` is a hang. Prints counts per
+mutator, the slowest decode and every crash (with the input, hex, for a reproduction).
+"""
+from __future__ import annotations
+
+import random
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import msgpack
+import numpy as np
+
+from ..frame import Intrinsics, RGBDFrame
+from ..motion import MotionEstimate
+from ..path.planner import Correction
+from ..sceneflow import SceneFlowResult
+from ..wire import EndOfStream, StabilizedImage, Stats, WireError, decode, encode, encode_frame, encode_stabilized
+
+
+def seeds() -> list[bytes]:
+    """Valid messages of every type and encoding."""
+    rng = np.random.default_rng(0)
+    k = Intrinsics(30.0, 30.0, 15.5, 11.5, 32, 24)
+    color = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 3, (24, 32)).astype(np.float32)
+    f = RGBDFrame(color, depth, k, 1_000, 7, np.eye(4), "fuzz", capture={"device_id": "x", "t_device_ns": 5})
+    n = 12
+    pts = rng.normal(size=(n, 3))
+    flow = SceneFlowResult(7, 8, pts, pts * 0.01, np.ones(n), rng.uniform(0, 30, (n, 2)), rng.uniform(0, 30, (n, 2)),
+                           k, k, {"kept": n}, "")
+    m = MotionEstimate(7, 8, "se3", "exact", np.eye(4), np.zeros(6), True, "", n, 0.9, 0.3, np.zeros(6))
+    c = Correction(7, np.eye(4), 2, False, True, "")
+    s = StabilizedImage(7, 1_000, color, 1.05, ["flag"])
+    return [
+        encode_frame(f, "cam0", color="jpeg"), encode_frame(f, "cam0", color="raw", depth="zstd"),
+        encode_frame(f, "cam0", color="raw", depth="raw", pub_ns=12),
+        encode(flow, "cam0"), encode(m, "cam0"), encode(c, "cam0", zoom=1.1, batch=(3, 0, 2)),
+        encode_stabilized(s, "cam0"), encode_stabilized(s, "cam0", color="raw", src_pub_ns=1, ready_pub_ns=2),
+        encode(Stats("flow", {"fps": 30.0, "n": 3, "ok": True, "why": None}), "cam0", seq=4),
+        encode(EndOfStream(7, "done"), "cam0"),
+    ]
+
+
+_WEIRD: list[Any] = [None, True, -1, 0, 2**63 - 1, -(2**63), 2**64 - 1, 1e308, float("nan"), float("inf"), "",
+                     "x" * 70_000, b"", b"\x00" * 5, [], {}, [1, 2, 3], {"a": 1}, [[[[[[[[[[1]]]]]]]]]], 1.5, "cam0"]
+
+
+def _structured(rng: random.Random, data: bytes) -> bytes:
+    d = msgpack.unpackb(data, raw=False, strict_map_key=False)
+
+    def pick(obj: Any, depth: int = 0) -> tuple[Any, Any] | None:
+        if isinstance(obj, dict) and obj:
+            k = rng.choice(list(obj))
+            if depth < 3 and isinstance(obj[k], (dict, list)) and obj[k] and rng.random() < 0.5:
+                return pick(obj[k], depth + 1) or (obj, k)
+            return obj, k
+        if isinstance(obj, list) and obj:
+            i = rng.randrange(len(obj))
+            return obj, i
+        return None
+
+    where = pick(d)
+    if where is None:
+        return data
+    container, k = where
+    r = rng.random()
+    if r < 0.15 and isinstance(container, dict):
+        del container[k]
+    else:
+        container[k] = rng.choice(_WEIRD)
+    return msgpack.packb(d, use_bin_type=True)
+
+
+def _bitflip(rng: random.Random, data: bytes) -> bytes:
+    b = bytearray(data)
+    for _ in range(rng.randint(1, 8)):
+        i = rng.randrange(len(b))
+        b[i] ^= 1 << rng.randrange(8)
+    return bytes(b)
+
+
+def _overwrite(rng: random.Random, data: bytes) -> bytes:
+    b = bytearray(data)
+    for _ in range(rng.randint(1, 4)):
+        i = rng.randrange(len(b))
+        b[i] = rng.choice((0x00, 0xFF, 0x7F, 0x80, 0xC1, 0xDC, 0xDD, 0xDE, 0xDF, 0xCF, rng.randrange(256)))
+    return bytes(b)
+
+
+def _truncate(rng: random.Random, data: bytes) -> bytes:
+    return data[:rng.randrange(len(data))]
+
+
+def _insert(rng: random.Random, data: bytes) -> bytes:
+    i = rng.randrange(len(data) + 1)
+    return data[:i] + bytes(rng.randrange(256) for _ in range(rng.randint(1, 16))) + data[i:]
+
+
+def _delete(rng: random.Random, data: bytes) -> bytes:
+    i = rng.randrange(len(data))
+    return data[:i] + data[i + rng.randint(1, 16):]
+
+
+def _random(rng: random.Random, data: bytes) -> bytes:
+    return bytes(rng.randrange(256) for _ in range(rng.randint(0, 64)))
+
+
+MUTATORS: dict[str, Callable[[random.Random, bytes], bytes]] = {
+    "bitflip": _bitflip, "overwrite": _overwrite, "truncate": _truncate, "insert": _insert, "delete": _delete,
+    "structured": _structured, "random": _random,
+}
+
+
+@dataclass
+class FuzzReport:
+    inputs: int = 0
+    rejected: int = 0
+    accepted: int = 0
+    crashes: list[dict] = field(default_factory=list)
+    hangs: int = 0
+    max_ms: float = 0.0
+    per_mutator: dict[str, dict[str, int]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def run(n: int = 100_000, seed: int = 0, hang_ms: float = 1000.0) -> FuzzReport:
+    rng = random.Random(seed)
+    base = seeds()
+    names = list(MUTATORS)
+    rep = FuzzReport()
+    t_start = time.perf_counter()
+    for i in range(n):
+        name = names[i % len(names)]
+        data = MUTATORS[name](rng, rng.choice(base))
+        per = rep.per_mutator.setdefault(name, {"inputs": 0, "rejected": 0, "accepted": 0})
+        t0 = time.perf_counter()
+        try:
+            decode(data)
+            per["accepted"] += 1
+            rep.accepted += 1
+        except WireError:
+            per["rejected"] += 1
+            rep.rejected += 1
+        except Exception as e:  # noqa: BLE001 - this is what the fuzzer looks for
+            rep.crashes.append({"mutator": name, "error": f"{type(e).__name__}: {e}", "input_hex": data.hex()[:400]})
+        ms = (time.perf_counter() - t0) * 1e3
+        rep.max_ms = max(rep.max_ms, ms)
+        rep.hangs += ms > hang_ms
+        per["inputs"] += 1
+        rep.inputs += 1
+    rep.seconds = time.perf_counter() - t_start
+    return rep
+
+
+def format_report(r: FuzzReport) -> str:
+    lines = [f"wire decoder fuzz: {r.inputs} inputs in {r.seconds:.1f} s, {r.rejected} rejected with WireError, "
+             f"{r.accepted} decoded, {len(r.crashes)} crashes, {r.hangs} hangs, slowest decode {r.max_ms:.1f} ms"]
+    for name, p in r.per_mutator.items():
+        lines.append(f"  {name:<11} {p['inputs']:>7} inputs  {p['rejected']:>7} rejected  {p['accepted']:>7} decoded")
+    for c in r.crashes[:10]:
+        lines.append(f"  CRASH ({c['mutator']}): {c['error']}  input {c['input_hex'][:120]}...")
+    return "\n".join(lines)
