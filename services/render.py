@@ -44,6 +44,8 @@ def build_parser():
                    help="frames held for corrections (default 150, 5 s at 30 fps)")
     p.add_argument("--frame-wait", type=float, default=1.0,
                    help="seconds a complete release waits for missing frames (default 1)")
+    p.add_argument("--slow-ms", type=float, default=0.0,
+                   help="fault injection: spend this much longer on every frame (backpressure tests)")
     add_stabilizer_args(p)
     return p
 
@@ -64,11 +66,13 @@ def run(args, conf: zenoh.Config) -> int:
         errors = {"decode_errors": 0, "refused_frames": 0}
         flagged = 0
         ended_streams = 0
+        done = {"dropped": 0, "missing": 0, "orphans": 0, "bad": 0}  # counts of streams already ended
         lat_proc, lat_total = Percentiles(), Percentiles()
 
         def stats():
-            return {"state": "running", **errors, "buffered": stage.buffered, "dropped": stage.dropped,
-                    "missing": stage.missing, "orphans": stage.orphans, "bad_frames": len(stage.bad),
+            return {"state": "running", **errors, "buffered": stage.buffered,
+                    "dropped": done["dropped"] + stage.dropped, "missing": done["missing"] + stage.missing,
+                    "orphans": done["orphans"] + stage.orphans, "bad_frames": done["bad"] + len(stage.bad),
                     "flagged": flagged, "pending_releases": len(releases.ready), "ended": ended_streams,
                     "abandoned_releases": releases.abandoned,
                     **meter.take("render"), **lat_proc.take("lat_proc_ms"), **lat_total.take("lat_total_ms")}
@@ -77,6 +81,9 @@ def run(args, conf: zenoh.Config) -> int:
             nonlocal flagged
             for sf in out:
                 t0 = time.perf_counter()
+                if args.slow_ms > 0:
+                    time.sleep(args.slow_ms / 1e3)
+                    drain_frames()
                 src = pub_ns.pop(sf.seq, None)
                 ready = pub_ns.get(ready_seq, src) if ready_seq is not None else src
                 pub.put(encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags),
@@ -116,6 +123,11 @@ def run(args, conf: zenoh.Config) -> int:
             pub_ns[msg.seq] = msg.extra.get("pub_ns") or 0
             while len(pub_ns) > args.max_frames + 64:
                 pub_ns.pop(next(iter(pub_ns)))
+
+        def drain_frames() -> None:
+            """Take what arrived (while a batch renders, frames keep coming: hold or drop them now)."""
+            while (item := frames_in.pop()) is not None:
+                take_frame(item[1])
 
         def render_ready(force: bool) -> None:
             while releases.ready:
@@ -166,6 +178,9 @@ def run(args, conf: zenoh.Config) -> int:
                 newest = -1
                 ended_streams += 1
                 rt.publish_stats(stats())
+                for k, v in (("dropped", stage.dropped), ("missing", stage.missing), ("orphans", stage.orphans),
+                             ("bad", len(stage.bad))):
+                    done[k] += v
                 stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)  # a new stream may follow
                 continue
             if not got:

@@ -19,6 +19,7 @@ from quick_stream.cli.up_cmd import free_port
 from quick_stream.launcher import ServiceSpec, Supervisor
 from quick_stream.sources import open_source
 from quick_stream.stabilizer import Stabilizer
+from quick_stream.wire import decode
 
 SPECS = {"cam0": "synthetic:frames=90,width=320,height=240,seed=1",
          "cam1": "synthetic:frames=90,width=320,height=240,seed=2"}
@@ -78,13 +79,15 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
         assert [s for s in ref if not np.array_equal(got[s], ref[s])] == [], cam
         text = logs[cam].read_text()
         assert "0 flagged, 0 orphans, 0 missing" in text, text[-400:]
-    # full rate: each capture kept its 30 frames/s schedule (never fell behind by a frame)
+    # full rate: each capture kept its 30 frames/s schedule (its publish stamps, not the recorder's
+    # receive times: the recorder runs at low priority and may lag on a busy machine)
     rates = {}
     with open(tmp_path / "rec.mcap", "rb") as f:
         r = make_reader(f)
         for cam in SPECS:
-            stamps = [m.log_time for _, _, m in r.iter_messages(topics=[f"quick/@v1/{cam}/frame"])]
-            stabilized = [m.log_time for _, _, m in r.iter_messages(topics=[f"quick/@v1/{cam}/stabilized"])]
-            assert len(stamps) == 91 and len(stabilized) == 91  # 90 frames + end
-            rates[cam] = (len(stamps) - 2) / ((stamps[-2] - stamps[0]) / 1e9)
-    assert all(28.5 < v < 31.5 for v in rates.values()), rates
+            msgs = [decode(m.data) for _, _, m in r.iter_messages(topics=[f"quick/@v1/{cam}/frame"])]
+            pub = [m.extra["pub_ns"] for m in msgs if m.type == "frame"]
+            stabilized = [m for _, _, m in r.iter_messages(topics=[f"quick/@v1/{cam}/stabilized"])]
+            assert len(pub) == 90 and len(stabilized) == 91  # 90 frames (+ end)
+            rates[cam] = (len(pub) - 1) / ((pub[-1] - pub[0]) / 1e9)
+    assert all(29.0 < v < 31.0 for v in rates.values()), rates

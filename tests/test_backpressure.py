@@ -1,0 +1,70 @@
+"""A deliberately slowed render stage (issue 7): nothing upstream grows, render drops the oldest
+frames it holds, says how many, and memory stays bounded."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from quick_stream.cli.up_cmd import free_port
+from quick_stream.launcher import ServiceSpec, Supervisor
+from quick_stream.recording import read_messages
+from quick_stream.wire import decode
+
+FRAMES = 240
+
+
+def peak_rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmHWM")
+
+
+def test_slow_render_drops_oldest_and_reports_it(tmp_path):
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    z = ["-e", ep, "--no-multicast-scouting"]
+    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting"]),
+             ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(tmp_path / "rec.mcap")]),
+             ServiceSpec("flow", ["-m", "services.flow", *z]),
+             ServiceSpec("motion", ["-m", "services.motion", *z]),
+             # 60 ms more per frame: at most ~15 frames/s against 30 coming in
+             ServiceSpec("render", ["-m", "services.render", *z, "--slow-ms", "60", "--max-frames", "60"]),
+             ServiceSpec("capture", ["-m", "services.capture", *z, "--source",
+                                     f"synthetic:frames={FRAMES},width=320,height=240", "--fps", "30",
+                                     "--wait-for", "recorder,flow,motion,render"], may_finish=True)]
+    sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)
+    sup.start("router")
+    time.sleep(1.0)
+    for s in specs[1:]:
+        sup.start(s.name)
+    log = tmp_path / "logs" / "render.log"
+    peaks = {}
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            time.sleep(0.5)
+            sup.poll()
+            if log.exists() and "end of stream" in log.read_text():
+                break
+        else:
+            raise AssertionError(log.read_text()[-800:])
+        peaks = {n: peak_rss_mb(sup.pid(n)) for n in ("flow", "motion", "render", "recorder")}
+    finally:
+        codes = sup.stop()
+    assert all(c == 0 for c in codes.values()), codes
+    stats = {}
+    out = 0
+    for topic, _, data in read_messages(tmp_path / "rec.mcap"):
+        if not topic.startswith("quick/"):
+            continue  # Foxglove channels
+        m = decode(data)
+        if m.type == "stats":
+            stats[m.obj.service] = m.obj.values
+        elif m.type == "stabilized":
+            out += 1
+    r, f = stats["render"], stats["flow"]
+    assert r["dropped"] > 0 and r["missing"] > 0  # the oldest held frames went, and it says so
+    assert r["buffered"] <= 60
+    assert out + r["missing"] >= FRAMES - 2 and out < FRAMES  # every frame is either out or counted missing
+    assert f.get("inbox0_dropped", 0) == 0  # upstream did not have to drop anything
+    assert peaks["render"] < 450 and peaks["flow"] < 300 and peaks["motion"] < 300, peaks
