@@ -278,3 +278,28 @@ def lower_priority(niceness: int) -> None:
 def setup_logging(service: str, verbose: bool) -> None:
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
                         format=f"%(asctime)s {service} %(levelname)s: %(message)s")
+
+
+def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace, zenoh.Config], int],
+                 argv: list[str] | None, check: Callable[[argparse.Namespace], Any] | None = None,
+                 early: Callable[[argparse.Namespace], int | None] | None = None) -> int:
+    """A service's ``main``: parse, log, one OpenCV thread, build the zenoh config (and ``check`` the
+    service's own settings), then ``run(args, conf)``; a bad flag or config exits 2 with its message.
+    ``early`` may answer without a session (e.g. ``--list-devices``) by returning an exit code."""
+    import cv2
+
+    from .transport import config_from_args
+
+    args = parser.parse_args(argv)
+    setup_logging(service, args.verbose)
+    if early is not None and (code := early(args)) is not None:
+        return code
+    cv2.setNumThreads(1)
+    try:
+        conf = config_from_args(args)
+        if check is not None:
+            check(args)
+    except ValueError as e:
+        logging.getLogger(service).error("%s", e)
+        return 2
+    return run(args, conf)

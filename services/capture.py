@@ -21,9 +21,8 @@ import zenoh
 
 from quick_stream import keys
 from quick_stream.frame import BadFrame
-from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.sources import SourceError, open_source
-from quick_stream.transport import config_from_args
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
 from quick_stream.wire.codec import unpack
 from quick_stream.wire.messages import restamp_frame
@@ -205,16 +204,7 @@ def send_all(args, rt: ServiceRuntime, pub: zenoh.Publisher, items, credit: Outp
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    setup_logging("capture", args.verbose)
-    if args.list_devices:
-        return list_devices()
-    try:
-        conf = config_from_args(args)
-    except ValueError as e:
-        log.error("%s", e)
-        return 2
-    return run(args, conf)
+    return service_main("capture", build_parser(), run, argv, early=lambda a: list_devices() if a.list_devices else None)
 
 
 if __name__ == "__main__":

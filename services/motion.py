@@ -20,9 +20,8 @@ import zenoh
 from quick_stream import keys
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.path.planner import Correction
-from quick_stream.runtime import RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.stages import MotionStage
-from quick_stream.transport import config_from_args
 from quick_stream.wire import WireError, decode, encode_correction, encode_end, encode_motion
 
 log = logging.getLogger("motion")
@@ -105,15 +104,7 @@ def run(args, conf: zenoh.Config) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    setup_logging("motion", args.verbose)
-    try:
-        conf = config_from_args(args)
-        stabilizer_params(args)
-    except ValueError as e:
-        log.error("%s", e)
-        return 2
-    return run(args, conf)
+    return service_main("motion", build_parser(), run, argv, check=stabilizer_params)
 
 
 if __name__ == "__main__":

@@ -20,8 +20,7 @@ import zenoh
 from quick_stream import foxglove, keys
 from quick_stream.foxglove_view import FoxgloveView
 from quick_stream.recording import Recorder, fresh_path
-from quick_stream.runtime import RateMeter, ServiceRuntime, lower_priority, service_parser, setup_logging
-from quick_stream.transport import config_from_args
+from quick_stream.runtime import RateMeter, ServiceRuntime, lower_priority, service_main, service_parser
 from quick_stream.wire import WireError
 
 log = logging.getLogger("recorder")
@@ -96,14 +95,7 @@ def run(args, conf: zenoh.Config) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    setup_logging("recorder", args.verbose)
-    try:
-        conf = config_from_args(args)
-    except ValueError as e:
-        log.error("%s", e)
-        return 2
-    return run(args, conf)
+    return service_main("recorder", build_parser(), run, argv)
 
 
 if __name__ == "__main__":

@@ -19,15 +19,13 @@ import sys
 import time
 from collections.abc import Iterable
 
-import cv2
 import zenoh
 
 from quick_stream import keys
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
-from quick_stream.runtime import Percentiles, RateMeter, ServiceRuntime, service_parser, setup_logging
+from quick_stream.runtime import Percentiles, RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.sinks import BackgroundSink, VideoSink
 from quick_stream.stages import ReleaseGroups, RenderStage, StabilizedFrame
-from quick_stream.transport import config_from_args
 from quick_stream.wire import StabilizedImage, WireError, decode, encode_end, encode_stabilized
 
 log = logging.getLogger("render")
@@ -190,16 +188,7 @@ def run(args, conf: zenoh.Config) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    setup_logging("render", args.verbose)
-    cv2.setNumThreads(1)
-    try:
-        conf = config_from_args(args)
-        stabilizer_params(args)
-    except ValueError as e:
-        log.error("%s", e)
-        return 2
-    return run(args, conf)
+    return service_main("render", build_parser(), run, argv, check=stabilizer_params)
 
 
 if __name__ == "__main__":

@@ -91,6 +91,10 @@ def test_sigkill_mid_stream(tmp_path, victim):
         limit = 2.0 + (1.0 if victim == "render" else 0.0)  # render: plus the segment its frames wait for
         assert (after[0] - killed_at) / 1e9 < limit, (after[0] - killed_at) / 1e9
     else:  # router or recorder: the data path never stopped
+        render_log = (tmp_path / "logs" / "render.log").read_text()
+        assert "0 flagged, 0 orphans, 0 missing" in render_log, render_log[-400:]
         times = [t for t, _ in stabilized]
         gaps = [(b - a) / 1e9 for a, b in zip(times, times[1:])]
-        assert max(gaps) < 2.0, max(gaps)
+        # a router restart does not pause the peers; a recorder restart leaves a hole in the
+        # recording only (what it could not receive while down), bounded by its restart time
+        assert max(gaps) < (2.0 if victim == "router" else 4.0), max(gaps)
