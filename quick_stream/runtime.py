@@ -26,13 +26,13 @@ import signal
 import threading
 import time
 from collections import deque
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import zenoh
 
 from . import keys
-from .wire import Stats, encode_stats
+from .wire import Decoded, Stats, WireError, decode, encode_stats
 
 log = logging.getLogger(__name__)
 
@@ -227,26 +227,41 @@ class ServiceRuntime:
         if self.stats_due():
             self.publish_stats(values())
 
+    def receive(self, inbox: Inbox, expect: str, errors: dict[str, int],
+                stats: Callable[[], dict[str, Any]]) -> Iterator[Decoded]:
+        """Decoded ``expect`` and ``end`` messages from ``inbox`` until stopped, publishing stats when
+        due; one that does not decode, or of another type, is logged and counted in
+        ``errors["decode_errors"]`` and skipped (the stream goes on)."""
+        while not self.stop.is_set():
+            self.maybe_stats(stats)
+            item = inbox.pop()
+            if item is None:
+                self.wait(0.2)
+                continue
+            try:
+                msg = decode(item[1])
+            except WireError as e:
+                errors["decode_errors"] += 1
+                log.error("%s message on %s rejected: %s", expect, item[0], e)
+                continue
+            if msg.type not in (expect, "end"):
+                errors["decode_errors"] += 1
+                log.error("unexpected %s message on %s", msg.type, item[0])
+                continue
+            yield msg
+
     # --- shutdown --------------------------------------------------------------------------------------
 
     def close(self) -> None:
-        for s in self._subs:
+        entities = [*self._subs, *([self._token] if self._token is not None else []), *self._pubs]
+        for e in entities:
             try:
-                s.undeclare()
+                e.undeclare()
             except zenoh.ZError:
-                pass
+                pass  # already gone with a dying session: nothing left to release
         self._subs.clear()
-        try:
-            if self._token is not None:
-                self._token.undeclare()
-        except zenoh.ZError:
-            pass
-        for p in self._pubs:
-            try:
-                p.undeclare()
-            except zenoh.ZError:
-                pass
         self._pubs.clear()
+        self._token = None
         self.session.close()
 
     def __enter__(self) -> "ServiceRuntime":

@@ -19,7 +19,7 @@ from quick_stream import keys
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.stages import FlowStage
-from quick_stream.wire import WireError, decode, encode_end, encode_flow
+from quick_stream.wire import encode_end, encode_flow
 
 log = logging.getLogger("flow")
 
@@ -44,26 +44,11 @@ def run(args, conf: zenoh.Config) -> int:
         def stats():
             return {"state": "running", **errors, **meter.take("flow")}
 
-        while not rt.stop.is_set():
-            rt.maybe_stats(stats)
-            item = inbox.pop()
-            if item is None:
-                rt.wait(0.2)
-                continue
-            try:
-                msg = decode(item[1])
-            except WireError as e:
-                errors["decode_errors"] += 1
-                log.error("frame message on %s rejected: %s", item[0], e)
-                continue
+        for msg in rt.receive(inbox, "frame", errors, stats):
             if msg.type == "end":
                 pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream after frame %d", msg.obj.seq)
                 stage = FlowStage(stage.flow.params)  # a new stream may follow
-                continue
-            if msg.type != "frame":
-                errors["decode_errors"] += 1
-                log.error("unexpected %s message on %s", msg.type, item[0])
                 continue
             t0 = time.perf_counter()
             try:

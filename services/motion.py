@@ -22,7 +22,7 @@ from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.path.planner import Correction
 from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.stages import MotionStage
-from quick_stream.wire import WireError, decode, encode_correction, encode_end, encode_motion
+from quick_stream.wire import encode_correction, encode_end, encode_motion
 
 log = logging.getLogger("motion")
 
@@ -63,27 +63,12 @@ def run(args, conf: zenoh.Config) -> int:
             return {"state": "running", **errors, "gaps": stage.gaps, "segments": len(stage.planner.segments),
                     "corrections": release.sent, **meter.take("motion")}
 
-        while not rt.stop.is_set():
-            rt.maybe_stats(stats)
-            item = inbox.pop()
-            if item is None:
-                rt.wait(0.2)
-                continue
-            try:
-                msg = decode(item[1])
-            except WireError as e:
-                errors["decode_errors"] += 1
-                log.error("flow message on %s rejected: %s", item[0], e)
-                continue
+        for msg in rt.receive(inbox, "flow", errors, stats):
             if msg.type == "end":
                 release(stage.finish())
                 release.pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream: %d segments, %d corrections", len(stage.planner.segments), release.sent)
                 stage = MotionStage(params.motion, params.planner)  # a new stream may follow
-                continue
-            if msg.type != "flow":
-                errors["decode_errors"] += 1
-                log.error("unexpected %s message on %s", msg.type, item[0])
                 continue
             t0 = time.perf_counter()
             try:

@@ -59,20 +59,14 @@ def run(args, conf: zenoh.Config) -> int:
             return {"state": "running", "messages": rec.messages, "bytes": logged_bytes, **errors,
                     **meter.take("log")}
 
-        while not rt.stop.is_set():
-            rt.maybe_stats(stats)
-            rec.maybe_flush()
-            item = inbox.pop()
-            if item is None:
-                rt.wait(0.2)
-                continue
-            key_expr, payload = item
+        def log_one(key_expr: str, payload: bytes) -> None:
+            nonlocal logged_bytes
             try:
                 stream, stage = keys.parse(key_expr)
             except ValueError as e:
                 errors["bad_keys"] += 1
                 log.error("%s", e)
-                continue
+                return
             t0 = time.perf_counter()
             now = time.time_ns()
             rec.write(key_expr, payload, log_time_ns=now)
@@ -89,6 +83,18 @@ def run(args, conf: zenoh.Config) -> int:
                     errors["view_errors"] += 1
                     log.error("%s: no Foxglove view: %s", key_expr, e)
             meter.add((time.perf_counter() - t0) * 1e3)
+
+        while not rt.stop.is_set():
+            rt.maybe_stats(stats)
+            rec.maybe_flush()
+            item = inbox.pop()
+            if item is None:
+                rt.wait(0.2)
+                continue
+            log_one(*item)
+        # stopping: what was already received is still written (accepted data is never lost)
+        while (item := inbox.pop()) is not None:
+            log_one(*item)
         rt.publish_stats({**stats(), "state": "stopped"})
     log.info("closed %s: %d messages", out, rec.messages)
     return 0

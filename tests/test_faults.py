@@ -9,48 +9,17 @@ segment more (its frames are held for a segment before they can be rendered).
 """
 from __future__ import annotations
 
-import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
 
+from helpers import up_and_kill
+
 from quick_stream.recording import read_messages, recover
 
-UP = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
 FRAMES = 240
 PUBLISHES = {"flow": "flow", "motion": "motion", "render": "stabilized", "recorder": None, "router": None}
-
-
-def run_and_kill(out: Path, victim: str) -> tuple[int, dict, str]:
-    p = subprocess.Popen([*UP, "--out", str(out), "--source", f"synthetic:frames={FRAMES},width=320,height=240"],
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    status = out / "logs" / "status.json"
-    killed_at = None
-    try:
-        deadline = time.monotonic() + 60
-        while killed_at is None and time.monotonic() < deadline:
-            time.sleep(0.2)
-            try:
-                st = json.loads(status.read_text())
-            except (OSError, ValueError):
-                continue
-            svc = st["services"][victim]
-            if svc["running"] and st["services"]["capture"]["stats"].get("sent", 0) >= 60:
-                os.kill(svc["pid"], signal.SIGKILL)
-                killed_at = time.time_ns()
-        assert killed_at is not None, "the stream never reached 60 frames"
-        text, _ = p.communicate(timeout=120)
-    finally:
-        if p.poll() is None:
-            p.kill()
-    assert p.returncode == 0, text
-    return killed_at, json.loads(status.read_text()), text
 
 
 def messages(paths: list[Path], topic: str) -> list[tuple[int, bytes]]:
@@ -62,7 +31,7 @@ def messages(paths: list[Path], topic: str) -> list[tuple[int, bytes]]:
 
 @pytest.mark.parametrize("victim", list(PUBLISHES))
 def test_sigkill_mid_stream(tmp_path, victim):
-    killed_at, st, text = run_and_kill(tmp_path, victim)
+    killed_at, st, text = up_and_kill(tmp_path, f"synthetic:frames={FRAMES},width=320,height=240", victim)
     assert st["services"][victim]["restarts"] == 1, st["events"]
     assert all(s["restarts"] == 0 for n, s in st["services"].items() if n != victim)
     assert "exit codes" not in text  # every process, the restarted one included, stopped cleanly

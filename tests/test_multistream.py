@@ -11,30 +11,15 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from helpers import offline_images
 from mcap.reader import make_reader
 
-from quick_stream.cli import build_parser
-from quick_stream.cli.settings import stabilizer_params
 from quick_stream.cli.up_cmd import free_port
 from quick_stream.launcher import ServiceSpec, Supervisor
-from quick_stream.sources import open_source
-from quick_stream.stabilizer import Stabilizer
 from quick_stream.wire import decode
 
 SPECS = {"cam0": "synthetic:frames=90,width=320,height=240,seed=1",
          "cam1": "synthetic:frames=90,width=320,height=240,seed=2"}
-
-
-def offline(spec: str) -> dict[int, np.ndarray]:
-    cv2.setNumThreads(1)
-    stab = Stabilizer(stabilizer_params(build_parser().parse_args(["stabilize"])))
-    out = {}
-    for f in open_source(spec):
-        for sf in stab.push(f):
-            out[sf.seq] = sf.image
-    for sf in stab.finish():
-        out[sf.seq] = sf.image
-    return out
 
 
 def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
@@ -73,7 +58,7 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
         codes = sup.stop()
     assert all(c == 0 for c in codes.values()), codes
     for cam, spec in SPECS.items():
-        ref = offline(spec)
+        ref = offline_images(spec)
         got = {int(p.stem): cv2.imread(str(p)) for p in (tmp_path / cam).glob("*.png")}
         assert sorted(got) == sorted(ref) == list(range(90))
         assert [s for s in ref if not np.array_equal(got[s], ref[s])] == [], cam

@@ -20,11 +20,9 @@ import cv2
 import numpy as np
 import pytest
 
-from quick_stream.cli import build_parser
-from quick_stream.cli.settings import stabilizer_params
+from helpers import offline_images
+
 from quick_stream.launcher import ServiceSpec, Supervisor
-from quick_stream.sources import open_source
-from quick_stream.stabilizer import Stabilizer
 
 ROOT = Path(__file__).resolve().parents[1]
 SPEC = "synthetic:frames=60,width=320,height=240"
@@ -88,17 +86,8 @@ def hosts():
 
 @pytest.fixture(scope="module")
 def single_host() -> dict[int, np.ndarray]:
-    """The single-host result: the in-process stabilizer with `stabilize`'s settings (equal, bit for bit,
-    to the services on one host: tests/test_services_e2e.py)."""
-    cv2.setNumThreads(1)
-    stab = Stabilizer(stabilizer_params(build_parser().parse_args(["stabilize"])))
-    out = {}
-    for f in open_source(SPEC):
-        for sf in stab.push(f):
-            out[sf.seq] = sf.image
-    for sf in stab.finish():
-        out[sf.seq] = sf.image
-    return out
+    """The single-host result (equal, bit for bit, to the services on one host: tests/test_services_e2e.py)."""
+    return offline_images(SPEC)
 
 
 def run_pipeline(h: Hosts, out: Path, router: list[str], zflags: dict[str, list[str]]) -> Supervisor:

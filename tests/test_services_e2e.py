@@ -20,16 +20,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import UP, offline_images, sent, up_and_kill, wait_for_status
 from mcap.reader import make_reader
 
-from quick_stream.cli import build_parser
-from quick_stream.cli.settings import stabilizer_params
-from quick_stream.sources import open_source
-from quick_stream.stabilizer import Stabilizer
 from quick_stream.wire import decode
 
 SPEC = "synthetic:frames=75,width=320,height=240"
-UP = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
 
 
 def run_up(out: Path, *extra: str, timeout: float = 120) -> subprocess.CompletedProcess:
@@ -44,16 +40,7 @@ def pngs(folder: Path) -> dict[int, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def offline() -> dict[int, np.ndarray]:
-    """The offline ``quick-stream stabilize`` result with its default settings (those ``up`` passes on)."""
-    cv2.setNumThreads(1)  # as the services and `stabilize` run OpenCV
-    stab = Stabilizer(stabilizer_params(build_parser().parse_args(["stabilize"])))
-    out = {}
-    for f in open_source(SPEC):
-        for sf in stab.push(f):
-            out[sf.seq] = sf.image
-    for sf in stab.finish():
-        out[sf.seq] = sf.image
-    return out
+    return offline_images(SPEC)
 
 
 @pytest.fixture(scope="module")
@@ -118,30 +105,7 @@ def _flow_log_times(recording: Path) -> list[int]:
 def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
     out = tmp_path
     frames = 240  # 8 s at 30 fps
-    p = subprocess.Popen([*UP, "--out", str(out), "--source", f"synthetic:frames={frames},width=320,height=240"],
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    status = out / "logs" / "status.json"
-    try:
-        killed_at = None
-        deadline = time.monotonic() + 60
-        while killed_at is None and time.monotonic() < deadline:
-            time.sleep(0.2)
-            try:
-                st = json.loads(status.read_text())
-            except (OSError, ValueError):
-                continue
-            flow = st["services"]["flow"]
-            sent = st["services"]["capture"]["stats"].get("sent", 0)
-            if flow["running"] and sent >= 60:
-                os.kill(flow["pid"], signal.SIGKILL)
-                killed_at = time.time_ns()
-        assert killed_at is not None, "pipeline never reached 60 frames"
-        text, _ = p.communicate(timeout=90)
-    finally:
-        if p.poll() is None:
-            p.kill()
-    assert p.returncode == 0, text
-    st = json.loads(status.read_text())
+    killed_at, st, text = up_and_kill(out, f"synthetic:frames={frames},width=320,height=240", "flow")
     assert st["services"]["flow"]["restarts"] == 1
     assert any(e["service"] == "flow" and "restarted" in e["event"] for e in st["events"])
     assert "exit codes" not in text  # every service stopped cleanly on SIGTERM
@@ -231,15 +195,7 @@ def test_ctrl_c_stops_every_process_and_leaves_a_complete_recording(tmp_path):
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     status = tmp_path / "logs" / "status.json"
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            time.sleep(0.2)
-            try:
-                st = json.loads(status.read_text())
-            except (OSError, ValueError):
-                continue
-            if st["services"]["capture"]["stats"].get("sent", 0) >= 40:
-                break
+        wait_for_status(status, lambda st: sent(st) >= 40)
         p.send_signal(signal.SIGINT)
         text, _ = p.communicate(timeout=60)
     finally:

@@ -1,0 +1,71 @@
+"""Shared by the multi-process tests: the single-process reference output, and driving `quick-stream up`."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from quick_stream.cli import build_parser
+from quick_stream.cli.settings import stabilizer_params
+from quick_stream.sources import open_source
+from quick_stream.stabilizer import Stabilizer
+
+UP = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
+
+
+def offline_images(spec: str) -> dict[int, np.ndarray]:
+    """Stabilized images by seq from the in-process stabilizer with ``stabilize``'s default settings
+    (those ``up`` passes on) and one OpenCV thread, as the services and ``stabilize`` run it."""
+    cv2.setNumThreads(1)
+    stab = Stabilizer(stabilizer_params(build_parser().parse_args(["stabilize"])))
+    out = {}
+    for f in open_source(spec):
+        for sf in stab.push(f):
+            out[sf.seq] = sf.image
+    for sf in stab.finish():
+        out[sf.seq] = sf.image
+    return out
+
+
+def wait_for_status(status: Path, ready: Callable[[dict], bool], timeout: float = 60) -> dict:
+    """Poll ``up``'s status.json until ``ready(status)``; AssertionError after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        time.sleep(0.2)
+        try:
+            st = json.loads(status.read_text())
+        except (OSError, ValueError):
+            continue
+        if ready(st):
+            return st
+    raise AssertionError(f"{status}: condition not reached in {timeout:g} s")
+
+
+def sent(st: dict) -> int:
+    return st["services"]["capture"]["stats"].get("sent", 0)
+
+
+def up_and_kill(out: Path, source: str, victim: str, min_sent: int = 60, timeout: float = 120) -> tuple[int, dict, str]:
+    """Run ``up`` on ``source``, SIGKILL ``victim`` once ``min_sent`` frames went out, wait for the end.
+    Returns (kill time ns, final status, up's output); ``up`` must exit 0."""
+    p = subprocess.Popen([*UP, "--out", str(out), "--source", source], stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True)
+    try:
+        st = wait_for_status(out / "logs" / "status.json",
+                             lambda s: s["services"][victim]["running"] and sent(s) >= min_sent)
+        os.kill(st["services"][victim]["pid"], signal.SIGKILL)
+        killed_at = time.time_ns()
+        text, _ = p.communicate(timeout=timeout)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, text
+    return killed_at, json.loads((out / "logs" / "status.json").read_text()), text
