@@ -250,6 +250,12 @@ class ServiceRuntime:
                 continue
             yield msg
 
+    def contained(self, what: str, errors: dict[str, int]) -> "_Contained":
+        """Context for processing one message: an unexpected exception (a bug or an input no check
+        foresaw) is logged with its traceback and counted in ``errors["internal_errors"]``, and the
+        service goes on with the next message: one bad frame never kills a stream."""
+        return _Contained(f"{self.stream}/{self.service}: {what}", errors)
+
     # --- shutdown --------------------------------------------------------------------------------------
 
     def close(self) -> None:
@@ -269,6 +275,22 @@ class ServiceRuntime:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+class _Contained:
+    def __init__(self, what: str, errors: dict[str, int]) -> None:
+        self.what, self.errors = what, errors
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(self, kind: type | None, exc: BaseException | None, _tb: Any) -> bool:
+        if kind is None or not issubclass(kind, Exception):
+            return False
+        self.errors["internal_errors"] = self.errors.get("internal_errors", 0) + 1
+        log.error("%s failed (%s: %s); skipped, the stream goes on", self.what, kind.__name__, exc,
+                  exc_info=(kind, exc, _tb))
+        return True
 
 
 def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:

@@ -167,6 +167,8 @@ def _grid(h: int, w: int, step: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _sample_flow(flow: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear sample of a (H, W, 2) flow field at sub-pixel positions (edges replicated)."""
+    if u.size == 0:  # nothing survived the masks (e.g. no valid depth): cv2.remap refuses empty maps
+        return np.zeros((0, 2))
     mx = u.astype(np.float32).reshape(1, -1)
     my = v.astype(np.float32).reshape(1, -1)
     out = cv2.remap(flow, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -7,14 +7,31 @@ import cv2
 import numpy as np
 
 
+def fit(image: np.ndarray, w: int, h: int) -> np.ndarray:
+    """``image`` scaled to fit ``w`` x ``h`` keeping its aspect, centred on black (letterbox)."""
+    ih, iw = image.shape[:2]
+    s = min(w / iw, h / ih)
+    nw, nh = max(1, min(w, round(iw * s))), max(1, min(h, round(ih * s)))
+    out = np.zeros((h, w, 3), np.uint8)
+    x, y = (w - nw) // 2, (h - nh) // 2
+    out[y:y + nh, x:x + nw] = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    return out
+
+
 class VideoSink:
-    """Writes BGR frames to ``mp4`` (opened at the first frame, its size) and/or ``png_dir``."""
+    """Writes BGR frames to ``mp4`` (opened at the first frame, its size) and/or ``png_dir``.
+
+    A video file has one frame size: a frame of another size (the camera's resolution
+    changed mid-stream) is letterboxed into it and counted in ``resized``; PNGs keep
+    every frame's own size."""
 
     def __init__(self, mp4: str | Path | None, png_dir: str | Path | None, fps: float) -> None:
         self.mp4 = Path(mp4) if mp4 else None
         self.png_dir = Path(png_dir) if png_dir else None
         self.fps = fps
         self.frames = 0
+        self.resized = 0
+        self._size: tuple[int, int] | None = None
         self._writer: cv2.VideoWriter | None = None
         if self.png_dir:
             self.png_dir.mkdir(parents=True, exist_ok=True)
@@ -27,7 +44,12 @@ class VideoSink:
                 self._writer = cv2.VideoWriter(str(self.mp4), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
                 if not self._writer.isOpened():
                     raise OSError(f"cannot open video writer for {self.mp4}")
-            self._writer.write(image)
+                self._size = (w, h)
+            if (image.shape[1], image.shape[0]) != self._size:
+                self.resized += 1
+                self._writer.write(fit(image, *self._size))
+            else:
+                self._writer.write(image)
         if self.png_dir is not None:
             path = self.png_dir / f"{seq:06d}.png"
             if not cv2.imwrite(str(path), image):
@@ -72,6 +94,10 @@ class BackgroundSink:
     @property
     def frames(self) -> int:
         return self.sink.frames
+
+    @property
+    def resized(self) -> int:
+        return self.sink.resized
 
     def write(self, seq: int, image: np.ndarray) -> None:
         if self._error is not None:

@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass, field
 
 
+from .continuity import ContinuityParams
 from .frame import BadFrame, RGBDFrame
 from .motion import MotionParams
 from .motion_pipeline import StageTimer
@@ -31,6 +32,7 @@ __all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]
 @dataclass
 class StabilizerParams:
     flow: SceneFlowParams = field(default_factory=SceneFlowParams)
+    continuity: ContinuityParams = field(default_factory=ContinuityParams)
     motion: MotionParams = field(default_factory=MotionParams)
     planner: PlannerParams = field(default_factory=PlannerParams)
     warp: WarpParams = field(default_factory=WarpParams)
@@ -49,7 +51,7 @@ class Stabilizer:
         """``keep_inputs``: attach each input image to its output (metrics); ``keep_motions``:
         record every motion estimate (reports, plots). Both off, memory stays bounded by one segment."""
         self.params = p = params or StabilizerParams()
-        self.flow = FlowStage(p.flow)
+        self.flow = FlowStage(p.flow, p.continuity)
         self.motion = MotionStage(p.motion, p.planner)
         self.render = RenderStage(p.warp, p.framing, max_frames=1 << 30, keep_inputs=keep_inputs)
         self.timer = StageTimer()
@@ -72,6 +74,10 @@ class Stabilizer:
             t1 = time.perf_counter()
         except ValueError as e:
             self.bad_frames.append({"seq": frame.seq, "origin": frame.origin, "error": str(e)})
+            try:  # as the render service does: a refused frame it can hold is rendered uncorrected, flagged
+                self.render.add_frame(frame.seq, frame)
+            except ValueError:
+                pass  # duplicate or out of order: not rendered twice
             return []
         self.render.add_frame(frame.seq, frame)
         if flow is None:

@@ -29,6 +29,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from .continuity import ContinuityCheck, ContinuityParams
 from .frame import RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .motion_pipeline import StageTimer
@@ -41,24 +42,39 @@ FrameLoader = Callable[[], RGBDFrame]
 
 
 class FlowStage:
-    """Scene flow between each good frame and the previous one (one instance per stream)."""
+    """Scene flow between each good frame and the previous one (one instance per stream).
 
-    def __init__(self, params: SceneFlowParams | None = None) -> None:
+    Each frame first passes :class:`~quick_stream.continuity.ContinuityCheck` (counted in
+    ``check.counts``); ``notes`` holds what it reported of the last frame pushed.
+    """
+
+    def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None) -> None:
         self.flow = SceneFlow(params)
+        self.check = ContinuityCheck(continuity)
+        self.notes: list[str] = []
         self._prev: RGBDFrame | None = None
 
     def push(self, frame: RGBDFrame) -> SceneFlowResult | None:
-        """Add the next frame; returns the flow from the previous frame to it (None for the first).
+        """Add the next frame; returns the flow from the previous good frame to it (None for the first).
 
-        A frame older than the previous one (out of order, duplicate) is refused with ValueError.
+        A frame the check refuses (no valid depth, duplicate, out of order) raises
+        :class:`~quick_stream.continuity.FrameRefused` (a ValueError) and is not used. Across a
+        discontinuity (too many missing frames, a timestamp jump, a size change) the flow is
+        empty and its ``problem`` names the discontinuity, so the path restarts there.
         """
         prev = self._prev
-        if prev is not None and frame.seq <= prev.seq:
-            raise ValueError(f"frame {frame.seq} is not after frame {prev.seq} (out of order or duplicate)")
+        verdict = self.check.inspect(prev, frame)
+        self.notes = verdict.notes
         self._prev = frame
         if prev is None:
             return None
+        if verdict.brk:
+            return SceneFlowResult.empty(prev, frame, verdict.brk)
         return self.flow.compute(prev, frame)
+
+    def restart(self) -> None:
+        """End of stream: the next frame starts a new chain (the counters go on)."""
+        self._prev = None
 
 
 class MotionStage:

@@ -33,37 +33,44 @@ def build_parser():
 
 
 def run(args, conf: zenoh.Config) -> int:
-    stage = FlowStage(stabilizer_params(args).flow)
+    params = stabilizer_params(args)
+    stage = FlowStage(params.flow, params.continuity)
     with ServiceRuntime("flow", args.stream, conf) as rt:
         inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue)
         pub = rt.publisher("flow", lossless=True)
         rt.ready()
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0}
+        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0, "internal_errors": 0}
 
         def stats():
-            return {"state": "running", **errors, **meter.take("flow")}
+            return {"state": "running", **errors, **stage.check.counts, **meter.take("flow")}
 
-        for msg in rt.receive(inbox, "frame", errors, stats):
-            if msg.type == "end":
-                pub.put(encode_end(msg.obj, args.stream))
-                log.info("end of stream after frame %d", msg.obj.seq)
-                stage = FlowStage(stage.flow.params)  # a new stream may follow
-                continue
+        def take(frame) -> None:
             t0 = time.perf_counter()
             try:
-                flow = stage.push(msg.obj)
+                flow = stage.push(frame)
             except ValueError as e:
                 errors["refused_frames"] += 1
-                log.error("%s: %s", msg.obj.label, e)
-                continue
+                log.error("refused: %s", e)
+                return
+            for note in stage.notes:
+                log.warning("%s", note)
             if flow is None:
-                continue
+                return
             if flow.problem:
                 errors["empty_flows"] += 1
                 log.warning("flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
             pub.put(encode_flow(flow, args.stream))
             meter.add((time.perf_counter() - t0) * 1e3)
+
+        for msg in rt.receive(inbox, "frame", errors, stats):
+            if msg.type == "end":
+                pub.put(encode_end(msg.obj, args.stream))
+                log.info("end of stream after frame %d", msg.obj.seq)
+                stage.restart()  # a new stream may follow
+                continue
+            with rt.contained(f"frame {msg.seq}", errors):
+                take(msg.obj)
         rt.publish_stats({**stats(), "state": "stopped"})
     return 0
 

@@ -57,11 +57,27 @@ def run(args, conf: zenoh.Config) -> int:
         release = Releaser(rt.publisher("correction", lossless=True), args.stream)
         rt.ready()
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_flows": 0, "invalid_motions": 0}
+        errors = {"decode_errors": 0, "refused_flows": 0, "invalid_motions": 0, "internal_errors": 0}
 
         def stats():
             return {"state": "running", **errors, "gaps": stage.gaps, "segments": len(stage.planner.segments),
                     "corrections": release.sent, **meter.take("motion")}
+
+        def take(flow) -> None:
+            t0 = time.perf_counter()
+            try:
+                motions, batches = stage.push(flow)
+            except ValueError as e:
+                errors["refused_flows"] += 1
+                log.error("flow %d->%d refused: %s", flow.seq, flow.seq_next, e)
+                return
+            for m in motions:
+                if not m.valid:
+                    errors["invalid_motions"] += 1
+                    log.warning("motion %d->%d invalid: %s", m.seq, m.seq_next, m.reason)
+                motion_pub.put(encode_motion(m, args.stream))
+            release(batches)
+            meter.add((time.perf_counter() - t0) * 1e3)
 
         for msg in rt.receive(inbox, "flow", errors, stats):
             if msg.type == "end":
@@ -70,20 +86,8 @@ def run(args, conf: zenoh.Config) -> int:
                 log.info("end of stream: %d segments, %d corrections", len(stage.planner.segments), release.sent)
                 stage = MotionStage(params.motion, params.planner)  # a new stream may follow
                 continue
-            t0 = time.perf_counter()
-            try:
-                motions, batches = stage.push(msg.obj)
-            except ValueError as e:
-                errors["refused_flows"] += 1
-                log.error("flow %d->%d refused: %s", msg.obj.seq, msg.obj.seq_next, e)
-                continue
-            for m in motions:
-                if not m.valid:
-                    errors["invalid_motions"] += 1
-                    log.warning("motion %d->%d invalid: %s", m.seq, m.seq_next, m.reason)
-                motion_pub.put(encode_motion(m, args.stream))
-            release(batches)
-            meter.add((time.perf_counter() - t0) * 1e3)
+            with rt.contained(f"flow {msg.seq}->{msg.obj.seq_next}", errors):
+                take(msg.obj)
         rt.publish_stats({**stats(), "state": "stopped"})
     return 0
 

@@ -52,7 +52,7 @@ def run(args, conf: zenoh.Config) -> int:
         inbox = rt.inbox(sub_key, args.queue)
         rt.ready()
         meter = RateMeter()
-        errors = {"bad_keys": 0, "view_errors": 0}
+        errors = {"bad_keys": 0, "view_errors": 0, "internal_errors": 0}
         logged_bytes = 0
 
         def stats():
@@ -91,7 +91,8 @@ def run(args, conf: zenoh.Config) -> int:
             if item is None:
                 rt.wait(0.2)
                 continue
-            log_one(*item)
+            with rt.contained(f"message on {item[0]}", errors):
+                log_one(*item)
         # stopping: what was already received is still written (accepted data is never lost)
         while (item := inbox.pop()) is not None:
             log_one(*item)

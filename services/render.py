@@ -61,7 +61,7 @@ def run(args, conf: zenoh.Config) -> int:
         pub_ns: dict[int, int] = {}
         newest = -1
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_frames": 0}
+        errors = {"decode_errors": 0, "refused_frames": 0, "internal_errors": 0}
         flagged = 0
         ended_streams = 0
         done = {"dropped": 0, "missing": 0, "orphans": 0, "bad": 0}  # counts of streams already ended
@@ -72,7 +72,7 @@ def run(args, conf: zenoh.Config) -> int:
                     "dropped": done["dropped"] + stage.dropped, "missing": done["missing"] + stage.missing,
                     "orphans": done["orphans"] + stage.orphans, "bad_frames": done["bad"] + len(stage.bad),
                     "flagged": flagged, "pending_releases": len(releases.ready), "ended": ended_streams,
-                    "abandoned_releases": releases.abandoned,
+                    "abandoned_releases": releases.abandoned, "resized_frames": sink.resized,
                     **meter.take("render"), **lat_proc.take("lat_proc_ms"), **lat_total.take("lat_total_ms")}
 
         def publish(out: Iterable[StabilizedFrame], ready_seq: int | None) -> None:
@@ -125,7 +125,8 @@ def run(args, conf: zenoh.Config) -> int:
         def drain_frames() -> None:
             """Take what arrived (while a batch renders, frames keep coming: hold or drop them now)."""
             while (item := frames_in.pop()) is not None:
-                take_frame(item[1])
+                with rt.contained("frame message", errors):
+                    take_frame(item[1])
 
         def render_ready(force: bool) -> None:
             while releases.ready:
@@ -136,17 +137,16 @@ def run(args, conf: zenoh.Config) -> int:
                     return
                 releases.ready.pop(0)
                 nbad = len(stage.bad)
-                publish(stage.iter_batch(batch), max(seqs))
+                with rt.contained(f"release {rel} (frames {seqs[0]}..{seqs[-1]})", errors):
+                    publish(stage.iter_batch(batch), max(seqs))
                 for b in stage.bad[nbad:]:
                     log.error("frame %d cannot be rendered: %s", b["seq"], b["error"])
 
         ended = False
         while not rt.stop.is_set():
             rt.maybe_stats(stats)
-            got = False
-            while (item := frames_in.pop()) is not None:
-                got = True
-                take_frame(item[1])
+            got = bool(len(frames_in))
+            drain_frames()
             item = corr_in.pop()
             if item is not None:
                 got = True
@@ -162,8 +162,7 @@ def run(args, conf: zenoh.Config) -> int:
                     ended = True
             render_ready(force=False)
             if ended:
-                while (item := frames_in.pop()) is not None:
-                    take_frame(item[1])
+                drain_frames()
                 n = releases.flush_incomplete()
                 if n:
                     log.warning("end of stream with %d incomplete releases", n)

@@ -15,8 +15,12 @@ import numpy as np
 
 from quick_stream.cli import build_parser
 from quick_stream.cli.settings import stabilizer_params
+from quick_stream.cli.up_cmd import free_port
+from quick_stream.launcher import ServiceSpec, Supervisor
+from quick_stream.recording import read_messages
 from quick_stream.sources import open_source
 from quick_stream.stabilizer import Stabilizer
+from quick_stream.wire import WireError, decode
 
 UP = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
 
@@ -69,3 +73,56 @@ def up_and_kill(out: Path, source: str, victim: str, min_sent: int = 60, timeout
             p.kill()
     assert p.returncode == 0, text
     return killed_at, json.loads((out / "logs" / "status.json").read_text()), text
+
+
+def pipeline(tmp: Path, render: list[str] = (), record: bool = True, capture: list[str] | None = None,
+             max_restarts: int = 0) -> tuple[Supervisor, str]:
+    """Router + recorder (``tmp/rec.mcap``) + flow + motion + render (+ capture with ``capture``
+    arguments) on a free loopback port, started (router first); returns (supervisor, endpoint)."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    z = ["-e", ep, "--no-multicast-scouting"]
+    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting"])]
+    if record:
+        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(tmp / "rec.mcap")]))
+    specs += [ServiceSpec("flow", ["-m", "services.flow", *z]), ServiceSpec("motion", ["-m", "services.motion", *z]),
+              ServiceSpec("render", ["-m", "services.render", *z, *render])]
+    if capture is not None:
+        wait = ",".join(s.name for s in specs[1:])
+        specs.append(ServiceSpec("capture", ["-m", "services.capture", *z, *capture, "--wait-for", wait],
+                                 may_finish=True))
+    sup = Supervisor(specs, tmp / "logs", max_restarts=max_restarts)
+    sup.start("router")
+    time.sleep(1.0)
+    for s in specs[1:]:
+        sup.start(s.name)
+    return sup, ep
+
+
+def wait_for_log(sup: Supervisor, log: Path, text: str, timeout: float = 120) -> None:
+    """Poll the supervisor until ``text`` appears in ``log``; AssertionError with the logs' tails after ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        time.sleep(0.5)
+        sup.poll()
+        if log.exists() and text in log.read_text():
+            return
+    raise AssertionError({p.name: p.read_text()[-800:] for p in log.parent.glob("*.log")})
+
+
+def recorded(path: Path) -> tuple[dict[str, dict], dict[str, list]]:
+    """From a recording: each service's last ``stats`` values, and the decoded messages by type
+    (the ``quick/`` wire channels; a message that does not decode is listed under ``undecodable``)."""
+    stats: dict[str, dict] = {}
+    by_type: dict[str, list] = {}
+    for topic, _, data in read_messages(path):
+        if not topic.startswith("quick/"):
+            continue  # Foxglove channels
+        try:
+            m = decode(data)
+        except WireError:
+            by_type.setdefault("undecodable", []).append(data)
+            continue
+        if m.type == "stats":
+            stats[m.obj.service] = m.obj.values
+        by_type.setdefault(m.type, []).append(m)
+    return stats, by_type

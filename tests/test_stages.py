@@ -56,9 +56,17 @@ def test_a_restart_gap_restarts_the_path_and_every_frame_comes_out_in_order_flag
 
 
 def test_frames_dropped_before_flow_come_out_in_order_flagged(frames):
-    motion, render, out = run_with_gap(frames, range(12, 17), restart=False)
+    motion, render, out = run_with_gap(frames, range(12, 16), restart=False)  # 4 missing: max_missing
     assert [sf.seq for sf in out] == list(range(40))
-    assert [sf.seq for sf in out if sf.flags] == list(range(12, 17))  # the path spans them
+    assert [sf.seq for sf in out if sf.flags] == list(range(12, 16))  # the path spans them
+    assert motion.gaps == 0 and render.orphans == 4
+
+
+def test_more_frames_dropped_than_flow_bridges_restart_the_path(frames):
+    motion, render, out = run_with_gap(frames, range(12, 17), restart=False)  # 5 missing
+    assert [sf.seq for sf in out] == list(range(40))
+    assert [sf.seq for sf in out if sf.flags] == list(range(12, 18))
+    assert "5 frames missing between frame 11 and 17" in out[17].flags[0]
     assert motion.gaps == 0 and render.orphans == 5
 
 

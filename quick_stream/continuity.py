@@ -1,0 +1,108 @@
+"""Stream continuity: which frames scene flow takes, and between which of them it may bridge.
+
+A live camera or a recording delivers holes and discontinuities: frames with no valid
+depth, repeated or late sequence numbers, missing frames, timestamps that jump or go
+back (a restarted camera or capture), a resolution or calibration change. The flow
+stage asks :class:`ContinuityCheck` about every frame against the previous good one:
+
+* **refused** (``FrameRefused``, a ValueError naming the frame and the problem): the
+  frame fails :meth:`RGBDFrame.validate` (no valid depth pixel, bad intrinsics), or its
+  seq is not after the previous frame's (duplicate, out of order). The chain goes on
+  from the previous good frame.
+* **break**: flow is not computed across a seq gap of more than ``max_missing`` frames,
+  a capture-time gap over ``max_gap_s`` or not forward, or a change of image size;
+  the flow stage emits an empty flow naming the reason, so the motion is invalid, the
+  path restarts at that frame and the frames are flagged (design note section 5: the
+  fallback when no motion can be measured).
+* **notes**: repaired depth (non-finite values set invalid) and changed intrinsics
+  (flow lifts each frame with its own, so it still bridges) are reported, not fatal.
+
+Every case is counted in :attr:`ContinuityCheck.counts` (the flow service's stats).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from .frame import FrameError, RGBDFrame
+
+COUNTERS = ("invalid_frames", "repaired_frames", "duplicate_frames", "out_of_order_frames", "missing_frames",
+            "seq_gaps", "timestamp_jumps", "size_changes", "intrinsics_changes", "breaks")
+
+
+class FrameRefused(ValueError):
+    """The flow stage will not use this frame; the message names the frame and why."""
+
+
+@dataclass
+class ContinuityParams:
+    """Limits beyond which scene flow does not bridge two frames."""
+
+    max_missing: int = 4  # frames missing between two frames that flow still bridges
+    max_gap_s: float = 0.5  # capture time between two frames that flow still bridges
+
+    def validate(self) -> None:
+        if self.max_missing < 0:
+            raise ValueError(f"max_missing must be >= 0, got {self.max_missing}")
+        if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
+            raise ValueError(f"max_gap_s must be a finite number > 0, got {self.max_gap_s}")
+
+
+@dataclass
+class Verdict:
+    """What the check says of one frame: ``brk`` (why flow must not bridge to it, or "") and ``notes``."""
+
+    brk: str = ""
+    notes: list[str] = field(default_factory=list)
+
+
+class ContinuityCheck:
+    """Checks each frame against the previous good one and counts what it finds (one per stream)."""
+
+    def __init__(self, params: ContinuityParams | None = None) -> None:
+        self.params = params or ContinuityParams()
+        self.params.validate()
+        self.counts = dict.fromkeys(COUNTERS, 0)
+
+    def inspect(self, prev: RGBDFrame | None, frame: RGBDFrame) -> Verdict:
+        """Verdict on ``frame`` following ``prev`` (None: the first frame); raises :class:`FrameRefused`."""
+        c = self.counts
+        if prev is not None and frame.seq <= prev.seq:
+            kind = "duplicate_frames" if frame.seq == prev.seq else "out_of_order_frames"
+            c[kind] += 1
+            raise FrameRefused(f"{frame.label} is not after frame {prev.seq} "
+                               f"({'duplicate' if frame.seq == prev.seq else 'out of order'})")
+        n_notes = len(frame.notes)
+        try:
+            frame.validate()
+        except FrameError as e:
+            c["invalid_frames"] += 1
+            raise FrameRefused(str(e)) from None
+        v = Verdict(notes=[f"{frame.label}: {n}" for n in frame.notes[n_notes:]])
+        c["repaired_frames"] += bool(v.notes)
+        if prev is None:
+            return v
+        reasons = []
+        missing = frame.seq - prev.seq - 1
+        if missing:
+            c["seq_gaps"] += 1
+            c["missing_frames"] += missing
+            if missing > self.params.max_missing:
+                reasons.append(f"{missing} frames missing between frame {prev.seq} and {frame.seq}")
+        dt = (frame.timestamp_ns - prev.timestamp_ns) / 1e9
+        if dt <= 0 or dt > self.params.max_gap_s:
+            c["timestamp_jumps"] += 1
+            reasons.append(f"capture time jumps by {dt:+.3f} s from frame {prev.seq} to {frame.seq}")
+        if frame.color.shape != prev.color.shape:
+            c["size_changes"] += 1
+            reasons.append(f"image size changes from {prev.color.shape[1]}x{prev.color.shape[0]} to "
+                           f"{frame.color.shape[1]}x{frame.color.shape[0]} at frame {frame.seq}")
+        k0, k1 = prev.intrinsics, frame.intrinsics
+        if (k0.fx, k0.fy, k0.cx, k0.cy) != (k1.fx, k1.fy, k1.cx, k1.cy):
+            c["intrinsics_changes"] += 1
+            v.notes.append(f"{frame.label}: intrinsics change from fx={k0.fx:.2f} fy={k0.fy:.2f} cx={k0.cx:.2f} "
+                           f"cy={k0.cy:.2f} to fx={k1.fx:.2f} fy={k1.fy:.2f} cx={k1.cx:.2f} cy={k1.cy:.2f}")
+        if reasons:
+            c["breaks"] += 1
+            v.brk = "; ".join(reasons) + ": no scene flow across it, the path restarts"
+        return v
