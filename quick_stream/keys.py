@@ -45,9 +45,19 @@ _SERVICE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 def health_key(stream: str, service: str) -> str:
     """Liveliness token key of a running service, ``quick/@v1/<stream>/health/<service>``."""
+    return _service_key(stream, "health", service)
+
+
+def cursor_key(stream: str, service: str = "*") -> str:
+    """Queryable key where ``service`` answers with the newest frame seq of the stream it has seen,
+    ``quick/@v1/<stream>/cursor/<service>`` (``*``: every service's, for a query)."""
+    return f"{PREFIX}/{check_stream(stream)}/cursor/*" if service == "*" else _service_key(stream, "cursor", service)
+
+
+def _service_key(stream: str, kind: str, service: str) -> str:
     if not isinstance(service, str) or not _SERVICE.match(service):
         raise ValueError(f"service name must be 1-64 characters of [A-Za-z0-9_-], got {service!r}")
-    return f"{PREFIX}/{check_stream(stream)}/health/{service}"
+    return f"{PREFIX}/{check_stream(stream)}/{kind}/{service}"
 
 
 def parse_health(key_expr: str) -> tuple[str, str]:

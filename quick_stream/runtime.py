@@ -33,22 +33,31 @@ import zenoh
 
 from . import keys
 from .wire import Decoded, Stats, WireError, decode, encode_stats
+from .wire.codec import peek_seq
 
 log = logging.getLogger(__name__)
 
 
 class Inbox:
-    """Bounded drop-oldest queue of (key, payload bytes) fed by a zenoh callback subscriber."""
+    """Bounded drop-oldest queue of (key, payload bytes) fed by a zenoh callback subscriber.
 
-    def __init__(self, capacity: int, cond: threading.Condition) -> None:
+    With ``newest_of`` (a message type, e.g. ``frame``) it also keeps ``newest``: the highest
+    seq of such messages that arrived since the last ``end`` (read from the envelope on
+    arrival, so a busy service still answers cursor queries exactly)."""
+
+    def __init__(self, capacity: int, cond: threading.Condition, newest_of: str | None = None) -> None:
         self.capacity = capacity
         self._q: deque[tuple[str, bytes]] = deque()
         self._cond = cond
         self.received = 0
         self.dropped = 0
+        self.newest_of = newest_of
+        self.newest: int | None = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         item = (str(sample.key_expr), sample.payload.to_bytes())
+        if self.newest_of:
+            self._track(item[1])
         with self._cond:
             if len(self._q) >= self.capacity:
                 self._q.popleft()
@@ -56,6 +65,13 @@ class Inbox:
             self._q.append(item)
             self.received += 1
             self._cond.notify_all()
+
+    def _track(self, data: bytes) -> None:
+        seq = peek_seq(data, self.newest_of)
+        if seq is not None:
+            self.newest = seq if self.newest is None else max(self.newest, seq)
+        elif peek_seq(data, "end") is not None:
+            self.newest = None  # the stream ended; a new one may start from 0
 
     def pop(self) -> tuple[str, bytes] | None:
         with self._cond:
@@ -156,9 +172,10 @@ class ServiceRuntime:
         self._pubs.append(pub)
         return pub
 
-    def inbox(self, key_expr: str, capacity: int) -> Inbox:
-        """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages."""
-        box = Inbox(capacity, self._cond)
+    def inbox(self, key_expr: str, capacity: int, newest_of: str | None = None) -> Inbox:
+        """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages (``newest_of``: see
+        :class:`Inbox`)."""
+        box = Inbox(capacity, self._cond, newest_of)
         self._subs.append(self.session.declare_subscriber(key_expr, box._on_sample))
         self._inboxes.append(box)
         return box
@@ -183,6 +200,33 @@ class ServiceRuntime:
         whoever waits for it (capture's ``--wait-for``) cannot publish before they exist."""
         if self._token is None:
             self._token = self.session.liveliness().declare_token(keys.health_key(self.stream, self.service))
+
+    # --- stream cursor ---------------------------------------------------------------------------------
+
+    def serve_cursor(self, newest: Callable[[], int | None]) -> None:
+        """Answer cursor queries (``quick/@v1/<stream>/cursor/<service>``) with ``newest()``: the newest
+        frame seq of the current stream this service has seen (None: no stream under way). A
+        restarted capture asks, so its numbering continues the stream instead of starting over."""
+        def on_query(query: zenoh.Query) -> None:
+            seq = newest()
+            query.reply(key, encode_stats(Stats(self.service, {"frame_seq": seq}), self.stream, 0))
+
+        key = keys.cursor_key(self.stream, self.service)
+        self._subs.append(self.session.declare_queryable(key, on_query))
+
+    def stream_cursor(self, timeout_s: float = 0.5) -> int | None:
+        """The newest frame seq of this stream any running service has seen, or None (a new stream)."""
+        best = None
+        replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
+                                   consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+        for reply in replies:
+            try:
+                seq = decode(reply.ok.payload.to_bytes()).obj.values.get("frame_seq")
+            except (WireError, AttributeError, zenoh.ZError):
+                continue
+            if isinstance(seq, int) and not isinstance(seq, bool) and (best is None or seq > best):
+                best = seq
+        return best
 
     # --- liveliness --------------------------------------------------------------------------------
 

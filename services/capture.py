@@ -134,6 +134,10 @@ def run(args, conf: zenoh.Config) -> int:
                 return 3
         credit = OutputCredit(rt, args.stream, args.window if args.pace == "fast" else 0)
         st = CaptureStats(credit)
+        st.resume_after = rt.stream_cursor()
+        if st.resume_after is not None:
+            log.warning("stream %s is under way (frame %d seen downstream; a restarted capture): numbering "
+                        "continues after it", args.stream, st.resume_after)
         replay = getattr(source, "iter_with_messages", None)
         items = replay() if replay is not None and not args.reencode else ((f, None) for f in source)
         try:
@@ -157,6 +161,14 @@ class CaptureStats:
         self.bad = self.sent = 0
         self.last_seq = -1
         self.behind_ms = 0.0
+        self.resume_after: int | None = None  # the stream's newest frame seq when this capture started
+        self.offset: int | None = None  # added to the source's seq (0, or the continuation of the stream)
+
+    def seq(self, source_seq: int) -> int:
+        """The stream seq of a source frame: the source's own, or continuing after ``resume_after``."""
+        if self.offset is None:
+            self.offset = 0 if self.resume_after is None else max(0, self.resume_after + 1 - source_seq)
+        return source_seq + self.offset
 
     def values(self) -> dict:
         return {"state": "running", "sent": self.sent, "bad_frames": self.bad, "behind_ms": round(self.behind_ms, 1),
@@ -183,21 +195,23 @@ def send_all(args, rt: ServiceRuntime, pub: zenoh.Publisher, items, credit: Outp
             if delay > 0:
                 rt.stop.wait(delay)
             st.behind_ms = max(0.0, -delay * 1e3)
-        credit.wait_for(fr.seq)
+        credit.wait_for(st.seq(fr.seq))
         t0 = time.perf_counter()
+        seq = st.seq(fr.seq)
         try:
             if recorded is not None:  # a recording: its exact bytes, re-stamped
-                data = restamp_frame(recorded, args.stream, time.time_ns())
+                data = restamp_frame(recorded, args.stream, time.time_ns(), seq)
             else:
-                data = encode_frame(fr, args.stream, color=args.color, quality=args.quality,
-                                    depth=args.depth, depth_scale=depth_scale, pub_ns=time.time_ns())
+                data = encode_frame(fr if seq == fr.seq else fr.with_(seq=seq), args.stream, color=args.color,
+                                    quality=args.quality, depth=args.depth, depth_scale=depth_scale,
+                                    pub_ns=time.time_ns())
         except WireError as e:
             st.bad += 1
             log.error("%s: cannot encode: %s", fr.label, e)
             continue
         pub.put(data)
         st.sent += 1
-        st.last_seq = fr.seq
+        st.last_seq = seq
         st.meter.add((time.perf_counter() - t0) * 1e3)
         rt.maybe_stats(st.values)
     return "stopped" if rt.stop.is_set() else "source exhausted"

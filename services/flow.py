@@ -36,8 +36,9 @@ def run(args, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     stage = FlowStage(params.flow, params.continuity)
     with ServiceRuntime("flow", args.stream, conf) as rt:
-        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue)
+        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, newest_of="frame")
         pub = rt.publisher("flow", lossless=True)
+        rt.serve_cursor(lambda: inbox.newest)
         rt.ready()
         meter = RateMeter()
         errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0, "internal_errors": 0}

@@ -53,13 +53,14 @@ def run(args, conf: zenoh.Config) -> int:
     stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)
     with ServiceRuntime("render", args.stream, conf) as rt, \
             BackgroundSink(VideoSink(args.output, args.png, args.fps)) as sink:
-        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256)
+        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, newest_of="frame")
         corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000)
         pub = rt.publisher("stabilized")
-        rt.ready()
         releases = ReleaseGroups()
         pub_ns: dict[int, int] = {}
         newest = -1
+        rt.serve_cursor(lambda: frames_in.newest)
+        rt.ready()
         meter = RateMeter()
         errors = {"decode_errors": 0, "refused_frames": 0, "internal_errors": 0}
         flagged = 0

@@ -1,20 +1,24 @@
 """``quick-stream`` command line: one sub-command per job.
 
 Sub-commands live in their own modules and register an ``add_parser`` and a
-``run(args) -> int`` pair here.
+``run(args) -> int`` pair here. They are imported when the parser is built, not with
+this package: the services import only :mod:`.settings`, and a restarted service is up
+sooner without the evaluation and benchmark modules (and SciPy's) behind the commands.
 """
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
+from types import ModuleType
 
-from . import bench_cmd, evaluate_cmd, motion_cmd, recover_cmd, rerun_cmd, router_cmd, stabilize_cmd, up_cmd
+COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "router", "up")
 
-COMMANDS = {
-    "stabilize": stabilize_cmd, "evaluate": evaluate_cmd, "motion": motion_cmd, "bench": bench_cmd,
-    "recover": recover_cmd, "rerun": rerun_cmd, "router": router_cmd, "up": up_cmd,
-}
+
+def command(name: str) -> ModuleType:
+    """The module of sub-command ``name`` (``<name>_cmd``)."""
+    return importlib.import_module(f"{__name__}.{name}_cmd")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -24,8 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, mod in COMMANDS.items():
-        mod.add_parser(sub)
+    for name in COMMANDS:
+        command(name).add_parser(sub)
     return parser
 
 
@@ -37,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    return COMMANDS[args.command].run(args)
+    return command(args.command).run(args)
 
 
 if __name__ == "__main__":  # pragma: no cover

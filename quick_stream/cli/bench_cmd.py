@@ -33,6 +33,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     fz = b.add_parser("fuzz", help="the wire decoder against mutated messages (crashes, hangs)")
     fz.add_argument("--n", type=int, default=100_000, help="inputs (default 100000)")
     fz.add_argument("--seed", type=int, default=0)
+    fl = b.add_parser("faults", help="SIGKILL services of a running `up` mid-stream: restart, resume, losses")
+    fl.add_argument("--cases", default="all", help="comma-separated: a service (flow), repeated (render*3), "
+                    "together (router+flow); default all (every service, flow*3, render*3, router+flow)")
+    fl.add_argument("--frames", type=int, default=240, help="synthetic frames per case (default 240)")
+    fl.add_argument("--fps", type=float, default=30.0)
+    fl.add_argument("--size", default="320x240", help="frame size WxH (default 320x240)")
+    fl.add_argument("--kill-after", type=int, default=60, help="frames sent before the first kill (default 60)")
+    fl.add_argument("--out", default="out/bench-faults", help="folder for each case's recordings and logs")
+    fl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
     pl = b.add_parser("pipeline", help="the services under load: latency, throughput, drops, CPU and memory")
     pl.add_argument("--fps", default="30", help="comma-separated capture rates; 'fast' = as fast as possible")
     pl.add_argument("--seconds", type=float, default=120.0, help="measured seconds per rate (default 120)")
@@ -50,6 +59,12 @@ def run(args: argparse.Namespace) -> int:
         rates = [None if x.strip() == "fast" else float(x) for x in args.fps.split(",")]
         return pipeline.main(rates, args.seconds, args.out, args.json, record=not args.no_record,
                              replay=args.replay)
+    if args.bench == "faults":
+        from ..bench import faults
+
+        cases = list(faults.CASES) if args.cases == "all" else args.cases.split(",")
+        return faults.main(cases, args.out, args.json, frames=args.frames, fps=args.fps, size=args.size,
+                           kill_after=args.kill_after)
     if args.bench == "fuzz":
         from ..bench import fuzz
 

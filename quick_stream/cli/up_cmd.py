@@ -207,7 +207,8 @@ def run(args: argparse.Namespace) -> int:
         session.close()
     print(f"stopped: {reason}")
     print("\n".join(final))
-    bad = {n: c for n, c in codes.items() if c not in (0, None)}
+    # -SIGTERM: a service stopped before it had installed its handler (while starting: nothing to clean up)
+    bad = {n: c for n, c in codes.items() if c not in (0, None, -signal.SIGTERM)}
     if bad:
         print("exit codes: " + ", ".join(f"{n} {c}" for n, c in bad.items()), file=sys.stderr)
     for e in sup.events:

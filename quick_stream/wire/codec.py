@@ -111,6 +111,28 @@ def unpack(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Reader:
     return r
 
 
+_ENVELOPE_BYTES = 256
+
+
+def peek_seq(data: bytes, type: str) -> int | None:
+    """The envelope ``seq`` of a ``type`` message without unpacking the rest (the envelope is packed
+    first, :func:`pack`); None if ``data`` is not such a message. For counting on arrival only:
+    the message itself is still checked by :func:`decode` when it is used."""
+    try:
+        head = bytes(data[:_ENVELOPE_BYTES])  # v, type, stream (<= 64 chars) and seq fit in it
+        u = msgpack.Unpacker(raw=False, max_buffer_size=_ENVELOPE_BYTES, max_bin_len=0, max_str_len=_ENVELOPE_BYTES,
+                             max_array_len=0, max_map_len=0)
+        u.feed(head)
+        env = {}
+        for _ in range(min(u.read_map_header(), 4)):
+            k = u.unpack()
+            env[k] = u.unpack()
+    except Exception:  # noqa: BLE001 - anything malformed: not a message we can count
+        return None
+    seq = env.get("seq")
+    return seq if env.get("type") == type and _is_int(seq) and seq >= 0 else None
+
+
 def _is_int(x: Any) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
 

@@ -138,15 +138,15 @@ def _capture(meta: dict) -> dict:
     return out
 
 
-def restamp_frame(data: bytes, stream: str, pub_ns: int) -> bytes:
-    """A recorded ``frame`` message re-addressed to ``stream`` with a new ``pub_ns``; everything
-    else (the compressed images included) byte for byte as recorded (exact replay)."""
+def restamp_frame(data: bytes, stream: str, pub_ns: int, seq: int | None = None) -> bytes:
+    """A recorded ``frame`` message re-addressed to ``stream`` with a new ``pub_ns`` (and ``seq``, if
+    given); everything else (the compressed images included) byte for byte as recorded (exact replay)."""
     r = unpack(data)
     if r.type != "frame":
         raise r.error("type", f"expected a 'frame' message, got {r.type!r}")
     fields = {k: v for k, v in r.d.items() if k not in ("v", "type", "stream", "seq")}
     fields["pub_ns"] = int(pub_ns)
-    return pack(fields, "frame", stream, r.seq)
+    return pack(fields, "frame", stream, r.seq if seq is None else seq)
 
 
 def _decode_frame(r: Reader) -> Decoded:

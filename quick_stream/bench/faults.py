@@ -1,0 +1,269 @@
+"""``quick-stream bench faults``: SIGKILL processes of a running ``quick-stream up`` and measure recovery.
+
+Each case runs ``up`` on a synthetic stream and watches it from a monitor session of its
+own (a peer, so it keeps seeing the services when the router dies): every message of the
+stream with its arrival time (the ground truth of what was published), and the services'
+liveliness tokens (when a process went away and when its successor was ready). Once
+``kill_after`` frames went out, the victims get SIGKILL (all at once: ``router+flow``), and
+again ``repeat - 1`` times, each ``interval_s`` after the previous successor was ready.
+
+Per kill it reports the restart (kill -> the successor's liveliness token) and the resume
+(kill -> the first message the successor published: frames for capture, flows, motions,
+stabilized frames for render, the first message in the recorder's new file; for the router,
+which publishes nothing, the longest pause of the stabilized output after the kill). Per case:
+frames sent, stabilized, flagged and lost (sent, never stabilized), render's counters, every
+process's restarts and exit, and the recordings: readable as written or after
+``quick-stream recover``, and every message the monitor saw that no recording holds: all of
+them, and those seen more than ``accept_s`` (1 s) before a kill of the recorder.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from .. import keys
+from ..recording import RecordingError, read_messages, recover
+from ..wire import WireError
+from ..wire.codec import unpack
+
+OUTPUT = {"capture": "frame", "flow": "flow", "motion": "motion", "render": "stabilized"}
+CASES = ("flow", "motion", "render", "capture", "recorder", "router", "flow*3", "render*3", "router+flow")
+
+
+@dataclass
+class Seen:
+    """One message the monitor received."""
+
+    t: float  # time.time() on arrival
+    stage: str
+    type: str
+    seq: int
+    digest: bytes
+    flagged: bool = False
+
+
+@dataclass
+class StreamMonitor:
+    """Every message of one stream and the liveliness events of its services, with arrival times."""
+
+    stream: str
+    seen: list[Seen] = field(default_factory=list)
+    tokens: list[tuple[float, str, bool]] = field(default_factory=list)  # (time, service, up)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_message(self, sample: zenoh.Sample) -> None:
+        now = time.time()
+        data = sample.payload.to_bytes()
+        stage = str(sample.key_expr).rsplit("/", 1)[-1]
+        try:
+            r = unpack(data)
+            mtype, seq, flagged = r.type, r.seq, bool(r.d.get("flags"))
+        except WireError:
+            mtype, seq, flagged = "undecodable", -1, False
+        with self._lock:
+            self.seen.append(Seen(now, stage, mtype, seq, hashlib.blake2b(data, digest_size=16).digest(), flagged))
+
+    def on_token(self, sample: zenoh.Sample) -> None:
+        try:
+            _, service = keys.parse_health(str(sample.key_expr))
+        except ValueError:
+            return
+        with self._lock:
+            self.tokens.append((time.time(), service, sample.kind == zenoh.SampleKind.PUT))
+
+    def ready_after(self, service: str, t: float) -> float | None:
+        """When ``service``'s token next came up after ``t``."""
+        with self._lock:
+            return next((tt for tt, s, up in self.tokens if s == service and up and tt > t), None)
+
+    def first(self, stage: str, after: float) -> float | None:
+        with self._lock:
+            return next((m.t for m in self.seen if m.stage == stage and m.type == stage and m.t > after), None)
+
+
+def _peer(endpoint: str) -> zenoh.Config:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def _status(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _wait_status(path: Path, ready, timeout: float) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        st = _status(path)
+        if st and ready(st):
+            return st
+        time.sleep(0.05)
+    raise TimeoutError(f"{path}: condition not reached in {timeout:g} s")
+
+
+def parse_case(case: str) -> tuple[list[str], int]:
+    """``flow`` -> (["flow"], 1); ``render*3`` -> (["render"], 3); ``router+flow`` -> (["router", "flow"], 1)."""
+    names, _, rep = case.partition("*")
+    return names.split("+"), int(rep or 1)
+
+
+def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: str = "320x240",
+             kill_after: int = 60, interval_s: float = 2.0, accept_s: float = 1.0, timeout_s: float = 180) -> dict:
+    """Run one fault case (see the module doc); returns its report."""
+    from ..cli.up_cmd import free_port
+
+    victims, repeat = parse_case(case)
+    frames += int((repeat - 1) * (interval_s + 1.0) * fps)  # room for every kill before the stream ends
+    w, h = size.split("x")
+    port = free_port()
+    if out.exists():
+        shutil.rmtree(out)  # the case's own folder: recordings of an earlier run would be counted
+    out.mkdir(parents=True)
+    status = out / "logs" / "status.json"
+    cmd = [sys.executable, "-m", "quick_stream", "up", "--quiet", "--out", str(out), "--port", str(port),
+           "--fps", str(fps), "--source", f"synthetic:frames={frames},width={w},height={h}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    mon = StreamMonitor("cam0")
+    session = None
+    kills: list[float] = []
+    try:
+        _wait_status(status, lambda s: all(v["running"] for v in s["services"].values()), 60)
+        session = zenoh.open(_peer(f"tcp/127.0.0.1:{port}"))
+        subs = [session.declare_subscriber(keys.stream_keys("cam0"), mon.on_message),
+                session.liveliness().declare_subscriber(f"{keys.PREFIX}/cam0/health/*", mon.on_token, history=True)]
+        for i in range(repeat):
+            if i == 0:
+                st = _wait_status(status, lambda s: s["services"]["capture"]["stats"].get("sent", 0) >= kill_after, 60)
+            else:  # the next kill once every successor has been up for interval_s
+                for v in victims:
+                    if v != "router":
+                        _wait_until(lambda: mon.ready_after(v, kills[-1]) is not None, 20)
+                time.sleep(interval_s)
+                st = _status(status)
+            pids = [st["services"][v]["pid"] for v in victims]
+            kills.append(time.time())
+            for pid in pids:
+                os.kill(pid, signal.SIGKILL)
+            if i + 1 < repeat:
+                _wait_status(status, lambda s: all(s["services"][v]["restarts"] >= i + 1 for v in victims), 20)
+        text, _ = proc.communicate(timeout=timeout_s)
+        time.sleep(0.2)
+        for s in subs:
+            s.undeclare()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        if session is not None:
+            session.close()
+    (out / "up.log").write_text(text)
+    return _report(out, case, victims, kills, mon, _status(status) or {}, proc.returncode, text, accept_s)
+
+
+def _wait_until(cond, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise TimeoutError("condition not reached")
+        time.sleep(0.05)
+
+
+def _recordings(out: Path) -> tuple[set[bytes], list[dict]]:
+    """Digests of every message in the run's recordings (repairing footer-less ones) and per-file notes."""
+    digests: set[bytes] = set()
+    files = []
+    def order(p: Path) -> int:  # recording.mcap, recording-1.mcap, recording-2.mcap, ...
+        return int(p.stem.rpartition("-")[2]) if "-" in p.stem else 0
+
+    for path in sorted((p for p in out.glob("recording*.mcap") if not p.stem.endswith(".recovered")), key=order):
+        note = {"file": path.name, "repaired": False}
+        try:
+            msgs = list(read_messages(path))
+        except RecordingError:
+            fixed = path.with_name(path.stem + ".recovered.mcap")
+            rep = recover(path, fixed)
+            note.update(repaired=True, recovered_messages=rep.messages)
+            msgs = list(read_messages(fixed))
+        note["messages"] = len(msgs)
+        note["first_log_time"] = min((t for _, t, _ in msgs), default=0) / 1e9
+        digests |= {hashlib.blake2b(d, digest_size=16).digest() for topic, _, d in msgs if topic.startswith("quick/")}
+        files.append(note)
+    return digests, files
+
+
+def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: StreamMonitor, st: dict,
+            code: int | None, text: str, accept_s: float) -> dict:
+    seen = mon.seen
+    sent = sorted({m.seq for m in seen if m.type == "frame"})
+    stab = [m for m in seen if m.type == "stabilized"]
+    out_seqs = {m.seq for m in stab}
+    per_kill = []
+    for k in kills:
+        row = {}
+        for v in victims:
+            ready = mon.ready_after(v, k)
+            row[f"{v}_restart_s"] = None if ready is None else round(ready - k, 3)
+            if v in OUTPUT and ready is not None:
+                first = mon.first(OUTPUT[v], ready)
+                row[f"{v}_resume_s"] = None if first is None else round(first - k, 3)
+        t_out = [m.t for m in stab if m.t > k - 0.5]
+        row["stabilized_pause_s"] = round(max(np.diff(t_out), default=0.0), 3) if len(t_out) > 1 else None
+        per_kill.append(row)
+    digests, files = _recordings(out)
+    if "recorder" in victims:  # the restarted recorder's first message: when recording resumed
+        for k, row, note in zip(kills, per_kill, files[1:]):
+            row["recorder_resume_s"] = round(note["first_log_time"] - k, 3)
+    missing = [m for m in seen if m.digest not in digests and m.type != "stats"]
+    rec_kills = [k for k in kills if "recorder" in victims]
+    early = [m for m in missing if any(m.t < k - accept_s for k in rec_kills)]
+    services = st.get("services", {})
+    render = services.get("render", {}).get("stats", {})
+    return {"case": case, "kills": len(kills), "per_kill": per_kill,
+            "restarts": {n: s["restarts"] for n, s in services.items()},
+            "up_exit": code, "clean_stop": code == 0 and "exit codes" not in text,
+            "frames_sent": len(sent), "stabilized": len(stab), "stabilized_unique": len(out_seqs),
+            "flagged": sum(m.flagged for m in stab), "lost": len(set(sent) - out_seqs),
+            "render": {k: render.get(k) for k in ("missing", "dropped", "orphans", "refused_frames")},
+            "recordings": files, "not_recorded": len(missing),
+            "not_recorded_by_stage": {s: sum(m.stage == s for m in missing) for s in sorted({m.stage for m in missing})},
+            "lost_accepted_before_kill": len(early)}
+
+
+def format_report(r: dict) -> str:
+    kills = "; ".join(", ".join(f"{k} {v}" for k, v in row.items() if v is not None) for row in r["per_kill"])
+    rec = ", ".join(f"{f['file']} {f['messages']} msgs{' (recovered)' if f['repaired'] else ''}" for f in r["recordings"])
+    return (f"{r['case']:<12} kills {r['kills']}  [{kills}]\n"
+            f"{'':<12} frames sent {r['frames_sent']}, stabilized {r['stabilized_unique']} (flagged {r['flagged']}), "
+            f"lost {r['lost']}; render {r['render']}; restarts "
+            f"{ {k: v for k, v in r['restarts'].items() if v} }; clean stop {r['clean_stop']}\n"
+            f"{'':<12} recordings: {rec}; messages not recorded {r['not_recorded']} {r['not_recorded_by_stage']}, "
+            f"of them seen > 1 s before a recorder kill: {r['lost_accepted_before_kill']}")
+
+
+def main(cases: list[str], out: str, json_path: str | None, **kw) -> int:
+    reports = []
+    for case in cases:
+        r = run_case(Path(out) / case.replace("*", "x").replace("+", "-"), case, **kw)
+        reports.append(r)
+        print(format_report(r), flush=True)
+    if json_path:
+        Path(json_path).write_text(json.dumps(reports, indent=1))
+    return 0
