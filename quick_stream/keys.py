@@ -43,21 +43,30 @@ def stream_keys(stream: str) -> str:
 _SERVICE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
+def check_service(service: str) -> str:
+    """The service name, or ValueError naming what is wrong with it (same rule as stream ids)."""
+    if not isinstance(service, str) or not _SERVICE.match(service):
+        raise ValueError(f"service name must be 1-64 characters of [A-Za-z0-9_-], got {service!r}")
+    return service
+
+
 def health_key(stream: str, service: str) -> str:
     """Liveliness token key of a running service, ``quick/@v1/<stream>/health/<service>``."""
     return _service_key(stream, "health", service)
 
 
 def cursor_key(stream: str, service: str = "*") -> str:
-    """Queryable key where ``service`` answers with the newest frame seq of the stream it has seen,
-    ``quick/@v1/<stream>/cursor/<service>`` (``*``: every service's, for a query)."""
-    return f"{PREFIX}/{check_stream(stream)}/cursor/*" if service == "*" else _service_key(stream, "cursor", service)
+    """Queryable key where ``service`` answers with the newest seq per stage of the stream it has seen,
+    ``quick/@v1/<stream>/cursor/<service>`` (``*`` service: every service's, for a query; ``*``
+    stream: a queryable for every stream)."""
+    s = "*" if stream == "*" else check_stream(stream)
+    if service == "*":
+        return f"{PREFIX}/{s}/cursor/*"
+    return f"{PREFIX}/*/cursor/{check_service(service)}" if s == "*" else _service_key(stream, "cursor", service)
 
 
 def _service_key(stream: str, kind: str, service: str) -> str:
-    if not isinstance(service, str) or not _SERVICE.match(service):
-        raise ValueError(f"service name must be 1-64 characters of [A-Za-z0-9_-], got {service!r}")
-    return f"{PREFIX}/{check_stream(stream)}/{kind}/{service}"
+    return f"{PREFIX}/{check_stream(stream)}/{kind}/{check_service(service)}"
 
 
 def parse_health(key_expr: str) -> tuple[str, str]:

@@ -368,7 +368,7 @@ def rerun_stage(path: str | os.PathLike, stage: str, stream: str | None = None,
         raise RerunError(f"stage must be one of {', '.join(STAGES)}, got {stage!r}")
     path = Path(path)
     if not path.is_file():
-        raise RerunError(f"{path}: no such file")
+        raise RerunError(f"{path}: {'not a regular file' if path.exists() else 'no such file'}")
     params = params or StabilizerParams()
     names = INPUTS[stage] + tuple(n for n in OUTPUTS[stage] if n not in INPUTS[stage])
     try:

@@ -30,10 +30,11 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 import zenoh
+import zenoh.ext
 
 from . import keys
 from .wire import Decoded, Stats, WireError, decode, encode_stats
-from .wire.codec import peek_seq
+from .wire.codec import peek
 
 log = logging.getLogger(__name__)
 
@@ -41,23 +42,21 @@ log = logging.getLogger(__name__)
 class Inbox:
     """Bounded drop-oldest queue of (key, payload bytes) fed by a zenoh callback subscriber.
 
-    With ``newest_of`` (a message type, e.g. ``frame``) it also keeps ``newest``: the highest
-    seq of such messages that arrived since the last ``end`` (read from the envelope on
-    arrival, so a busy service still answers cursor queries exactly)."""
+    It also keeps ``newest``: per (stream, stage) of the key the highest seq of the data
+    messages that arrived since that stage's last ``end`` (read from the envelope on arrival,
+    so a busy service still answers cursor queries exactly)."""
 
-    def __init__(self, capacity: int, cond: threading.Condition, newest_of: str | None = None) -> None:
+    def __init__(self, capacity: int, cond: threading.Condition) -> None:
         self.capacity = capacity
         self._q: deque[tuple[str, bytes]] = deque()
         self._cond = cond
         self.received = 0
         self.dropped = 0
-        self.newest_of = newest_of
-        self.newest: int | None = None
+        self.newest: dict[tuple[str, str], int] = {}
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         item = (str(sample.key_expr), sample.payload.to_bytes())
-        if self.newest_of:
-            self._track(item[1])
+        self._track(*item)
         with self._cond:
             if len(self._q) >= self.capacity:
                 self._q.popleft()
@@ -66,12 +65,15 @@ class Inbox:
             self.received += 1
             self._cond.notify_all()
 
-    def _track(self, data: bytes) -> None:
-        seq = peek_seq(data, self.newest_of)
-        if seq is not None:
-            self.newest = seq if self.newest is None else max(self.newest, seq)
-        elif peek_seq(data, "end") is not None:
-            self.newest = None  # the stream ended; a new one may start from 0
+    def _track(self, key: str, data: bytes) -> None:
+        env = peek(data)
+        if env is None or env[0] in ("stats", "health"):
+            return
+        where = tuple(key.rsplit("/", 2)[-2:])  # (stream, stage)
+        if env[0] == "end":
+            self.newest.pop(where, None)  # the stream ended; a new one may start from 0
+        elif env[1] > self.newest.get(where, -1):
+            self.newest[where] = env[1]
 
     def pop(self) -> tuple[str, bytes] | None:
         with self._cond:
@@ -161,22 +163,32 @@ class ServiceRuntime:
 
     # --- endpoints -------------------------------------------------------------------------------
 
-    def publisher(self, stage: str, lossless: bool = False, stream: str | None = None) -> zenoh.Publisher:
+    def publisher(self, stage: str, lossless: bool = False, stream: str | None = None,
+                  cache: int = 0) -> zenoh.Publisher | zenoh.ext.AdvancedPublisher:
         """Publisher on ``quick/@v1/<stream>/<stage>``; ``lossless`` blocks instead of dropping
-        when the transport is congested (corrections, end markers)."""
-        pub = self.session.declare_publisher(
-            keys.key(stream or self.stream, stage),
-            congestion_control=zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP,
-            reliability=zenoh.Reliability.RELIABLE,
-        )
+        when the transport is congested (corrections, end markers). ``cache`` > 0 keeps the last
+        ``cache`` messages for a restarted consumer's history query (:meth:`inbox`)."""
+        kw = dict(congestion_control=zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP,
+                  reliability=zenoh.Reliability.RELIABLE)
+        key = keys.key(stream or self.stream, stage)
+        if cache > 0:
+            pub = zenoh.ext.declare_advanced_publisher(self.session, key, cache=zenoh.ext.CacheConfig(cache),
+                                                       publisher_detection=True, **kw)
+        else:
+            pub = self.session.declare_publisher(key, **kw)
         self._pubs.append(pub)
         return pub
 
-    def inbox(self, key_expr: str, capacity: int, newest_of: str | None = None) -> Inbox:
-        """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages (``newest_of``: see
-        :class:`Inbox`)."""
-        box = Inbox(capacity, self._cond, newest_of)
-        self._subs.append(self.session.declare_subscriber(key_expr, box._on_sample))
+    def inbox(self, key_expr: str, capacity: int, history: bool = False) -> Inbox:
+        """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages. ``history``: first
+        receive what the publishers' caches hold (a service restarted mid-stream takes over)."""
+        box = Inbox(capacity, self._cond)
+        if history:
+            sub = zenoh.ext.declare_advanced_subscriber(self.session, key_expr, box._on_sample,
+                                                        history=zenoh.ext.HistoryConfig())
+        else:
+            sub = self.session.declare_subscriber(key_expr, box._on_sample)
+        self._subs.append(sub)
         self._inboxes.append(box)
         return box
 
@@ -203,30 +215,70 @@ class ServiceRuntime:
 
     # --- stream cursor ---------------------------------------------------------------------------------
 
-    def serve_cursor(self, newest: Callable[[], int | None]) -> None:
-        """Answer cursor queries (``quick/@v1/<stream>/cursor/<service>``) with ``newest()``: the newest
-        frame seq of the current stream this service has seen (None: no stream under way). A
-        restarted capture asks, so its numbering continues the stream instead of starting over."""
+    def serve_cursor(self, all_streams: bool = False) -> None:
+        """Answer cursor queries (``quick/@v1/<stream>/cursor/<service>``) with, per stage this service
+        receives, the newest seq of the stream under way (its inboxes' ``newest``). A service
+        restarted mid-stream asks for its own output stage, so it takes over where its
+        predecessor stopped (:meth:`stream_cursor`). ``all_streams``: for every stream it receives
+        (a recorder of all streams), each answered about its own."""
         def on_query(query: zenoh.Query) -> None:
-            seq = newest()
-            query.reply(key, encode_stats(Stats(self.service, {"frame_seq": seq}), self.stream, 0))
+            stream = str(query.key_expr).split("/")[2]
+            newest: dict[str, int] = {}
+            for box in self._inboxes:
+                for (s, stage), seq in list(box.newest.items()):
+                    if s == stream:
+                        newest[stage] = max(seq, newest.get(stage, -1))
+            query.reply(keys.cursor_key(stream, self.service), encode_stats(Stats(self.service, newest), stream, 0))
 
-        key = keys.cursor_key(self.stream, self.service)
+        key = keys.cursor_key("*" if all_streams else self.stream, self.service)
         self._subs.append(self.session.declare_queryable(key, on_query))
 
-    def stream_cursor(self, timeout_s: float = 0.5) -> int | None:
-        """The newest frame seq of this stream any running service has seen, or None (a new stream)."""
-        best = None
+    def stream_cursor(self, stage: str, timeout_s: float = 3.0) -> int | None:
+        """The newest seq of ``stage`` in this stream that any running service has received, or None
+        (nothing yet: a new stream, or nobody who receives that stage is up).
+
+        A new session sees the others' liveliness tokens before their queryables, and a busy
+        service may answer late, so it asks again (up to ``timeout_s``) while other services of the
+        stream are alive and either none has answered yet or the stream is under way (some stage
+        has a seq) but nobody has answered for ``stage``. With nobody else alive, or every answer
+        saying no stream is under way, it answers None at once."""
+        deadline = time.monotonic() + timeout_s
+        self._wait_connected(min(timeout_s, 1.0))
+        while True:
+            answered, under_way, best = self._ask_cursor(stage)
+            if best is not None or (answered and not under_way):
+                return best
+            if time.monotonic() > deadline or self.stop.is_set() or not (self.alive() - {self.service}):
+                if under_way:
+                    log.warning("%s/%s: the stream is under way but no service reports %s; starting afresh",
+                                self.stream, self.service, stage)
+                return None
+            self.stop.wait(0.1)
+
+    def _wait_connected(self, timeout_s: float) -> None:
+        """Until the session has a router or a peer (``zenoh.open`` returns before it connects)."""
+        deadline = time.monotonic() + timeout_s
+        info = self.session.info
+        while not (list(info.routers_zid()) or list(info.peers_zid())) and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    def _ask_cursor(self, stage: str) -> tuple[bool, bool, int | None]:
+        """(any service answered, any answer has a seq (a stream is under way), the newest ``stage`` seq)."""
+        answered, under_way, best = False, False, None
         replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
-                                   consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
+                                   consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
         for reply in replies:
             try:
-                seq = decode(reply.ok.payload.to_bytes()).obj.values.get("frame_seq")
+                values = decode(reply.ok.payload.to_bytes()).obj.values
             except (WireError, AttributeError, zenoh.ZError):
                 continue
+            answered = True
+            log.debug("cursor %s: %s answered %s", stage, str(reply.ok.key_expr).rsplit("/", 1)[-1], values)
+            under_way = under_way or bool(values)
+            seq = values.get(stage)
             if isinstance(seq, int) and not isinstance(seq, bool) and (best is None or seq > best):
                 best = seq
-        return best
+        return answered, under_way, best
 
     # --- liveliness --------------------------------------------------------------------------------
 
@@ -339,11 +391,13 @@ class _Contained:
 
 def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
     """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
+    from .cli.argtypes import stream_id
     from .transport import add_zenoh_args
 
     p = argparse.ArgumentParser(prog=f"quick-stream-{service}", description=description,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--stream", default="cam0", help="stream (camera) id; one per camera (default cam0)")
+    p.add_argument("--stream", type=stream_id, default="cam0",
+                   help="stream (camera) id, 1-64 of [A-Za-z0-9_-]; one per camera (default cam0)")
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     add_zenoh_args(p)
     return p
@@ -365,11 +419,14 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
                  argv: list[str] | None, check: Callable[[argparse.Namespace], Any] | None = None,
                  early: Callable[[argparse.Namespace], int | None] | None = None) -> int:
     """A service's ``main``: parse, log, one OpenCV thread, build the zenoh config (and ``check`` the
-    service's own settings), then ``run(args, conf)``; a bad flag or config exits 2 with its message.
+    service's own settings and that its output paths can be written), then ``run(args, conf)``; a bad
+    flag or config exits 2 with its message, before any session is opened. A session zenoh refuses
+    to open (e.g. a listen endpoint already in use) is logged with zenoh's reason, exit 2.
     ``early`` may answer without a session (e.g. ``--list-devices``) by returning an exit code."""
     import cv2
 
-    from .transport import config_from_args
+    from .cli.argtypes import check_outputs
+    from .transport import config_from_args, zenoh_message
 
     args = parser.parse_args(argv)
     setup_logging(service, args.verbose)
@@ -378,9 +435,15 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
     cv2.setNumThreads(1)
     try:
         conf = config_from_args(args)
+        check_outputs(args)
         if check is not None:
             check(args)
     except ValueError as e:
         logging.getLogger(service).error("%s", e)
         return 2
-    return run(args, conf)
+    try:
+        return run(args, conf)
+    except zenoh.ZError as e:
+        logging.getLogger(service).error("zenoh: %s (check -e/-l/-c/--cfg and the QUICK_STREAM_ZENOH_* variables)",
+                                         zenoh_message(e))
+        return 2

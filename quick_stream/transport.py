@@ -26,8 +26,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from pathlib import Path
-from typing import Mapping
+from typing import Any, Iterator, Mapping
 
 import zenoh
 
@@ -64,9 +65,102 @@ def _loopback(endpoint: str) -> bool:
     return host in ("127.0.0.1", "localhost", "::1")
 
 
+MODES = ("peer", "client", "router")
+IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")  # locators of the form HOST:PORT
+
+
+def check_endpoint(endpoint: str, listen: bool = False) -> str:
+    """``endpoint`` if it is ``<protocol>/<address>`` with, for IP protocols, ``HOST:PORT`` (port 1-65535;
+    0 too when listening: any free port); else ValueError. Zenoh itself takes ``tcp/nohost`` or a port
+    out of range for a peer's connect endpoint and then retries it forever without a word."""
+    locator = str(endpoint).split("#", 1)[0].split("?", 1)[0]
+    proto, sep, addr = locator.partition("/")
+    if not (sep and proto and addr):
+        raise ValueError(f"endpoint {endpoint!r} is not <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    if proto.lower() not in IP_PROTOCOLS:
+        return endpoint
+    host, sep, port = addr.rpartition(":")
+    if not sep or not host.strip("[]") or (":" in host and not (host.startswith("[") and host.endswith("]"))):
+        raise ValueError(f"endpoint {endpoint!r}: expected {proto}/HOST:PORT (an IPv6 host in brackets)")
+    low = 0 if listen else 1
+    if not port.isdigit() or not low <= int(port) <= 65535:
+        raise ValueError(f"endpoint {endpoint!r}: port must be an integer in [{low}, 65535], got {port!r}")
+    return endpoint
+
+
+def zenoh_message(e: BaseException) -> str:
+    """The readable part of a zenoh error: the JSON5 parser's message and position, without
+    the Rust source locations."""
+    text = re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(e)).strip()
+    where = ""
+    m = re.search(r'msg: "((?:[^"\\]|\\.)*)", location: Some\(Location \{ line: (\d+), column: (\d+)', text)
+    if m:
+        text = m.group(1).replace("\\n", "\n").replace('\\"', '"')
+        where = f" (line {m.group(2)}, column {m.group(3)})"
+    m = re.search(r"-->\s*(\d+):(\d+).*?=\s*([^\n]+)", text, re.S)  # the JSON5 parser's own report
+    if m:
+        return f"line {m.group(1)}, column {m.group(2)}: {m.group(3).strip()}"
+    return re.sub(r'^Str\("(.*)"\)$', r"\1", text) + where
+
+
+def _endpoint_strings(value: Any) -> Iterator[str]:
+    """Endpoint strings in a ``connect/endpoints`` or ``listen/endpoints`` value: a list, a per-mode
+    map of lists, or items with ``locators``."""
+    if isinstance(value, str):
+        yield value
+    elif isinstance(value, list):
+        for v in value:
+            yield from _endpoint_strings(v)
+    elif isinstance(value, dict):
+        yield from _endpoint_strings(value["locators"] if "locators" in value else list(value.values()))
+
+
+def _check_endpoints(endpoints: list[str], listen: bool, where: str) -> None:
+    for endpoint in endpoints:
+        try:
+            check_endpoint(endpoint, listen)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+
+
+def check_config_endpoints(conf: zenoh.Config, where: str) -> None:
+    """ValueError naming ``where`` (the file, flag or variable that set them) if an endpoint is malformed."""
+    for key, listen in (("connect/endpoints", False), ("listen/endpoints", True)):
+        _check_endpoints(list(_endpoint_strings(json.loads(conf.get_json(key)))), listen, f"{where}: {key}")
+
+
+def load_config(path: str, where: str) -> zenoh.Config:
+    """The zenoh config in JSON5 file ``path``; ValueError starting with ``where`` (the flag or
+    variable that named it) when the file is missing, empty, not JSON5 or not a valid config."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"{where}: {'not a regular file' if p.exists() else 'no such file'}")
+    try:
+        empty = not p.read_text(errors="replace").strip()
+    except OSError as e:
+        raise ValueError(f"{where}: cannot read: {e.strerror or e}") from None
+    if empty:
+        raise ValueError(f"{where}: the file is empty (expected a JSON5 object, e.g. {{ mode: \"peer\" }})")
+    try:
+        conf = zenoh.Config.from_file(path)
+    except (zenoh.ZError, OSError, ValueError) as e:
+        raise ValueError(f"{where}: {zenoh_message(e)}") from None
+    check_config_endpoints(conf, where)
+    return conf
+
+
+def _setting(flag_value: Any, environ: Mapping[str, str], name: str, flag: str) -> tuple[Any, str]:
+    """(value, what set it): the flag's value if given, else the environment variable's."""
+    if flag_value:
+        return flag_value, flag
+    return environ.get(ENV + name) or None, ENV + name
+
+
 def tls_settings(tls_dir: str, name: str, mode: str) -> dict[str, object]:
     """The zenoh ``transport/link/tls`` keys for certificates made by deploy/tls/make-certs.sh."""
     d = Path(tls_dir)
+    if not d.is_dir():
+        raise ValueError(f"--tls-dir {tls_dir}: no such directory")
     for f in (d / "ca.pem", d / f"{name}.pem", d / f"{name}.key"):
         if not f.is_file():
             raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}")
@@ -81,21 +175,22 @@ def tls_settings(tls_dir: str, name: str, mode: str) -> dict[str, object]:
 def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None = None) -> zenoh.Config:
     """Build the session configuration; errors name the flag or key at fault (ValueError)."""
     env = os.environ if environ is None else environ
-    config = args.config or env.get(ENV + "CONFIG") or None
-    try:
-        conf = zenoh.Config.from_file(config) if config else zenoh.Config()
-    except (zenoh.ZError, OSError, ValueError) as e:
-        raise ValueError(f"--config {config}: {e}") from None
+    config, config_from = _setting(args.config, env, "CONFIG", "--config")
+    conf = load_config(config, f"{config_from}{' ' if args.config else '='}{config}") if config else zenoh.Config()
 
     def put(key: str, value_json: str, flag: str) -> None:
         try:
             conf.insert_json5(key, value_json)
         except (zenoh.ZError, ValueError) as e:
-            raise ValueError(f"{flag}: cannot set {key} to {value_json}: {e}") from None
+            raise ValueError(f"{flag}: cannot set {key} to {value_json}: {zenoh_message(e)}") from None
 
-    mode = args.mode or env.get(ENV + "MODE") or None
+    mode, mode_from = _setting(args.mode, env, "MODE", "--mode")
+    if mode and mode not in MODES:
+        raise ValueError(f"{mode_from}: mode must be one of {', '.join(MODES)}, got {mode!r}")
     connect = list(args.connect) or _env_list(env, "CONNECT")
     listen = list(args.listen) or _env_list(env, "LISTEN")
+    _check_endpoints(connect, False, "--connect" if args.connect else ENV + "CONNECT")
+    _check_endpoints(listen, True, "--listen" if args.listen else ENV + "LISTEN")
     if mode:
         put("mode", json.dumps(mode), "--mode")
     if connect:
@@ -107,13 +202,17 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
         put("listen/endpoints", json.dumps([port0]), "--connect")
     if connect and not config:
         put("connect/retry", json.dumps(RECONNECT), "--connect")
+    # publishers with a history cache (a restarted service takes over, runtime.py) need timestamps
+    put("timestamping/enabled", "true", "timestamping")
     if args.no_multicast_scouting:
         put("scouting/multicast/enabled", "false", "--no-multicast-scouting")
-    tls_dir = getattr(args, "tls_dir", None) or env.get(ENV + "TLS_DIR")
-    tls_name = getattr(args, "tls_name", None) or env.get(ENV + "TLS_NAME")
+    tls_dir, dir_from = _setting(getattr(args, "tls_dir", None), env, "TLS_DIR", "--tls-dir")
+    tls_name, name_from = _setting(getattr(args, "tls_name", None), env, "TLS_NAME", "--tls-name")
     if tls_dir or tls_name:
         if not (tls_dir and tls_name):
-            raise ValueError("--tls-dir and --tls-name go together")
+            given, missing = (dir_from, "--tls-name") if tls_dir else (name_from, "--tls-dir")
+            raise ValueError(f"--tls-dir and --tls-name go together: {given} without {missing} "
+                             f"(or {ENV}{missing[2:].upper().replace('-', '_')})")
         for k, v in tls_settings(tls_dir, tls_name, mode or "peer").items():
             put(f"transport/link/tls/{k}", json.dumps(v), "--tls-dir")
     for item in args.cfg:
@@ -121,4 +220,5 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
         if not sep or not k:
             raise ValueError(f"--cfg expects KEY:VALUE, got {item!r}")
         put(k, v, f"--cfg {item}")
+        check_config_endpoints(conf, f"--cfg {item}")
     return conf

@@ -20,6 +20,7 @@ import time
 import zenoh
 
 from quick_stream import keys
+from quick_stream.cli import argtypes as at
 from quick_stream.frame import BadFrame
 from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.sources import SourceError, open_source
@@ -35,23 +36,27 @@ def build_parser():
     p.add_argument("--source", default="synthetic",
                    help="synthetic[:k=v,...] (default), tum:PATH, mcap:FILE or depthai[:DEVICE_ID][,width=W,height=H,fps=F]")
     p.add_argument("--list-devices", action="store_true", help="list the OAK (depthai) devices visible and exit")
-    p.add_argument("--frames", type=int, default=None, help="send at most this many frames")
+    p.add_argument("--frames", type=at.positive_int, default=None, help="send at most this many frames")
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
                    help="realtime: at the frames' own timestamps (default); fast: as fast as the pipeline "
                         "takes them (at most --window frames ahead of the last stabilized one)")
-    p.add_argument("--window", type=int, default=60,
+    p.add_argument("--window", type=at.nonneg_int, default=60,
                    help="fast pace: frames in flight before waiting for stabilized output (default 60; "
                         "a third of it for the motion stage; 0: no limit)")
-    p.add_argument("--speed", type=float, default=1.0, help="realtime pacing speed factor (default 1)")
-    p.add_argument("--fps", type=float, default=None, help="override the pacing rate (frames/s; realtime only)")
+    p.add_argument("--speed", type=at.positive_float, default=1.0, help="realtime pacing speed factor (default 1)")
+    p.add_argument("--fps", type=at.positive_float, default=None,
+                   help="override the pacing rate (frames/s; realtime only)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="colour encoding (default jpeg)")
-    p.add_argument("--quality", type=int, default=90, help="JPEG quality (default 90)")
+    p.add_argument("--quality", type=at.quality, default=90, help="JPEG quality, 1-100 (default 90)")
     p.add_argument("--depth", choices=("raw", "zstd"), default="zstd", help="depth encoding (default zstd)")
     p.add_argument("--reencode", action="store_true",
                    help="mcap sources: re-encode frames with --color/--depth instead of sending the recorded bytes")
-    p.add_argument("--wait-for", default="", metavar="S1,S2",
+    p.add_argument("--history", type=at.int_in(0), default=150,
+                   help="frames kept for a restarted flow or render service to take over from (default 150, "
+                        "5 s at 30 fps, what render holds at most by default; 0: none)")
+    p.add_argument("--wait-for", type=at.service_names, default="", metavar="S1,S2",
                    help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
-    p.add_argument("--wait-timeout", type=float, default=30.0, help="seconds to wait for them (default 30)")
+    p.add_argument("--wait-timeout", type=at.nonneg_float, default=30.0, help="seconds to wait for them (default 30)")
     return p
 
 
@@ -124,7 +129,7 @@ def run(args, conf: zenoh.Config) -> int:
         return 2
     depth_scale = float(getattr(source, "depth_scale", 1000.0))
     with ServiceRuntime("capture", args.stream, conf) as rt:
-        pub = rt.publisher("frame")
+        pub = rt.publisher("frame", cache=args.history)
         rt.ready()
         wait = [s for s in args.wait_for.split(",") if s]
         if wait:
@@ -134,7 +139,7 @@ def run(args, conf: zenoh.Config) -> int:
                 return 3
         credit = OutputCredit(rt, args.stream, args.window if args.pace == "fast" else 0)
         st = CaptureStats(credit)
-        st.resume_after = rt.stream_cursor()
+        st.resume_after = rt.stream_cursor("frame")
         if st.resume_after is not None:
             log.warning("stream %s is under way (frame %d seen downstream; a restarted capture): numbering "
                         "continues after it", args.stream, st.resume_after)

@@ -16,6 +16,7 @@ import time
 import zenoh
 
 from quick_stream import keys
+from quick_stream.cli import argtypes as at
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.stages import FlowStage
@@ -26,8 +27,10 @@ log = logging.getLogger("flow")
 
 def build_parser():
     p = service_parser("flow", __doc__)
-    p.add_argument("--queue", type=int, default=30,
+    p.add_argument("--queue", type=at.positive_int, default=30,
                    help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)")
+    p.add_argument("--history", type=at.int_in(0), default=60,
+                   help="flows kept for a restarted motion service to take over from (default 60; 0: none)")
     add_stabilizer_args(p)
     return p
 
@@ -36,17 +39,24 @@ def run(args, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     stage = FlowStage(params.flow, params.continuity)
     with ServiceRuntime("flow", args.stream, conf) as rt:
-        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, newest_of="frame")
-        pub = rt.publisher("flow", lossless=True)
-        rt.serve_cursor(lambda: inbox.newest)
+        resume_after = rt.stream_cursor("flow")  # not None: a restarted flow; take over after the last flow out
+        if resume_after is not None:
+            log.warning("stream %s under way (flows out up to frame %d): taking over from the frames' history",
+                        args.stream, resume_after)
+        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, history=resume_after is not None)
+        pub = rt.publisher("flow", lossless=True, cache=args.history)
+        rt.serve_cursor()
         rt.ready()
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0, "internal_errors": 0}
+        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0, "internal_errors": 0, "taken_over": 0}
 
         def stats():
             return {"state": "running", **errors, **stage.check.counts, **meter.take("flow")}
 
         def take(frame) -> None:
+            if resume_after is not None and frame.seq <= resume_after:  # its flow was out before the restart
+                errors["taken_over"] += 1
+                return
             t0 = time.perf_counter()
             try:
                 flow = stage.push(frame)
@@ -69,6 +79,7 @@ def run(args, conf: zenoh.Config) -> int:
                 pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream after frame %d", msg.obj.seq)
                 stage.restart()  # a new stream may follow
+                resume_after = None
                 continue
             with rt.contained(f"frame {msg.seq}", errors):
                 take(msg.obj)

@@ -18,6 +18,7 @@ import time
 import zenoh
 
 from quick_stream import keys
+from quick_stream.cli import argtypes as at
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.path.planner import Correction
 from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
@@ -29,7 +30,10 @@ log = logging.getLogger("motion")
 
 def build_parser():
     p = service_parser("motion", __doc__)
-    p.add_argument("--queue", type=int, default=100_000, help="flow messages held (lossless; default 100000)")
+    p.add_argument("--queue", type=at.positive_int, default=100_000,
+                   help="flow messages held (lossless; default 100000)")
+    p.add_argument("--history", type=at.int_in(0), default=300,
+                   help="corrections kept for a restarted render service to take over from (default 300; 0: none)")
     add_stabilizer_args(p)
     return p
 
@@ -52,18 +56,27 @@ def run(args, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     stage = MotionStage(params.motion, params.planner)
     with ServiceRuntime("motion", args.stream, conf) as rt:
-        inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue)
+        resume_after = rt.stream_cursor("correction")  # not None: a restarted motion; take over after it
+        if resume_after is not None:
+            log.warning("stream %s under way (corrections out up to frame %d): the path restarts after it, "
+                        "from the flows' history", args.stream, resume_after)
+        inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue, history=resume_after is not None)
         motion_pub = rt.publisher("motion", lossless=True)
-        release = Releaser(rt.publisher("correction", lossless=True), args.stream)
+        release = Releaser(rt.publisher("correction", lossless=True, cache=args.history), args.stream)
+        rt.serve_cursor()
         rt.ready()
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_flows": 0, "invalid_motions": 0, "internal_errors": 0}
+        errors = {"decode_errors": 0, "refused_flows": 0, "invalid_motions": 0, "internal_errors": 0,
+                  "taken_over": 0}
 
         def stats():
             return {"state": "running", **errors, "gaps": stage.gaps, "segments": len(stage.planner.segments),
                     "corrections": release.sent, **meter.take("motion")}
 
         def take(flow) -> None:
+            if resume_after is not None and flow.seq <= resume_after:  # its frames were corrected before the restart
+                errors["taken_over"] += 1
+                return
             t0 = time.perf_counter()
             try:
                 motions, batches = stage.push(flow)
@@ -85,6 +98,7 @@ def run(args, conf: zenoh.Config) -> int:
                 release.pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream: %d segments, %d corrections", len(stage.planner.segments), release.sent)
                 stage = MotionStage(params.motion, params.planner)  # a new stream may follow
+                resume_after = None
                 continue
             with rt.contained(f"flow {msg.seq}->{msg.obj.seq_next}", errors):
                 take(msg.obj)

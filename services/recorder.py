@@ -18,6 +18,7 @@ import time
 import zenoh
 
 from quick_stream import foxglove, keys
+from quick_stream.cli import argtypes as at
 from quick_stream.foxglove_view import FoxgloveView
 from quick_stream.recording import Recorder, fresh_path
 from quick_stream.runtime import RateMeter, ServiceRuntime, lower_priority, service_main, service_parser
@@ -28,13 +29,14 @@ log = logging.getLogger("recorder")
 
 def build_parser():
     p = service_parser("recorder", __doc__)
-    p.add_argument("--output", default="out/recording.mcap", help="MCAP file (default out/recording.mcap)")
+    p.add_argument("--output", type=at.output_file("--output"), default="out/recording.mcap",
+                   help="MCAP file (default out/recording.mcap)")
     p.add_argument("--all-streams", action="store_true", help="record every stream, not only --stream")
-    p.add_argument("--flush", type=float, default=1.0, help="seconds between chunk flushes (default 1)")
+    p.add_argument("--flush", type=at.positive_float, default=1.0, help="seconds between chunk flushes (default 1)")
     p.add_argument("--no-foxglove", action="store_true", help="msgpack channels only")
-    p.add_argument("--queue", type=int, default=4096, help="messages held before the oldest is dropped")
-    p.add_argument("--nice", type=int, default=10,
-                   help="lower this process's CPU priority by this much (default 10: the live path goes first)")
+    p.add_argument("--queue", type=at.positive_int, default=4096, help="messages held before the oldest is dropped")
+    p.add_argument("--nice", type=at.int_in(0, 19), default=10,
+                   help="lower this process's CPU priority by this much, 0-19 (default 10: the live path goes first)")
     p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="none",
                    help="MCAP chunk compression (default none: images do not compress; zstd saves ~25%% "
                         "on flow and base64 image channels for CPU)")
@@ -50,6 +52,7 @@ def run(args, conf: zenoh.Config) -> int:
     with ServiceRuntime("recorder", args.stream, conf) as rt, Recorder(out, flush_s=args.flush, compression=args.compression) as rec:
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
         inbox = rt.inbox(sub_key, args.queue)
+        rt.serve_cursor(args.all_streams)  # the newest seq of every stage: how far a restarted service's predecessor got
         rt.ready()
         meter = RateMeter()
         errors = {"bad_keys": 0, "view_errors": 0, "internal_errors": 0}

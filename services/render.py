@@ -22,6 +22,7 @@ from collections.abc import Iterable
 import zenoh
 
 from quick_stream import keys
+from quick_stream.cli import argtypes as at
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.runtime import Percentiles, RateMeter, ServiceRuntime, service_main, service_parser
 from quick_stream.sinks import BackgroundSink, VideoSink
@@ -33,16 +34,18 @@ log = logging.getLogger("render")
 
 def build_parser():
     p = service_parser("render", __doc__)
-    p.add_argument("--output", default="", help="also write an MP4 here")
-    p.add_argument("--png", default="", metavar="DIR", help="also write every frame as PNG here")
-    p.add_argument("--fps", type=float, default=30.0, help="MP4 frame rate (default 30)")
+    p.add_argument("--output", type=at.output_file("--output", at.VIDEO_SUFFIXES, "video"), default="",
+                   help="also write an MP4 here")
+    p.add_argument("--png", type=at.output_dir("--png"), default="", metavar="DIR",
+                   help="also write every frame as PNG here")
+    p.add_argument("--fps", type=at.positive_float, default=30.0, help="MP4 frame rate (default 30)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="published image encoding")
-    p.add_argument("--quality", type=int, default=90, help="JPEG quality (default 90)")
-    p.add_argument("--max-frames", type=int, default=150,
+    p.add_argument("--quality", type=at.quality, default=90, help="JPEG quality, 1-100 (default 90)")
+    p.add_argument("--max-frames", type=at.positive_int, default=150,
                    help="frames held for corrections (default 150, 5 s at 30 fps)")
-    p.add_argument("--frame-wait", type=float, default=1.0,
+    p.add_argument("--frame-wait", type=at.nonneg_float, default=1.0,
                    help="seconds a complete release waits for missing frames (default 1)")
-    p.add_argument("--slow-ms", type=float, default=0.0,
+    p.add_argument("--slow-ms", type=at.nonneg_float, default=0.0,
                    help="fault injection: spend this much longer on every frame (backpressure tests)")
     add_stabilizer_args(p)
     return p
@@ -53,16 +56,20 @@ def run(args, conf: zenoh.Config) -> int:
     stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)
     with ServiceRuntime("render", args.stream, conf) as rt, \
             BackgroundSink(VideoSink(args.output, args.png, args.fps)) as sink:
-        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, newest_of="frame")
-        corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000)
+        resume_after = rt.stream_cursor("stabilized")  # not None: a restarted render; take over after it
+        if resume_after is not None:
+            log.warning("stream %s under way (stabilized out up to frame %d): taking over from the frames' and "
+                        "corrections' history", args.stream, resume_after)
+        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, history=resume_after is not None)
+        corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=resume_after is not None)
         pub = rt.publisher("stabilized")
         releases = ReleaseGroups()
         pub_ns: dict[int, int] = {}
         newest = -1
-        rt.serve_cursor(lambda: frames_in.newest)
+        rt.serve_cursor()
         rt.ready()
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_frames": 0, "internal_errors": 0}
+        errors = {"decode_errors": 0, "refused_frames": 0, "internal_errors": 0, "taken_over": 0}
         flagged = 0
         ended_streams = 0
         done = {"dropped": 0, "missing": 0, "orphans": 0, "bad": 0}  # counts of streams already ended
@@ -112,6 +119,9 @@ def run(args, conf: zenoh.Config) -> int:
                 errors["decode_errors"] += 1
                 log.error("unexpected %s message on frame", msg.type)
                 return
+            if resume_after is not None and msg.seq <= resume_after:  # rendered before the restart
+                errors["taken_over"] += 1
+                return
             try:
                 stage.add_frame(msg.seq, msg.obj)
             except ValueError as e:
@@ -158,7 +168,8 @@ def run(args, conf: zenoh.Config) -> int:
                     log.error("correction message rejected: %s", e)
                     msg = None
                 if msg is not None and msg.type == "correction":
-                    releases.add(msg.obj, msg.extra.get("batch"))
+                    if resume_after is None or msg.seq > resume_after:
+                        releases.add(msg.obj, msg.extra.get("batch"))
                 elif msg is not None and msg.type == "end":
                     ended = True
             render_ready(force=False)
@@ -174,6 +185,7 @@ def run(args, conf: zenoh.Config) -> int:
                          sink.frames, flagged, stage.orphans, stage.missing)
                 ended = False
                 newest = -1
+                resume_after = None
                 ended_streams += 1
                 rt.publish_stats(stats())
                 for k, v in (("dropped", stage.dropped), ("missing", stage.missing), ("orphans", stage.orphans),

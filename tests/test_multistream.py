@@ -64,6 +64,8 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
         assert [s for s in ref if not np.array_equal(got[s], ref[s])] == [], cam
         text = logs[cam].read_text()
         assert "0 flagged, 0 orphans, 0 missing" in text, text[-400:]
+        # the other stream's frames are not this one's: its capture starts a new stream at 0
+        assert "under way" not in (tmp_path / "logs" / f"capture-{cam}.log").read_text()
     # full rate: each capture kept its 30 frames/s schedule (its publish stamps, not the recorder's
     # receive times: the recorder runs at low priority and may lag on a busy machine)
     rates = {}

@@ -114,7 +114,9 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
     after = times[times > killed_at]
     assert after.size > 0, "no flow after the kill"
     assert (after[0] - killed_at) / 1e9 < 2.0
-    # every frame came out; the ones the dead flow never paired are flagged, the rest are not
+    # every frame came out, none flagged: the restarted flow took over after the last flow out,
+    # from the frames' history (the capture's publisher cache)
+    assert "taking over from the frames' history" in (out / "logs" / "flow.log").read_text()
     flagged, seqs = [], []
     with open(out / "recording.mcap", "rb") as f:
         for _, _, m in make_reader(f).iter_messages(topics=["quick/@v1/cam0/stabilized"]):
@@ -124,8 +126,7 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
                 if d.obj.flags:
                     flagged.append(d.seq)
     assert sorted(seqs) == list(range(frames))
-    assert 1 <= len(flagged) <= 90
-    assert flagged == list(range(flagged[0], flagged[-1] + 1))  # one contiguous gap
+    assert flagged == []
 
 
 def test_recorder_killed_with_sigkill_leaves_a_recoverable_file(tmp_path):

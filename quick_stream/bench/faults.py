@@ -109,12 +109,14 @@ def _status(path: Path) -> dict | None:
         return None
 
 
-def _wait_status(path: Path, ready, timeout: float) -> dict:
+def _wait_status(path: Path, ready, timeout: float, proc: subprocess.Popen | None = None) -> dict:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         st = _status(path)
         if st and ready(st):
             return st
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"`up` ended before the case could run (exit {proc.returncode}); see {path.parent}")
         time.sleep(0.05)
     raise TimeoutError(f"{path}: condition not reached in {timeout:g} s")
 
@@ -145,13 +147,14 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
     session = None
     kills: list[float] = []
     try:
-        _wait_status(status, lambda s: all(v["running"] for v in s["services"].values()), 60)
+        _wait_status(status, lambda s: all(v["running"] for v in s["services"].values()), 60, proc)
         session = zenoh.open(_peer(f"tcp/127.0.0.1:{port}"))
         subs = [session.declare_subscriber(keys.stream_keys("cam0"), mon.on_message),
                 session.liveliness().declare_subscriber(f"{keys.PREFIX}/cam0/health/*", mon.on_token, history=True)]
         for i in range(repeat):
             if i == 0:
-                st = _wait_status(status, lambda s: s["services"]["capture"]["stats"].get("sent", 0) >= kill_after, 60)
+                st = _wait_status(status, lambda s: s["services"]["capture"]["stats"].get("sent", 0) >= kill_after,
+                                  60, proc)
             else:  # the next kill once every successor has been up for interval_s
                 for v in victims:
                     if v != "router":

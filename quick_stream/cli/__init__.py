@@ -13,6 +13,8 @@ import logging
 import sys
 from types import ModuleType
 
+from .argtypes import check_outputs
+
 COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "router", "up")
 
 
@@ -41,6 +43,11 @@ def main(argv: list[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    try:
+        check_outputs(args)  # before any work: an output path that cannot be written (argtypes)
+    except ValueError as e:
+        print(f"quick-stream {args.command}: {e}", file=sys.stderr)
+        return 2
     return command(args.command).run(args)
 
 

@@ -3,7 +3,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+from ..lie import GROUPS
+from ..sources import SourceError
+from . import argtypes as at
 
 DEFAULT_DATA = Path("../shared/data")
 
@@ -12,27 +17,38 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="run a benchmark and print its numbers", description=__doc__)
     b = p.add_subparsers(dest="bench", required=True, metavar="NAME")
     s = b.add_parser("speed", help="scene flow + motion ms per stage on one core (synthetic frames)")
-    s.add_argument("--pairs", type=int, default=100)
-    s.add_argument("--width", type=int, default=640)
-    s.add_argument("--height", type=int, default=480)
-    s.add_argument("--group", default="se3")
+    s.add_argument("--pairs", type=at.positive_int, default=100)
+    s.add_argument("--width", type=at.int_in(16, 8192), default=640)
+    s.add_argument("--height", type=at.int_in(16, 8192), default=480)
+    s.add_argument("--group", choices=sorted(GROUPS), default="se3")
     o = b.add_parser("odometry", help="relative pose error of exact/induced vs OpenCV odometry")
     o.add_argument("--source", default=f"tum:{DEFAULT_DATA / '7scenes_redkitchen'}")
-    o.add_argument("--frames", type=int, default=None)
-    o.add_argument("--groups", default="se3", help="comma-separated groups to run exact and induced for")
+    o.add_argument("--frames", type=at.positive_int, default=None)
+    o.add_argument("--groups", type=at.choice_list(GROUPS), default=("se3",),
+                   help="comma-separated groups to run exact and induced for (default se3)")
     o.add_argument("--no-opencv", action="store_true")
     m = b.add_parser("moving-objects", help="robust vs mean estimators on jointvosf_pairs (people moving)")
     m.add_argument("--data", type=Path, default=DEFAULT_DATA)
     q = b.add_parser("quality", help="ours (4 groups x 2 end modes) vs FFmpeg vid.stab/deshake on 7scenes_redkitchen")
     q.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    q.add_argument("--frames", type=int, default=None)
+    q.add_argument("--frames", type=at.positive_int, default=None)
     q.add_argument("--no-baselines", action="store_true", help="skip FFmpeg (no install)")
     ps = b.add_parser("path", help="optimal-path solver ms per frame for every group")
     for q in (s, o, m, q, ps):
         q.add_argument("--json", action="store_true", help="print one JSON object")
-    fz = b.add_parser("fuzz", help="the wire decoder against mutated messages (crashes, hangs)")
-    fz.add_argument("--n", type=int, default=100_000, help="inputs (default 100000)")
+    fz = b.add_parser("fuzz", help="the wire decoder (or MCAP readers) against malformed input (crashes, hangs)")
+    fz.add_argument("--n", type=at.positive_int, default=None,
+                    help="inputs (default 100000; --target mcap: 10000 damaged recordings)")
     fz.add_argument("--seed", type=int, default=0)
+    fz.add_argument("--engine", choices=("mutate", "hypothesis"), default="mutate",
+                    help="wire target: 'mutate' (hand-written mutators, default) or 'hypothesis' (Hypothesis "
+                         "strategies: message-shaped maps with wrong fields, byte edits of valid messages; "
+                         "needs pip install 'quick-stream[test]')")
+    fz.add_argument("--target", choices=("wire", "mcap"), default="wire",
+                    help="'wire' (wire.decode, default) or 'mcap' (damaged recordings through read_messages, "
+                         "recover and the mcap: source)")
+    fz.add_argument("--keep", default="out/fuzz-mcap", metavar="DIR",
+                    help="--target mcap: where recordings that find a bug are kept (default out/fuzz-mcap)")
     fl = b.add_parser("faults", help="SIGKILL services of a running `up` mid-stream: restart, resume, losses")
     fl.add_argument("--cases", default="all", help="comma-separated: a service (flow), repeated (render*3), "
                     "together (router+flow); default all (every service, flow*3, render*3, router+flow)")
@@ -43,21 +59,63 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     fl.add_argument("--out", default="out/bench-faults", help="folder for each case's recordings and logs")
     fl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
     pl = b.add_parser("pipeline", help="the services under load: latency, throughput, drops, CPU and memory")
-    pl.add_argument("--fps", default="30", help="comma-separated capture rates; 'fast' = as fast as possible")
-    pl.add_argument("--seconds", type=float, default=120.0, help="measured seconds per rate (default 120)")
+    pl.add_argument("--fps", type=at.rates, default=[30.0],
+                    help="comma-separated capture rates; 'fast' = as fast as possible (default 30)")
+    pl.add_argument("--seconds", type=at.positive_float, default=120.0, help="measured seconds per rate (default 120)")
     pl.add_argument("--no-record", action="store_true", help="run without the recorder")
     pl.add_argument("--replay", action="store_true",
                     help="capture replays a pre-encoded recording (camera-like cost) instead of rendering live")
-    pl.add_argument("--out", default="out/bench-pipeline", help="folder for recordings and logs")
-    pl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
+    pl.add_argument("--out", type=at.output_dir("--out"), default="out/bench-pipeline",
+                    help="folder for recordings and logs")
+    pl.add_argument("--json", type=at.output_file("--json"), default=None, metavar="FILE",
+                    help="also write the reports as JSON here")
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except SourceError as e:  # a benchmark's clip or --source cannot be opened
+        print(f"quick-stream bench {args.bench}: {e}", file=sys.stderr)
+        return 2
+
+
+def _fuzz(args: argparse.Namespace) -> int:
+    """``bench fuzz``: exit 0 when nothing but the named errors came out, 1 on any crash or hang."""
+    from ..bench import fuzz
+
+    if args.target == "mcap":
+        if args.engine != "mutate":
+            print("quick-stream bench fuzz: --target mcap mutates recordings itself; --engine applies to the "
+                  "wire target only", file=sys.stderr)
+            return 2
+        from ..bench import fuzz_mcap
+
+        with fuzz.muted():
+            m = fuzz_mcap.run(args.n or 10_000, args.seed, keep=args.keep)
+        print(fuzz_mcap.format_report(m))
+        return 1 if m.crashes else 0
+    if args.engine == "hypothesis":
+        try:
+            from ..bench import fuzz_hypothesis as engine
+        except ImportError as e:
+            if not (e.name or "").startswith("hypothesis"):
+                raise
+            print("quick-stream bench fuzz --engine hypothesis needs hypothesis (a test dependency): "
+                  "pip install 'quick-stream[test]'", file=sys.stderr)
+            return 2
+    else:
+        engine = fuzz
+    with fuzz.muted():
+        r = engine.run(args.n or 100_000, args.seed)
+    print(fuzz.format_report(r))
+    return 1 if r.crashes or r.hangs else 0
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.bench == "pipeline":
         from ..bench import pipeline
 
-        rates = [None if x.strip() == "fast" else float(x) for x in args.fps.split(",")]
-        return pipeline.main(rates, args.seconds, args.out, args.json, record=not args.no_record,
+        return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
                              replay=args.replay)
     if args.bench == "faults":
         from ..bench import faults
@@ -66,11 +124,7 @@ def run(args: argparse.Namespace) -> int:
         return faults.main(cases, args.out, args.json, frames=args.frames, fps=args.fps, size=args.size,
                            kill_after=args.kill_after)
     if args.bench == "fuzz":
-        from ..bench import fuzz
-
-        r = fuzz.run(args.n, args.seed)
-        print(fuzz.format_report(r))
-        return 1 if r.crashes or r.hangs else 0
+        return _fuzz(args)
     if args.bench == "speed":
         from ..bench import speed
 
@@ -79,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     elif args.bench == "odometry":
         from ..bench import odometry
 
-        methods = [(g, e) for g in args.groups.split(",") for e in ("exact", "induced")]
+        methods = [(g, e) for g in args.groups for e in ("exact", "induced")]
         r = odometry.run(args.source, methods, opencv=not args.no_opencv, frames=args.frames)
         text = odometry.format_table(r)
     elif args.bench == "path":

@@ -11,28 +11,32 @@ import cv2
 from ..evaluate import GROUPS, EvaluateParams, evaluate, markdown
 from ..path.constraints import END_MODES
 from ..sources import SourceError
+from . import argtypes as at
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="the paper's evaluation protocol on a TUM-layout folder",
                        description=__doc__)
     p.add_argument("folder", type=Path, help="TUM-layout folder (rgb.txt, depth.txt, intrinsics.json)")
-    p.add_argument("-k", "--subsequences", type=int, default=20)
-    p.add_argument("-l", "--length", type=int, default=30)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-k", "--subsequences", type=at.positive_int, default=20, help="subsequences K (default 20)")
+    p.add_argument("-l", "--length", type=at.int_in(3), default=30, help="frames per subsequence L, >= 3 (default 30)")
+    p.add_argument("--seed", type=at.nonneg_int, default=0)
     p.add_argument("--groups", default=",".join(GROUPS))
     p.add_argument("--end", choices=END_MODES, default="smoothed")
     p.add_argument("--framing", choices=("black", "crop", "auto"), default="auto")
-    p.add_argument("--json", metavar="FILE", help="write the full result (per subsequence too) as JSON")
-    p.add_argument("--markdown", metavar="FILE", help="also write the table as Markdown to FILE")
+    p.add_argument("--json", type=at.output_file("--json"), metavar="FILE",
+                   help="write the full result (per subsequence too) as JSON")
+    p.add_argument("--markdown", type=at.output_file("--markdown"), metavar="FILE",
+                   help="also write the table as Markdown to FILE")
 
 
 def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)
     groups = tuple(g.strip() for g in args.groups.split(",") if g.strip())
     bad = [g for g in groups if g not in GROUPS]
-    if bad or args.subsequences < 1 or args.length < 3:
-        print(f"quick-stream evaluate: groups must be among {GROUPS}, K >= 1 and L >= 3", file=sys.stderr)
+    if bad or not groups:
+        print(f"quick-stream evaluate: --groups: expected a comma-separated list of {', '.join(GROUPS)}, "
+              f"got {args.groups!r}", file=sys.stderr)
         return 2
     p = EvaluateParams(args.subsequences, args.length, args.seed, groups, args.end, args.framing)
 

@@ -26,6 +26,7 @@ from ..motion_pipeline import MotionPipeline, run_motion, true_motion
 from ..sceneflow import DIS_PRESETS, SceneFlowParams
 from ..sources import SourceError, open_source
 from ..sources.trajectory import write_tum_trajectory
+from . import argtypes as at
 
 log = logging.getLogger("quick_stream.motion")
 
@@ -39,22 +40,22 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--source", default="synthetic",
                    help="synthetic[:key=value,...] (default) or tum:PATH[,key=value,...]")
-    p.add_argument("--frames", type=int, default=None, help="process at most this many frames")
+    p.add_argument("--frames", type=at.positive_int, default=None, help="process at most this many frames")
     p.add_argument("--group", choices=sorted(GROUPS), default="se3", help="Lie group (default se3)")
     p.add_argument("--estimator", choices=ESTIMATORS, default="exact", help="motion estimator (default exact)")
     p.add_argument("--preset", choices=sorted(DIS_PRESETS), default=SceneFlowParams.preset,
                    help=f"DIS optical-flow preset (default {SceneFlowParams.preset})")
-    p.add_argument("--flow-scale", type=float, default=SceneFlowParams.flow_scale,
-                   help="compute optical flow on images scaled by this factor (default 1)")
+    p.add_argument("--flow-scale", type=at.float_in(0.1, 1.0), default=SceneFlowParams.flow_scale,
+                   help="compute optical flow on images scaled by this factor, 0.1-1 (default 1)")
     p.add_argument("--no-fb-check", action="store_true", help="skip the forward-backward occlusion test")
-    p.add_argument("--max-points", type=int, default=SceneFlowParams.max_points,
+    p.add_argument("--max-points", type=at.int_in(3), default=SceneFlowParams.max_points,
                    help=f"scene-flow pairs kept per frame pair (default {SceneFlowParams.max_points})")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--threads", type=at.positive_int, default=1,
                    help="OpenCV threads (default 1: one core, as each service runs)")
     p.add_argument("--compare-opencv", action="store_true",
                    help="also run OpenCV RGB-D odometry (cv2.Odometry, RGB_DEPTH) on the same pairs")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
-    p.add_argument("--trajectory", metavar="FILE",
+    p.add_argument("--trajectory", type=at.output_file("--trajectory"), metavar="FILE",
                    help="write the estimated camera path in TUM format (anchored at the first "
                         "ground-truth pose when the source has one)")
 

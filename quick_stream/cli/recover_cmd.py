@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from ..recording import RecordingError, recover
+from .argtypes import OutputPath, check_output
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -17,8 +18,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     dst = args.dst or args.src.with_suffix(".recovered.mcap")
     try:
+        check_output(OutputPath(str(dst), "DST" if args.dst else "output"))
         r = recover(args.src, dst)
-    except RecordingError as e:
+    except (RecordingError, ValueError, OSError) as e:
         print(f"quick-stream recover: {e}", file=sys.stderr)
         return 2
     state = "intact" if r.complete else f"damaged ({r.stopped_at or 'no footer'})"

@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 
 from ..rerun import STAGES, RerunError, RerunResult, rerun_stage
+from .argtypes import stream_id
 from .settings import add_stabilizer_args, stabilizer_params
 
 SHOWN = 10  # mismatches listed in the report
@@ -26,7 +27,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("stage", choices=STAGES, help="the stage to re-run")
     p.add_argument("recording", type=Path, help="MCAP recording (the recorder service's)")
-    p.add_argument("--stream", default=None, help="stream id (default: the recording's only stream)")
+    p.add_argument("--stream", type=stream_id, default=None, help="stream id (default: the recording's only stream)")
     add_stabilizer_args(p)
 
 

@@ -13,7 +13,7 @@ import threading
 
 import zenoh
 
-from ..transport import add_zenoh_args, config_from_args
+from ..transport import add_zenoh_args, config_from_args, zenoh_message
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
@@ -38,10 +38,14 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"quick-stream router: {e}", file=sys.stderr)
         return 2
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:  # e.g. the listen address is in use
+        print(f"quick-stream router: cannot start: {zenoh_message(e)}", file=sys.stderr)
+        return 2
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
-    session = zenoh.open(conf)
     try:
         print(f"quick-stream router: up, zid {session.zid()}, listening on {', '.join(args.listen or ['(config)'])}",
               file=sys.stderr, flush=True)

@@ -26,22 +26,27 @@ from ..plot import path_components, plot_paths
 from ..sinks import VideoSink
 from ..sources import SourceError, open_source
 from ..stabilizer import StabilizedFrame, Stabilizer
+from . import argtypes as at
 from .settings import add_stabilizer_args, stabilizer_params
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("stabilize", help="stabilize a source into a video", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default) or tum:PATH")
-    p.add_argument("--frames", type=int, default=None, help="stabilize at most this many frames")
+    p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
+    p.add_argument("--frames", type=at.positive_int, default=None, help="stabilize at most this many frames")
     add_stabilizer_args(p)
-    p.add_argument("--output", default="out/stabilized.mp4", help="MP4 file ('' for none)")
-    p.add_argument("--png", default=None, metavar="DIR", help="also write every stabilized frame as PNG here")
-    p.add_argument("--report", default="out/report.json", help="JSON report file ('' for none)")
-    p.add_argument("--plot", default="out/path.png", help="PNG plot of the camera path ('' for none)")
+    p.add_argument("--output", type=at.output_file("--output", at.VIDEO_SUFFIXES, "video"),
+                   default="out/stabilized.mp4", help="MP4 file ('' for none)")
+    p.add_argument("--png", type=at.output_dir("--png"), default=None, metavar="DIR",
+                   help="also write every stabilized frame as PNG here")
+    p.add_argument("--report", type=at.output_file("--report"), default="out/report.json",
+                   help="JSON report file ('' for none)")
+    p.add_argument("--plot", type=at.image_file("--plot"), default="out/path.png",
+                   help="PNG plot of the camera path ('' for none)")
     p.add_argument("--no-metrics", action="store_true",
                    help="skip the quality metrics (cropping, distortion, stability, jitter; ~65 ms per frame)")
-    p.add_argument("--threads", type=int, default=1, help="OpenCV threads (default 1)")
+    p.add_argument("--threads", type=at.positive_int, default=1, help="OpenCV threads (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

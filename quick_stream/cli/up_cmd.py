@@ -22,6 +22,8 @@ import zenoh
 
 from ..launcher import ServiceSpec, StatusBoard, Supervisor
 from ..recording import fresh_path
+from ..sources import SourceError, check_source
+from . import argtypes as at
 from .settings import add_stabilizer_args, settings_argv, stabilizer_params
 
 SERVICES = ("recorder", "flow", "motion", "render", "capture")
@@ -31,16 +33,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("up", help="run router + all services locally, with live status", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
-    p.add_argument("--frames", type=int, default=None, help="stop the source after this many frames")
-    p.add_argument("--duration", type=float, default=None, help="stop everything after this many seconds")
+    p.add_argument("--frames", type=at.positive_int, default=None, help="stop the source after this many frames")
+    p.add_argument("--duration", type=at.positive_float, default=None, help="stop everything after this many seconds")
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime")
-    p.add_argument("--fps", type=float, default=None, help="capture rate override (realtime pacing)")
-    p.add_argument("--stream", default="cam0")
-    p.add_argument("--out", default="out", help="folder for recording.mcap, stabilized.mp4 and logs (default out)")
+    p.add_argument("--fps", type=at.positive_float, default=None, help="capture rate override (realtime pacing)")
+    p.add_argument("--stream", type=at.stream_id, default="cam0",
+                   help="stream id, 1-64 of [A-Za-z0-9_-] (default cam0)")
+    p.add_argument("--out", type=at.output_dir("--out"), default="out",
+                   help="folder for recording.mcap, stabilized.mp4 and logs (default out)")
     p.add_argument("--no-record", action="store_true", help="do not run the recorder")
-    p.add_argument("--port", type=int, default=0, help="router port on 127.0.0.1 (default: a free one)")
+    p.add_argument("--port", type=at.port, default=0, help="router port on 127.0.0.1 (default: a free one)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="frame colour encoding on the wire")
-    p.add_argument("--png", default=None, metavar="DIR", help="render also writes every frame as PNG here")
+    p.add_argument("--png", type=at.output_dir("--png"), default=None, metavar="DIR",
+                   help="render also writes every frame as PNG here")
     p.add_argument("--quiet", action="store_true", help="no live status")
     add_stabilizer_args(p)
 
@@ -138,6 +143,10 @@ def write_status(path: Path, board: StatusBoard, sup: Supervisor, stream: str, r
 def run(args: argparse.Namespace) -> int:
     try:
         stabilizer_params(args)
+        check_source(args.source)  # before any process starts: a bad spec is not capture's to find
+    except SourceError as e:
+        print(f"quick-stream up: --source: {e}", file=sys.stderr)
+        return 2
     except ValueError as e:
         print(f"quick-stream up: {e}", file=sys.stderr)
         return 2

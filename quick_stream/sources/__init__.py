@@ -78,4 +78,24 @@ def open_source(spec: str, **overrides: object) -> Source:
     raise SourceError(f"unknown source kind {kind!r} in {spec!r}; expected one of {', '.join(SOURCE_KINDS)}")
 
 
-__all__ = ["FrameOrGap", "SOURCE_KINDS", "Source", "SourceError", "open_source"]
+def check_source(spec: str) -> None:
+    """SourceError (as :func:`open_source` raises it) if ``spec`` cannot be opened. A live camera
+    (``depthai`` without ``fake``) is not opened, only its options are checked: the process that
+    will use it must be the one to open it."""
+    kind, _, rest = spec.partition(":")
+    if kind.strip().lower() == "depthai":
+        positional, options = _split_options(rest)
+        if not options.get("fake"):
+            from .oak import oak_settings
+
+            if len(positional) > 1:
+                raise SourceError(f"depthai source takes one device id, got {positional}")
+            try:
+                oak_settings(options)
+            except ValueError as e:
+                raise SourceError(f"source {spec!r}: {e}") from None
+            return
+    open_source(spec)
+
+
+__all__ = ["FrameOrGap", "SOURCE_KINDS", "Source", "SourceError", "check_source", "open_source"]

@@ -30,6 +30,7 @@ This module turns messages into frames:
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -266,16 +267,45 @@ class OakSource:
         return f"OakSource({self.backend!r}, fps={self.fps:g})"
 
 
-def open_oak(device: str, options: dict[str, str]) -> OakSource:
-    """The source for spec ``depthai[:DEVICE][,key=value...]`` (see the module doc)."""
-    known = {"width", "height", "fps", "tolerance_ms", "retries", "frames", "fake"}
+MAX_SIZE = 8192  # pixels per side
+
+# option: (type, default, lowest, highest or None)
+_OPTIONS: dict[str, tuple[type, Any, float, float | None]] = {
+    "width": (int, 640, 16, MAX_SIZE), "height": (int, 400, 16, MAX_SIZE), "fps": (float, 30.0, 0.1, 1000.0),
+    "tolerance_ms": (float, 10.0, 0.0, None), "retries": (int, 5, 0, None), "frames": (int, None, 1, None),
+}
+
+
+def _option(options: dict[str, str], key: str) -> Any:
+    kind, default, lo, hi = _OPTIONS[key]
+    raw = options.get(key)
+    if raw is None:
+        return default
+    what = f"{'an integer' if kind is int else 'a finite number'} " + (f"in [{lo:g}, {hi:g}]" if hi else f">= {lo:g}")
+    try:
+        value = kind(raw)
+    except ValueError:
+        raise ValueError(f"depthai source option {key}={raw!r} must be {what}") from None
+    if not (math.isfinite(value) and value >= lo and (hi is None or value <= hi)):
+        raise ValueError(f"depthai source option {key}={raw!r} must be {what}")
+    return value
+
+
+def oak_settings(options: dict[str, str]) -> dict[str, Any]:
+    """The typed options of a ``depthai`` spec (defaults filled in); ValueError naming a bad one.
+    Opens nothing: a launcher checks a spec with it before a capture process opens the camera."""
+    known = set(_OPTIONS) | {"fake"}
     unknown = set(options) - known
     if unknown:
         raise ValueError(f"depthai source: unknown option(s) {', '.join(sorted(unknown))} "
                          f"(known: {', '.join(sorted(known))})")
-    w, h = int(options.get("width", 640)), int(options.get("height", 400))
-    fps = float(options.get("fps", 30))
-    frames = int(options["frames"]) if "frames" in options else None
+    return {key: _option(options, key) for key in _OPTIONS}
+
+
+def open_oak(device: str, options: dict[str, str]) -> OakSource:
+    """The source for spec ``depthai[:DEVICE][,key=value...]`` (see the module doc)."""
+    o = oak_settings(options)
+    w, h, fps = o["width"], o["height"], o["fps"]
     if options.get("fake"):
         from .oak_fake import FakeOakBackend
 
@@ -285,5 +315,4 @@ def open_oak(device: str, options: dict[str, str]) -> OakSource:
         from .oak_device import DepthaiBackend
 
         backend = DepthaiBackend(device or None, w, h, fps)
-    return OakSource(backend, w, h, fps, float(options.get("tolerance_ms", 10)), int(options.get("retries", 5)),
-                     frames=frames)
+    return OakSource(backend, w, h, fps, o["tolerance_ms"], o["retries"], frames=o["frames"])

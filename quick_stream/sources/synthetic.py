@@ -32,6 +32,7 @@ SHAKE_TRANS_RMS_M = 0.004  # per axis; peaks ~1 cm
 SHAKE_ROT_BAND = (1.0, 12.0)  # Hz
 SHAKE_TRANS_BAND = (0.8, 8.0)
 MAX_SHAKE = 5.0
+MAX_SIZE = 8192  # pixels per side
 _CHUNK = 1024  # frames whose poses are computed together
 
 
@@ -152,6 +153,8 @@ class SyntheticSource:
             ok = isinstance(v, (int, float, np.number)) and not isinstance(v, bool)
             check(name, ok and math.isfinite(v) and lo <= v <= hi, f"a number in [{lo:g}, {hi:g}]", v)
         check("height", height <= 2 * width, "at most twice the width", height)
+        for name, v in (("width", width), ("height", height)):  # beyond 8K the renderer's buffers run out of memory
+            check(name, v <= MAX_SIZE, f"at most {MAX_SIZE}", v)
         self.width, self.height, self.fps, self.frames = int(width), int(height), float(fps), int(frames)
         self.seed, self.shake, self.zoom = int(seed), float(shake), float(zoom)
         self.report_zoom, self.hfov_deg = bool(report_zoom), float(hfov_deg)

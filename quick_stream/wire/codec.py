@@ -114,10 +114,10 @@ def unpack(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Reader:
 _ENVELOPE_BYTES = 256
 
 
-def peek_seq(data: bytes, type: str) -> int | None:
-    """The envelope ``seq`` of a ``type`` message without unpacking the rest (the envelope is packed
-    first, :func:`pack`); None if ``data`` is not such a message. For counting on arrival only:
-    the message itself is still checked by :func:`decode` when it is used."""
+def peek(data: bytes) -> tuple[str, int] | None:
+    """The envelope ``(type, seq)`` of a message without unpacking the rest (the envelope is packed
+    first, :func:`pack`); None if ``data`` does not start like one. For bookkeeping on arrival
+    only: the message itself is still checked by :func:`decode` when it is used."""
     try:
         head = bytes(data[:_ENVELOPE_BYTES])  # v, type, stream (<= 64 chars) and seq fit in it
         u = msgpack.Unpacker(raw=False, max_buffer_size=_ENVELOPE_BYTES, max_bin_len=0, max_str_len=_ENVELOPE_BYTES,
@@ -129,8 +129,8 @@ def peek_seq(data: bytes, type: str) -> int | None:
             env[k] = u.unpack()
     except Exception:  # noqa: BLE001 - anything malformed: not a message we can count
         return None
-    seq = env.get("seq")
-    return seq if env.get("type") == type and _is_int(seq) and seq >= 0 else None
+    seq, mtype = env.get("seq"), env.get("type")
+    return (mtype, seq) if isinstance(mtype, str) and _is_int(seq) and seq >= 0 else None
 
 
 def _is_int(x: Any) -> bool:
