@@ -40,23 +40,28 @@ log = logging.getLogger(__name__)
 
 
 class Inbox:
-    """Bounded drop-oldest queue of (key, payload bytes) fed by a zenoh callback subscriber.
+    """Bounded drop-oldest queue of (key, payload bytes, arrival ns) fed by a zenoh callback subscriber.
 
     It also keeps ``newest``: per (stream, stage) of the key the highest seq of the data
     messages that arrived since that stage's last ``end`` (read from the envelope on arrival,
     so a busy service still answers cursor queries exactly)."""
 
-    def __init__(self, capacity: int, cond: threading.Condition) -> None:
+    def __init__(self, capacity: int, cond: threading.Condition,
+                 on_arrival: Callable[[str, bytes, int], None] | None = None) -> None:
         self.capacity = capacity
-        self._q: deque[tuple[str, bytes]] = deque()
+        self.on_arrival = on_arrival
+        self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
         self._cond = cond
         self.received = 0
         self.dropped = 0
         self.newest: dict[tuple[str, str], int] = {}
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        item = (str(sample.key_expr), sample.payload.to_bytes())
-        self._track(*item)
+        key, data = str(sample.key_expr), sample.payload.to_bytes()
+        item = (key, data, time.time_ns())
+        self._track(key, data)
+        if self.on_arrival is not None:
+            self.on_arrival(*item)
         with self._cond:
             if len(self._q) >= self.capacity:
                 self._q.popleft()
@@ -75,7 +80,7 @@ class Inbox:
         elif env[1] > self.newest.get(where, -1):
             self.newest[where] = env[1]
 
-    def pop(self) -> tuple[str, bytes] | None:
+    def pop(self) -> tuple[str, bytes, int] | None:
         with self._cond:
             return self._q.popleft() if self._q else None
 
@@ -179,10 +184,13 @@ class ServiceRuntime:
         self._pubs.append(pub)
         return pub
 
-    def inbox(self, key_expr: str, capacity: int, history: bool = False) -> Inbox:
+    def inbox(self, key_expr: str, capacity: int, history: bool = False,
+              on_arrival: Callable[[str, bytes, int], None] | None = None) -> Inbox:
         """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages. ``history``: first
-        receive what the publishers' caches hold (a service restarted mid-stream takes over)."""
-        box = Inbox(capacity, self._cond)
+        receive what the publishers' caches hold (a service restarted mid-stream takes over).
+        ``on_arrival(key, payload, arrival_ns)`` runs in zenoh's thread as each message arrives, before it is
+        queued (keep it short; it must not raise)."""
+        box = Inbox(capacity, self._cond, on_arrival)
         if history:
             sub = zenoh.ext.declare_advanced_subscriber(self.session, key_expr, box._on_sample,
                                                         history=zenoh.ext.HistoryConfig())

@@ -237,6 +237,8 @@ def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: S
     missing = [m for m in seen if m.digest not in digests and m.type != "stats"]
     rec_kills = [k for k in kills if "recorder" in victims]
     early = [m for m in missing if any(m.t < k - accept_s for k in rec_kills)]
+    # how long before a recorder kill the oldest message it lost had arrived (the loss window)
+    window = max((k - m.t for k in rec_kills for m in missing if k - 5.0 < m.t < k), default=0.0)
     services = st.get("services", {})
     render = services.get("render", {}).get("stats", {})
     return {"case": case, "kills": len(kills), "per_kill": per_kill,
@@ -247,7 +249,7 @@ def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: S
             "render": {k: render.get(k) for k in ("missing", "dropped", "orphans", "refused_frames")},
             "recordings": files, "not_recorded": len(missing),
             "not_recorded_by_stage": {s: sum(m.stage == s for m in missing) for s in sorted({m.stage for m in missing})},
-            "lost_accepted_before_kill": len(early)}
+            "lost_accepted_before_kill": len(early), "loss_window_s": round(window, 3)}
 
 
 def format_report(r: dict) -> str:
@@ -258,7 +260,8 @@ def format_report(r: dict) -> str:
             f"lost {r['lost']}; render {r['render']}; restarts "
             f"{ {k: v for k, v in r['restarts'].items() if v} }; clean stop {r['clean_stop']}\n"
             f"{'':<12} recordings: {rec}; messages not recorded {r['not_recorded']} {r['not_recorded_by_stage']}, "
-            f"of them seen > 1 s before a recorder kill: {r['lost_accepted_before_kill']}")
+            f"of them seen > 1 s before a recorder kill: {r['lost_accepted_before_kill']} (oldest lost: seen "
+            f"{r['loss_window_s']} s before the kill)")
 
 
 def main(cases: list[str], out: str, json_path: str | None, **kw) -> int:
