@@ -11,17 +11,27 @@
   schemas, channels and messages into a new, indexed file.
 * :func:`read_messages` iterates a recording in log-time order, through the
   index when there is one and by streaming when there is not.
+
+Damaged files: every reader opens the recording with :func:`open_recording`, whose reads
+never ask for more than what is left of the file (the mcap library sizes its reads by
+length fields of the file, so a damaged length made it allocate up to 2^64 bytes:
+``MemoryError``), and turns whatever the mcap library raises on a damaged record
+(``struct.error``, ``KeyError``, ``UnicodeDecodeError``, zstd/lz4 errors, ...) into
+:class:`RecordingError` naming the file, the message count and byte offset reached and the
+problem in words (:func:`describe_damage`; found by ``quick-stream bench fuzz --target mcap``).
 """
 from __future__ import annotations
 
 import os
+import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import BinaryIO, Iterator
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
+import zstandard
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
+from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -42,6 +52,77 @@ def fresh_path(path: str | os.PathLike) -> Path:
 
 class RecordingError(RuntimeError):
     """A recording cannot be read or repaired; the message names the file and the problem."""
+
+
+MAGIC = b"\x89MCAP0\r\n"
+MIN_FILE_BYTES = 8 + 9 + 20 + 8  # magic, footer record, magic: the least an indexed reader needs
+
+
+class BoundedFile:
+    """A recording opened for reading; ``read(n)`` never asks the OS for more than what is left.
+
+    mcap's readers call ``read(length)`` with lengths taken from the file; through a plain
+    file object a damaged length (say 2^62) first allocates that many bytes. Here it is cut
+    to the bytes left, so a damaged length reads to the end and fails as a short record.
+    ``pos`` is the byte offset reached (for error messages).
+    """
+
+    def __init__(self, f: BinaryIO) -> None:
+        self._f = f
+        self.size = os.fstat(f.fileno()).st_size
+        self.pos = f.tell()
+
+    def read(self, n: int | None = -1) -> bytes:
+        left = self.size - self.pos
+        if n is None or n < 0 or n > left:
+            self.size = os.fstat(self._f.fileno()).st_size  # a file still being written may have grown
+            left = max(self.size - self.pos, 0)
+            n = left if n is None or n < 0 else min(n, left)
+        data = self._f.read(n)
+        self.pos += len(data)
+        return data
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        self.pos = self._f.seek(offset, whence)
+        return self.pos
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seekable(self) -> bool:
+        return True
+
+    def close(self) -> None:
+        self._f.close()
+
+    def __enter__(self) -> "BoundedFile":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_recording(path: str | os.PathLike) -> BoundedFile:
+    """Open a recording for reading (raises ``OSError`` like ``open``)."""
+    return BoundedFile(open(path, "rb"))
+
+
+def describe_damage(e: BaseException) -> str:
+    """In words, what the mcap library's exception on a damaged record means (type kept in brackets)."""
+    name = "struct.error" if isinstance(e, struct.error) else type(e).__name__
+    if isinstance(e, (EndOfFile, struct.error)):
+        return f"the file ends inside a record (truncated, or a record length is wrong) [{name}]"
+    if isinstance(e, UnicodeDecodeError):
+        return f"a string field is not UTF-8 (byte {e.start} of the string) [{name}]"
+    if isinstance(e, KeyError):
+        return f"a record refers to channel or schema id {e.args[0]!r}, which no record defines [{name}]"
+    if isinstance(e, RecordLengthLimitExceeded):
+        return f"{e}: longer than the file, a damaged length [{name}]"
+    if isinstance(e, (MemoryError, OverflowError)):
+        return f"a length field asks for a larger buffer than there can be (a damaged length) [{name}]"
+    if isinstance(e, zstandard.ZstdError) or (isinstance(e, RuntimeError) and "LZ4" in str(e)):
+        return f"a chunk does not decompress ({e}) [{name}]"
+    return f"{e} [{name}]" if str(e) else f"[{name}]"
 
 
 class Recorder:
@@ -140,7 +221,7 @@ def recover(src: str | os.PathLike, dst: str | os.PathLike) -> RecoveryReport:
     if src.resolve() == dst.resolve():
         raise RecordingError(f"{src}: recover needs a different output file")
     try:
-        fin = open(src, "rb")
+        fin = open_recording(src)
     except OSError as e:
         raise RecordingError(f"{src}: cannot open: {e.strerror}") from None
     schemas: dict[int, Schema] = {}
@@ -149,7 +230,7 @@ def recover(src: str | os.PathLike, dst: str | os.PathLike) -> RecoveryReport:
     stopped, complete, n = "", False, 0
     with fin, Recorder(dst) as rec:
         try:
-            for record in StreamReader(fin, record_size_limit=1 << 31).records:
+            for record in StreamReader(fin, record_size_limit=max(fin.size, 1)).records:
                 if isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
@@ -167,21 +248,47 @@ def recover(src: str | os.PathLike, dst: str | os.PathLike) -> RecoveryReport:
                 elif type(record).__name__ == "Footer":
                     complete = True
         except Exception as e:  # noqa: BLE001 - a torn tail raises assorted errors; keep what was read
-            stopped = f"{type(e).__name__}: {e}"
+            stopped = f"at byte {fin.pos} after {n} messages: {describe_damage(e)}"
     if not n and not out_channels:
         raise RecordingError(f"{src}: no readable MCAP records ({stopped or 'empty file'})")
     return RecoveryReport(str(src), str(dst), n, len(out_channels), complete and not stopped, stopped, topics)
 
 
 def read_messages(path: str | os.PathLike, topics: list[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
-    """(topic, log_time_ns, data) in log-time order; raises :class:`RecordingError` if unreadable."""
+    """(topic, log_time_ns, data) in log-time order; raises :class:`RecordingError` if unreadable.
+
+    The error names the file and the problem: no intact footer/summary (a killed writer; the
+    message says to run ``quick-stream recover``), or a damaged record after the n-th message read.
+    """
     path = Path(path)
+    n = 0
     try:
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            for _schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                yield channel.topic, message.log_time, message.data
+        with open_recording(path) as f:
+            reader = _indexed_reader(path, f)
+            try:
+                for _schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+                    yield channel.topic, message.log_time, message.data
+                    n += 1
+            except Exception as e:  # noqa: BLE001 - a damaged record raises assorted errors (describe_damage)
+                raise RecordingError(f"{path}: damaged record after {n} messages (near byte {f.pos}): "
+                                     f"{describe_damage(e)}; `quick-stream recover {path}` keeps what is "
+                                     "readable") from None
     except OSError as e:
-        raise RecordingError(f"{path}: cannot read: {e.strerror}") from None
-    except (McapError, EOFError, ValueError) as e:
-        raise RecordingError(f"{path}: not a complete MCAP file ({e}); try `quick-stream recover {path}`") from None
+        raise RecordingError(f"{path}: cannot read: {e.strerror or e}") from None
+
+
+def _indexed_reader(path: Path, f: BoundedFile) -> SeekingReader:
+    """A seeking reader whose summary (footer, chunk indexes) has been read; RecordingError if it cannot."""
+    if f.read(len(MAGIC)) != MAGIC:
+        raise RecordingError(f"{path}: not a valid MCAP file (it does not start with the MCAP magic bytes)")
+    if f.size < MIN_FILE_BYTES:
+        raise RecordingError(f"{path}: not a valid MCAP file: {f.size} bytes is too short for one "
+                             f"(at least {MIN_FILE_BYTES})")
+    f.seek(0)
+    reader = SeekingReader(f, record_size_limit=f.size)
+    try:
+        reader.get_summary()
+    except Exception as e:  # noqa: BLE001 - a torn or damaged file raises assorted errors (describe_damage)
+        raise RecordingError(f"{path}: not a complete MCAP file, no intact footer and summary "
+                             f"({describe_damage(e)}); try `quick-stream recover {path}`") from None
+    return reader

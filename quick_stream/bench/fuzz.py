@@ -8,13 +8,21 @@ string, a deep nesting, a wrong version), or plain random bytes. The only accept
 outcomes are a decoded message or :class:`~quick_stream.wire.WireError`; any other
 exception is a crash, and a decode slower than ``hang_ms`` is a hang. Prints counts per
 mutator, the slowest decode and every crash (with the input, hex, for a reproduction).
+
+Other engines and targets share :class:`FuzzReport`, :func:`check` and :func:`format_report`:
+``--engine hypothesis`` (:mod:`.fuzz_hypothesis`, Hypothesis strategies) and ``--target mcap``
+(:mod:`.fuzz_mcap`, corrupted recordings through every reader entry point).
 """
 from __future__ import annotations
 
+import contextlib
+import logging
+import os
 import random
+import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import msgpack
 import numpy as np
@@ -120,8 +128,13 @@ MUTATORS: dict[str, Callable[[random.Random, bytes], bytes]] = {
 }
 
 
+NET_PREFIX = "malformed message:"  # how decode's safety net (wire/messages.py) words an unexpected internal error
+
+
 @dataclass
 class FuzzReport:
+    """Counts of one fuzz run; ``per_mutator`` splits them by mutator (or strategy family)."""
+
     inputs: int = 0
     rejected: int = 0
     accepted: int = 0
@@ -130,9 +143,54 @@ class FuzzReport:
     max_ms: float = 0.0
     per_mutator: dict[str, dict[str, int]] = field(default_factory=dict)
     seconds: float = 0.0
+    engine: str = "mutate"
+    slowest: str = ""  # the mutator (family) of the slowest input
+    net: list[str] = field(default_factory=list)  # rejections by decode's catch-all: unexpected internal errors
+
+
+def check(rep: FuzzReport, name: str, data: bytes, hang_ms: float) -> None:
+    """Decode one input and count it: decoded, rejected with WireError, crash (anything else), hang."""
+    per = rep.per_mutator.setdefault(name, {"inputs": 0, "rejected": 0, "accepted": 0})
+    t0 = time.perf_counter()
+    try:
+        decode(data)
+        per["accepted"] += 1
+        rep.accepted += 1
+    except WireError as e:
+        per["rejected"] += 1
+        rep.rejected += 1
+        if e.problem.startswith(NET_PREFIX):
+            rep.net.append(f"{name}: {e.problem}")
+    except Exception as e:  # noqa: BLE001 - this is what the fuzzer looks for
+        rep.crashes.append({"mutator": name, "error": f"{type(e).__name__}: {e}", "input_hex": data.hex()})
+    ms = (time.perf_counter() - t0) * 1e3
+    if ms > rep.max_ms:
+        rep.max_ms, rep.slowest = ms, name
+    rep.hangs += ms > hang_ms
+    per["inputs"] += 1
+    rep.inputs += 1
+
+
+@contextlib.contextmanager
+def muted() -> Iterator[None]:
+    """Silence stderr (libjpeg prints "Corrupt JPEG data" for damaged images) and log records below
+    CRITICAL for the duration of a run: millions of expected warnings would bury the report."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    logging.disable(logging.ERROR)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+        logging.disable(logging.NOTSET)
 
 
 def run(n: int = 100_000, seed: int = 0, hang_ms: float = 1000.0) -> FuzzReport:
+    """``n`` inputs, each one seed mutated by one mutator (round robin), deterministic for ``seed``."""
     rng = random.Random(seed)
     base = seeds()
     names = list(MUTATORS)
@@ -140,32 +198,24 @@ def run(n: int = 100_000, seed: int = 0, hang_ms: float = 1000.0) -> FuzzReport:
     t_start = time.perf_counter()
     for i in range(n):
         name = names[i % len(names)]
-        data = MUTATORS[name](rng, rng.choice(base))
-        per = rep.per_mutator.setdefault(name, {"inputs": 0, "rejected": 0, "accepted": 0})
-        t0 = time.perf_counter()
-        try:
-            decode(data)
-            per["accepted"] += 1
-            rep.accepted += 1
-        except WireError:
-            per["rejected"] += 1
-            rep.rejected += 1
-        except Exception as e:  # noqa: BLE001 - this is what the fuzzer looks for
-            rep.crashes.append({"mutator": name, "error": f"{type(e).__name__}: {e}", "input_hex": data.hex()[:400]})
-        ms = (time.perf_counter() - t0) * 1e3
-        rep.max_ms = max(rep.max_ms, ms)
-        rep.hangs += ms > hang_ms
-        per["inputs"] += 1
-        rep.inputs += 1
+        check(rep, name, MUTATORS[name](rng, rng.choice(base)), hang_ms)
     rep.seconds = time.perf_counter() - t_start
     return rep
 
 
 def format_report(r: FuzzReport) -> str:
-    lines = [f"wire decoder fuzz: {r.inputs} inputs in {r.seconds:.1f} s, {r.rejected} rejected with WireError, "
-             f"{r.accepted} decoded, {len(r.crashes)} crashes, {r.hangs} hangs, slowest decode {r.max_ms:.1f} ms"]
+    """The printed report: totals, one line per mutator, every crash with its input as hex."""
+    what = "mutations" if r.engine == "mutate" else "Hypothesis"
+    lines = [f"wire decoder fuzz ({what}): {r.inputs} inputs in {r.seconds:.1f} s, {r.rejected} rejected with "
+             f"WireError, {r.accepted} decoded, {len(r.crashes)} crashes, {r.hangs} hangs, "
+             f"slowest decode {r.max_ms:.1f} ms ({r.slowest})",
+             f"  {len(r.net)} of the rejections came from decode's catch-all (an unexpected internal error)"
+             + "".join(f"\n    e.g. {x}" for x in r.net[:3])]
     for name, p in r.per_mutator.items():
-        lines.append(f"  {name:<11} {p['inputs']:>7} inputs  {p['rejected']:>7} rejected  {p['accepted']:>7} decoded")
+        lines.append(f"  {name:<17} {p['inputs']:>7} inputs  {p['rejected']:>7} rejected  {p['accepted']:>7} decoded")
     for c in r.crashes[:10]:
-        lines.append(f"  CRASH ({c['mutator']}): {c['error']}  input {c['input_hex'][:120]}...")
+        lines.append(f"  CRASH ({c['mutator']}): {c['error']}\n    reproduce: quick_stream.wire.decode(bytes.fromhex("
+                     f"'{c['input_hex']}'))")
+    if len(r.crashes) > 10:
+        lines.append(f"  ... and {len(r.crashes) - 10} more crashes")
     return "\n".join(lines)

@@ -20,19 +20,20 @@ the recording must hold exactly one stream with frame messages.
 """
 from __future__ import annotations
 
+import errno
 import logging
 import os
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
+from mcap.reader import SeekingReader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
 from ..frame import BadFrame, FrameError, Intrinsics, RGBDFrame
 from ..keys import PREFIX, check_stream, key, parse
-from ..recording import RecordingError, read_messages
+from ..recording import RecordingError, describe_damage, open_recording, read_messages
 from ..wire import WireError, decode
 from ..wire.codec import unpack
 from .base import FrameOrGap, SourceError
@@ -48,30 +49,36 @@ def _stream_records(path: Path, topics: set[str] | None,
                     on_stop: Callable[[str], None]) -> Iterator[tuple[str, int, bytes]]:
     """(topic, log_time_ns, data) in file order, up to the first damaged record."""
     channels: dict[int, str] = {}
+    n, pos = 0, 0
     try:
-        with open(path, "rb") as f:
-            for record in StreamReader(f, record_size_limit=1 << 31).records:
+        with open_recording(path) as f:
+            for record in StreamReader(f, record_size_limit=max(f.size, 1)).records:
+                pos = f.pos
                 if isinstance(record, Channel):
                     channels[record.id] = record.topic
                 elif isinstance(record, Message):
+                    n += 1
                     topic = channels.get(record.channel_id)
                     if topic is not None and (topics is None or topic in topics):
                         yield topic, record.log_time, record.data
     except OSError as e:
         on_stop(f"{path}: cannot read: {e.strerror or e}")
     except Exception as e:  # noqa: BLE001 - a torn tail raises assorted errors; keep what was read
-        on_stop(f"{path}: reading stopped at a damaged record ({type(e).__name__}: {e})")
+        on_stop(f"{path}: reading stopped at a damaged record after {n} messages (near byte {pos}): "
+                f"{describe_damage(e)}")
 
 
 def _summary_counts(path: Path) -> tuple[dict[str, int] | None, str]:
     """({frame topic: message count}, "") from an indexed file, or (None, why it is not usable)."""
     try:
-        with open(path, "rb") as f:
-            summary = make_reader(f).get_summary()
+        with open_recording(path) as f:
+            summary = SeekingReader(f, record_size_limit=max(f.size, 1)).get_summary()
     except OSError as e:
+        if e.errno == errno.EINVAL:  # seeking to the footer of a file shorter than one
+            return None, "no readable footer/summary (the file is shorter than a footer)"
         raise SourceError(f"cannot open recording {path}: {e.strerror or e}") from None
     except Exception as e:  # noqa: BLE001 - footer-less or damaged files raise assorted errors
-        return None, f"no readable footer/summary ({type(e).__name__}: {e})"
+        return None, f"no readable footer/summary ({describe_damage(e)})"
     if summary is None:
         return None, "no summary section"
     frame_ids = {cid: ch.topic for cid, ch in summary.channels.items() if _is_frame_topic(ch.topic)}
@@ -158,7 +165,8 @@ class McapSource:
         first = None
         times: list[int] = []
         self.has_ground_truth = False
-        for i, (_log_time, data) in enumerate(self._messages(record_stop=False)):
+        why: list[str] = []  # the first decoding error and why reading stopped, for the error below
+        for i, (_log_time, data) in enumerate(self._messages(on_stop=why.append)):
             if i >= PROBE_MESSAGES and first is not None:
                 break
             try:
@@ -168,11 +176,13 @@ class McapSource:
                 self.has_ground_truth |= r.d.get("pose") is not None
                 if first is None and r.type == "frame":
                     first = decode(data)
-            except WireError:
+            except WireError as e:
+                if not why:
+                    why.append(f"message {i}: {e}")
                 continue
         if first is None:
             raise SourceError(f"recording {self.path}: none of the {self._count} frame messages of stream "
-                              f"{self.stream!r} decodes")
+                              f"{self.stream!r} decodes ({'; '.join(why) or 'none could be read'})")
         self.intrinsics: Intrinsics = first.obj.intrinsics
         self.depth_scale: float = float(first.extra["depth_scale"])
         self.color_encoding: str = first.extra["color_encoding"]
@@ -226,9 +236,10 @@ class McapSource:
         self.stopped_at = why
         log.warning("%s", why)
 
-    def _messages(self, record_stop: bool = True) -> Iterator[tuple[int, bytes]]:
-        """(log_time_ns, data) of this stream's frame messages."""
-        on_stop = self._stop if record_stop else (lambda _why: None)
+    def _messages(self, on_stop: Callable[[str], None] | None = None) -> Iterator[tuple[int, bytes]]:
+        """(log_time_ns, data) of this stream's frame messages; ``on_stop`` (default: record it in
+        ``stopped_at`` and log it) hears why reading stopped early."""
+        on_stop = on_stop or self._stop
         if not self.indexed:
             for _t, log_time, data in _stream_records(self.path, {self.topic}, on_stop):
                 yield log_time, data
