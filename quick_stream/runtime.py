@@ -13,8 +13,14 @@ loops: take messages from its inboxes, call the library stage, publish.
   (transport-facts.md: without a handler SIGTERM kills the process before cleanup).
 * **Liveliness**: a token on ``quick/@v1/<stream>/health/<service>``, so the
   launcher and other services see who is up (and who went away, in milliseconds).
-* **Stats**: a ``stats`` message about once a second (``values`` the service fills:
+* **Stats**: a ``stats`` message about once a second (``values`` the service fills, rates from
+  :mod:`quick_stream.meters`:
   counters, fps, ms per item, drops, errors).
+* **Taking over**: publishers may keep a history cache; every service answers cursor
+  queries (newest seq per stage received); a service restarted mid-stream asks how far its
+  predecessor's output got and subscribes to its inputs with history (docs/architecture.md).
+* **Containment**: :meth:`ServiceRuntime.contained` logs and counts an unexpected exception
+  while handling one message, and the service goes on.
 """
 from __future__ import annotations
 
@@ -28,7 +34,6 @@ import time
 from collections import deque
 from typing import Any, Callable, Iterator
 
-import numpy as np
 import zenoh
 import zenoh.ext
 
@@ -86,53 +91,6 @@ class Inbox:
 
     def __len__(self) -> int:
         return len(self._q)
-
-
-class RateMeter:
-    """Items and per-item milliseconds over the last stats period."""
-
-    def __init__(self) -> None:
-        self.total = 0
-        self._n = 0
-        self._ms: list[float] = []
-        self._t0 = time.monotonic()
-
-    def add(self, ms: float | None = None) -> None:
-        self.total += 1
-        self._n += 1
-        if ms is not None:
-            self._ms.append(ms)
-
-    def take(self, prefix: str) -> dict[str, float]:
-        """fps and ms p50/p99 since the last take, keys prefixed."""
-        now = time.monotonic()
-        dt = max(now - self._t0, 1e-9)
-        out = {f"{prefix}_fps": round(self._n / dt, 2), f"{prefix}_total": self.total}
-        if self._ms:
-            a = np.asarray(self._ms)
-            out[f"{prefix}_ms_p50"] = round(float(np.percentile(a, 50)), 3)
-            out[f"{prefix}_ms_p99"] = round(float(np.percentile(a, 99)), 3)
-        self._n, self._ms, self._t0 = 0, [], now
-        return out
-
-
-class Percentiles:
-    """Samples of one quantity over the last stats period: p50/p99/max on take."""
-
-    def __init__(self) -> None:
-        self._v: list[float] = []
-
-    def add(self, v: float) -> None:
-        self._v.append(v)
-
-    def take(self, prefix: str) -> dict[str, float]:
-        if not self._v:
-            return {}
-        a = np.asarray(self._v)
-        self._v = []
-        return {f"{prefix}_p50": round(float(np.percentile(a, 50)), 2),
-                f"{prefix}_p99": round(float(np.percentile(a, 99)), 2),
-                f"{prefix}_max": round(float(a.max()), 2), f"{prefix}_n": int(a.size)}
 
 
 class ServiceRuntime:
@@ -193,7 +151,9 @@ class ServiceRuntime:
         box = Inbox(capacity, self._cond, on_arrival)
         if history:
             sub = zenoh.ext.declare_advanced_subscriber(self.session, key_expr, box._on_sample,
-                                                        history=zenoh.ext.HistoryConfig())
+                                                        # a publisher this session does not know yet (its
+                                                        # declaration arrives after ours) is queried once seen
+                                                        history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
         else:
             sub = self.session.declare_subscriber(key_expr, box._on_sample)
         self._subs.append(sub)
@@ -325,6 +285,8 @@ class ServiceRuntime:
             vals[f"inbox{i}_queued"] = len(b)
         self._stats_pub.put(encode_stats(Stats(self.service, vals), self.stream, self._stats_seq))
         self._stats_seq += 1
+        if self._stats_seq % TRIM_EVERY == 0:
+            trim_heap()
         self._next_stats = time.monotonic() + self._stats_period
 
     def maybe_stats(self, values: Callable[[], dict[str, Any]]) -> None:
@@ -409,6 +371,30 @@ def service_parser(service: str, description: str | None) -> argparse.ArgumentPa
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     add_zenoh_args(p)
     return p
+
+
+TRIM_EVERY = 10  # stats periods (about 10 s)
+
+
+def _libc_trim() -> Callable[[int], int] | None:
+    try:
+        import ctypes
+
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None  # not glibc: nothing to do
+
+
+_MALLOC_TRIM = _libc_trim()
+
+
+def trim_heap() -> None:
+    """Hand freed heap pages back to the OS (glibc ``malloc_trim``). Frames and messages of many
+    sizes, allocated in zenoh's threads and freed in the service's, leave free memory spread over
+    several malloc arenas; without this the resident size of a long run creeps up by several
+    percent (10-minute soak, docs/reliability.md). A few milliseconds, every ``TRIM_EVERY`` stats."""
+    if _MALLOC_TRIM is not None:
+        _MALLOC_TRIM(0)
 
 
 def lower_priority(niceness: int) -> None:

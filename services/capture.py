@@ -22,7 +22,8 @@ import zenoh
 from quick_stream import keys
 from quick_stream.cli import argtypes as at
 from quick_stream.frame import BadFrame
-from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
+from quick_stream.meters import RateMeter
+from quick_stream.runtime import ServiceRuntime, service_main, service_parser
 from quick_stream.sources import SourceError, open_source
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
 from quick_stream.wire.codec import unpack

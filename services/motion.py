@@ -21,7 +21,8 @@ from quick_stream import keys
 from quick_stream.cli import argtypes as at
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.path.planner import Correction
-from quick_stream.runtime import RateMeter, ServiceRuntime, service_main, service_parser
+from quick_stream.meters import RateMeter
+from quick_stream.runtime import ServiceRuntime, service_main, service_parser
 from quick_stream.stages import MotionStage
 from quick_stream.wire import encode_correction, encode_end, encode_motion
 

@@ -24,7 +24,8 @@ import zenoh
 from quick_stream import keys
 from quick_stream.cli import argtypes as at
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
-from quick_stream.runtime import Percentiles, RateMeter, ServiceRuntime, service_main, service_parser
+from quick_stream.meters import Percentiles, RateMeter
+from quick_stream.runtime import ServiceRuntime, service_main, service_parser
 from quick_stream.sinks import BackgroundSink, VideoSink
 from quick_stream.stages import ReleaseGroups, RenderStage, StabilizedFrame
 from quick_stream.wire import StabilizedImage, WireError, decode, encode_end, encode_stabilized

@@ -15,8 +15,9 @@ and measures from a monitor session:
   the one-segment latency (later frames of a batch have a frame period of slack each);
 * **throughput and drops**: frames sent, stabilized, flagged (orphans: frames some
   stage dropped), per-service inbox drops and render's dropped/missing counters;
-* **CPU and memory per process** from ``/proc``: mean CPU % over the run, RSS at the
-  start and end of the measured window and the peak (VmHWM).
+* **CPU and memory per process** from ``/proc``: mean CPU % over the run, RSS once warm (the
+  minute after the first) and over the last minute, the growth between them, the peak (VmHWM)
+  and the series from start-up.
 
 Prints a table and writes JSON (``--json``). Numbers are for the machine it runs on.
 """
@@ -125,33 +126,41 @@ def prerecord(path: Path, spec: str) -> str:
 
 
 def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
-                 record: bool = True, warmup_s: float = 5.0, replay: bool = False) -> dict:
+                 record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1) -> dict:
     """One measured run; ``fps`` None = capture as fast as possible; ``replay``: the capture sends a
-    pre-encoded recording instead of rendering synthetic frames live. Returns the report dict."""
+    pre-encoded recording instead of rendering synthetic frames live; ``streams``: that many cameras
+    side by side (``cam0``, ``cam1``, ...; each its own capture, flow, motion and render, synthetic
+    seeds 1, 2, ...; one recorder of all). Returns the report dict."""
     from ..cli.up_cmd import free_port, open_when_up
 
     out.mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     z = ["-e", endpoint, "--no-multicast-scouting"]
     frames = int((fps or 120) * (seconds + warmup_s)) + 1
-    src = f"synthetic:frames={frames},width={width},height={height}"
-    if replay:
-        src = prerecord(out / "source.mcap", src)
+    cams = [f"cam{i}" for i in range(streams)]
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
     if record:
-        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]))
-    specs += [ServiceSpec("flow", ["-m", "services.flow", *z]),
-              ServiceSpec("motion", ["-m", "services.motion", *z]),
-              ServiceSpec("render", ["-m", "services.render", *z, "--output", str(out / "stabilized.mp4")])]
-    wait = ",".join(s.name for s in specs[1:])
-    cap = ["-m", "services.capture", *z, "--source", src, "--wait-for", wait]
-    cap += ["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)]
-    specs.append(ServiceSpec("capture", cap, may_finish=True))
+        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]
+                                 + (["--all-streams"] if streams > 1 else [])))
+    for i, cam in enumerate(cams):
+        src = f"synthetic:frames={frames},width={width},height={height},seed={i + 1}"
+        if replay:
+            src = prerecord(out / f"source-{cam}.mcap", src)
+        s = ["--stream", cam]
+        specs += [ServiceSpec(_name("flow", cam, streams), ["-m", "services.flow", *z, *s]),
+                  ServiceSpec(_name("motion", cam, streams), ["-m", "services.motion", *z, *s]),
+                  ServiceSpec(_name("render", cam, streams), ["-m", "services.render", *z, *s,
+                                                                "--output", str(out / f"stabilized-{cam}.mp4")])]
+        # the recorder's liveliness token is under its own stream (cam0), even when it records all
+        wait = ",".join(["recorder"] * (record and cam == "cam0") + ["flow", "motion", "render"])
+        cap = ["-m", "services.capture", *z, *s, "--source", src, "--wait-for", wait]
+        cap += ["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)]
+        specs.append(ServiceSpec(_name("capture", cam, streams), cap, may_finish=True))
     sup = Supervisor(specs, out / "logs")
     sup.start("router")
     session = open_when_up(endpoint, 20)
-    mon = Monitor()
-    sub = session.declare_subscriber(keys.key("cam0", "stabilized"), mon.on_sample)
+    mons = {cam: Monitor() for cam in cams}
+    subs = [session.declare_subscriber(keys.key(cam, "stabilized"), mons[cam].on_sample) for cam in cams]
     board = StatusBoard(session)
     samples: dict[str, list[tuple[float, float, int, int]]] = {}
     try:
@@ -163,26 +172,65 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
             time.sleep(1.0)
             sup.poll()
             now = time.monotonic()
-            if t_start is None and mon.seqs:
+            if t_start is None and any(m.seqs for m in mons.values()):
                 t_start = now
             for name in sup.children:
                 pid = sup.pid(name)
                 got = proc_sample(pid) if pid else None
                 if got:
                     samples.setdefault(name, []).append((now, *got))
-            if mon.ended or (t_start and now - t_start > seconds + warmup_s + 30):
+            if all(m.ended for m in mons.values()) or (t_start and now - t_start > seconds + warmup_s + 30):
                 break
         stats = board.snapshot()
     finally:
-        sub.undeclare()
+        for sub in subs:
+            sub.undeclare()
         board.close()
         session.close()
-        sup.stop(["capture", "flow", "motion", "render", "recorder", "router"][:])
-    return {**_report(fps, seconds, warmup_s, width, height, mon, stats, samples, record),
-            "capture": "replay of a pre-encoded recording" if replay else "synthetic, rendered live"}
+        sup.stop([s.name for s in specs if s.name.startswith("capture")]
+                 + [s.name for s in specs[1:] if not s.name.startswith("capture")] + ["router"])
+    procs = _processes(samples)
+    per = {cam: _report(fps, seconds, warmup_s, width, height, mons[cam], stats, record, cam) for cam in cams}
+    capture = "replay of a pre-encoded recording" if replay else "synthetic, rendered live"
+    if streams == 1:
+        return {**per["cam0"], "processes": procs, "capture": capture}
+    return {"streams": per, "processes": procs, "capture": capture, "size": f"{width}x{height}",
+            "fps_target": fps or "fast", "seconds": seconds, "recording": record}
 
 
-def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples, record) -> dict:
+def _name(service: str, cam: str, streams: int) -> str:
+    return service if streams == 1 else f"{service}-{cam}"
+
+
+def _processes(samples: dict[str, list[tuple[float, float, int, int]]], warm_s: float = 60.0) -> dict:
+    """Per process: mean CPU %, RSS once warm and at the end, its growth, the peak and the series.
+
+    Growth is over the run after start-up: "warm" is the mean RSS over the minute after the first
+    ``warm_s`` seconds (caches and buffers filled), "end" the mean over the last minute (runs
+    shorter than 3 minutes: the second and the last fifth of the samples)."""
+    procs = {}
+    for name, rows in samples.items():
+        a = np.array(rows, dtype=float)
+        if len(a) < 5:
+            continue
+        t = a[:, 0] - a[0, 0]
+        cpu = 100.0 * (a[-1, 1] - a[0, 1]) / max(t[-1], 1e-9)
+        if t[-1] >= 3 * warm_s:
+            warm, end = (t >= warm_s) & (t < 2 * warm_s), t >= t[-1] - warm_s
+        else:
+            k = len(a) // 5
+            warm, end = np.zeros(len(a), bool), np.zeros(len(a), bool)
+            warm[k:2 * k], end[-k:] = True, True
+        r_warm, r_end = a[warm, 2].mean() / 2**20, a[end, 2].mean() / 2**20
+        every = max(1, len(a) // 10)
+        procs[name] = {"cpu_pct": round(cpu, 1), "rss_mb_warm": round(r_warm, 1), "rss_mb_end": round(r_end, 1),
+                       "rss_growth_pct": round(100.0 * (r_end / r_warm - 1.0), 1),
+                       "peak_rss_mb": round(a[:, 3].max() / 2**20, 1),
+                       "rss_mb_series": [round(x / 2**20, 1) for x in a[::every, 2]]}
+    return procs
+
+
+def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, record, stream: str = "cam0") -> dict:
     n = len(mon.seqs)
     skip = int(round((fps or 0) * warmup_s)) if fps else min(n // 5, 150)
     w_max = max(mon.wait_ms[skip:], default=0.0)
@@ -190,22 +238,11 @@ def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples,
            "beyond_longest_wait_ms": _pct([t - w_max for t in mon.total_ms[skip:]]),
            "processing_ms": _pct(mon.proc_ms[skip:]),
            "processing_first_of_batch_ms": _pct(mon.first_ms[max(1, skip // 30):])}
-    cap = stats.get(("cam0", "capture"), {})
+    cap = stats.get((stream, "capture"), {})
     sent = int(cap.get("sent", 0))
-    drops = {f"{svc}.{k}": v for (_, svc), vals in stats.items() for k, v in vals.items()
-             if (k.endswith("_dropped") or k in ("dropped", "missing", "orphans")) and v}
+    drops = {f"{svc}.{k}": v for (st, svc), vals in stats.items() for k, v in vals.items()
+             if st == stream and (k.endswith("_dropped") or k in ("dropped", "missing", "orphans")) and v}
     span = (mon.t_last - mon.t_first) if mon.t_first and mon.t_last and n > 1 else 0.0
-    procs = {}
-    for name, rows in samples.items():
-        a = np.array(rows, dtype=float)
-        if len(a) < 2:
-            continue
-        cpu = 100.0 * (a[-1, 1] - a[0, 1]) / max(a[-1, 0] - a[0, 0], 1e-9)
-        k = max(1, len(a) // 10)
-        every = max(1, len(a) // 8)
-        procs[name] = {"cpu_pct": round(cpu, 1), "rss_mb_start": round(a[:k, 2].mean() / 2**20, 1),
-                       "rss_mb_end": round(a[-k:, 2].mean() / 2**20, 1), "peak_rss_mb": round(a[:, 3].max() / 2**20, 1),
-                       "rss_mb_series": [round(x / 2**20, 1) for x in a[::every, 2]]}
     windows = []
     if mon.t_recv:
         t0 = mon.t_recv[0]
@@ -220,32 +257,40 @@ def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, samples,
             "unique_out_of_order": int(np.sum(np.diff(mon.seqs) <= 0)) if n > 1 else 0,
             "stabilized_fps": round((n - 1) / span, 2) if span else 0.0,
             "send_fps": cap.get("send_fps"), "behind_ms": cap.get("behind_ms"),
-            "drops": drops, "latency": lat, "processes": procs}
+            "drops": drops, "latency": lat}
 
 
 def format_report(r: dict) -> str:
-    lines = [f"pipeline {r['size']} at {r['fps_target']} fps for {r['seconds']:g} s ({r['capture']}), recording "
-             f"{'on' if r['recording'] else 'off'}: sent {r['frames_sent']}, stabilized {r['frames_stabilized']} "
-             f"({r['stabilized_fps']} fps), flagged {r['frames_flagged']}, drops {r['drops'] or 'none'}"]
-    for k, v in r["latency"].items():
-        if v:
-            lines.append(f"  latency {k:<29} p50 {v['p50']:7.1f}  p90 {v['p90']:7.1f}  p99 {v['p99']:7.1f}  "
-                         f"max {v['max']:7.1f} ms  (n={v['n']})")
-    if len(r.get("latency_p99_per_minute", [])) > 1:
-        lines.append("  total latency p99 per minute (ms): "
-                     + " ".join(f"{w['total_p99_ms']:.0f}" for w in r["latency_p99_per_minute"]))
-    lines.append(f"  {'process':<9} {'CPU %':>6} {'RSS start':>10} {'RSS end':>8} {'peak RSS':>9} (MB)   RSS over the run")
+    per = r["streams"] if "streams" in r else {"": r}
+    lines = []
+    for cam, x in per.items():
+        lines.append(f"pipeline {cam + ' ' if cam else ''}{r['size']} at {r['fps_target']} fps for {r['seconds']:g} s "
+                     f"({r['capture']}), recording {'on' if r['recording'] else 'off'}: sent {x['frames_sent']}, "
+                     f"stabilized {x['frames_stabilized']} ({x['stabilized_fps']} fps), flagged {x['frames_flagged']}, "
+                     f"drops {x['drops'] or 'none'}")
+        for k, v in x["latency"].items():
+            if v:
+                lines.append(f"  latency {k:<29} p50 {v['p50']:7.1f}  p90 {v['p90']:7.1f}  p99 {v['p99']:7.1f}  "
+                             f"max {v['max']:7.1f} ms  (n={v['n']})")
+        if len(x.get("latency_p99_per_minute", [])) > 1:
+            lines.append("  total latency p99 per minute (ms): "
+                         + " ".join(f"{w['total_p99_ms']:.0f}" for w in x["latency_p99_per_minute"]))
+    lines.append(f"  {'process':<15} {'CPU %':>6} {'RSS warm':>9} {'RSS end':>8} {'growth':>7} {'peak RSS':>9} (MB)   "
+                 "RSS over the run, from start-up")
     for name, p in r["processes"].items():
-        lines.append(f"  {name:<9} {p['cpu_pct']:>6.1f} {p['rss_mb_start']:>10.1f} {p['rss_mb_end']:>8.1f} "
-                     f"{p['peak_rss_mb']:>9.1f}        {' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
+        lines.append(f"  {name:<15} {p['cpu_pct']:>6.1f} {p['rss_mb_warm']:>9.1f} {p['rss_mb_end']:>8.1f} "
+                     f"{p['rss_growth_pct']:>6.1f}% {p['peak_rss_mb']:>9.1f}        "
+                     f"{' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
     return "\n".join(lines)
 
 
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
-         record: bool = True, replay: bool = False) -> int:
+         record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480") -> int:
     reports = []
+    w, h = (int(x) for x in size.split("x"))
     for fps in fps_list:
-        r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, record=record, replay=replay)
+        r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, width=w, height=h, record=record,
+                         replay=replay, streams=streams)
         reports.append(r)
         print(format_report(r), flush=True)
     if json_path:

@@ -122,6 +122,14 @@ def _rates(text: str) -> list[float | None]:
     return out
 
 
+def _frame_size(text: str) -> str:
+    w, sep, h = text.strip().lower().partition("x")
+    if not (sep and w.isdigit() and h.isdigit() and 16 <= int(w) <= 8192 and 16 <= int(h) <= 8192):
+        raise ValueError(f"must be WIDTHxHEIGHT, each 16-8192, got {text!r}")
+    return f"{int(w)}x{int(h)}"
+
+
+frame_size = checked(_frame_size, "frame_size")  # "640x480"
 rates = checked(_rates, "rates")  # "30,60,fast": frames/s per run, None = as fast as possible
 
 

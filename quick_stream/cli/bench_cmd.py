@@ -54,7 +54,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "together (router+flow); default all (every service, flow*3, render*3, router+flow)")
     fl.add_argument("--frames", type=int, default=240, help="synthetic frames per case (default 240)")
     fl.add_argument("--fps", type=float, default=30.0)
-    fl.add_argument("--size", default="320x240", help="frame size WxH (default 320x240)")
+    fl.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
     fl.add_argument("--kill-after", type=int, default=60, help="frames sent before the first kill (default 60)")
     fl.add_argument("--out", default="out/bench-faults", help="folder for each case's recordings and logs")
     fl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
@@ -63,6 +63,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="comma-separated capture rates; 'fast' = as fast as possible (default 30)")
     pl.add_argument("--seconds", type=at.positive_float, default=120.0, help="measured seconds per rate (default 120)")
     pl.add_argument("--no-record", action="store_true", help="run without the recorder")
+    pl.add_argument("--streams", type=at.int_in(1, 16), default=1,
+                    help="cameras side by side, each with its own capture, flow, motion and render (default 1)")
+    pl.add_argument("--size", type=at.frame_size, default="640x480", help="frame size WxH (default 640x480)")
     pl.add_argument("--replay", action="store_true",
                     help="capture replays a pre-encoded recording (camera-like cost) instead of rendering live")
     pl.add_argument("--out", type=at.output_dir("--out"), default="out/bench-pipeline",
@@ -116,6 +119,7 @@ def _run(args: argparse.Namespace) -> int:
         from ..bench import pipeline
 
         return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
+                             streams=args.streams, size=args.size,
                              replay=args.replay)
     if args.bench == "faults":
         from ..bench import faults
