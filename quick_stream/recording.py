@@ -27,7 +27,7 @@ import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import BinaryIO, Callable, Iterator
 
 import zstandard
 from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
@@ -198,6 +198,52 @@ class Recorder:
                 self._file.close()
 
     def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SplitRecorder:
+    """A recording split over files: ``rec`` is the :class:`Recorder` being written; once it holds
+    ``split_bytes`` or is ``split_s`` old (0: never) :meth:`wrote` finishes it (footer, indexes)
+    and opens the first free ``<base stem>-N<suffix>`` (:func:`fresh_path`), calling ``on_open``
+    on each new file (to register its channels). Not thread-safe, like :class:`Recorder`."""
+
+    def __init__(self, base: str | os.PathLike, first: str | os.PathLike, split_bytes: int = 0,
+                 split_s: float = 0.0, on_open: Callable[[Recorder], object] | None = None, **recorder_kw) -> None:
+        self.base, self.split_bytes, self.split_s = base, split_bytes, split_s
+        self._on_open, self._kw = on_open, recorder_kw
+        self.done: list[tuple[Path, int]] = []  # (path, messages) of the finished files
+        self._open(first)
+
+    def _open(self, path: str | os.PathLike) -> None:
+        self.rec = Recorder(path, **self._kw)
+        self.bytes, self.t0 = 0, time.monotonic()
+        if self._on_open is not None:
+            self._on_open(self.rec)
+
+    def wrote(self, n: int) -> Path | None:
+        """``n`` bytes went into the current file; start the next if one is due (returns the finished file)."""
+        self.bytes += n
+        if not ((self.split_bytes and self.bytes >= self.split_bytes)
+                or (self.split_s and time.monotonic() - self.t0 >= self.split_s)):
+            return None
+        old = self.rec
+        old.close()
+        self.done.append((old.path, old.messages))
+        self._open(fresh_path(self.base))
+        return old.path
+
+    @property
+    def messages(self) -> int:
+        """Messages in every file so far."""
+        return sum(n for _, n in self.done) + self.rec.messages
+
+    def close(self) -> None:
+        self.rec.close()
+
+    def __enter__(self) -> "SplitRecorder":
         return self
 
     def __exit__(self, *exc) -> None:

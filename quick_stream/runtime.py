@@ -25,6 +25,7 @@ loops: take messages from its inboxes, call the library stage, publish.
 from __future__ import annotations
 
 import argparse
+import atexit
 import gc
 import logging
 import os
@@ -150,9 +151,9 @@ class ServiceRuntime:
         queued (keep it short; it must not raise)."""
         box = Inbox(capacity, self._cond, on_arrival)
         if history:
+            # a publisher this session does not know yet (its declaration arrives after ours) is queried
+            # once seen
             sub = zenoh.ext.declare_advanced_subscriber(self.session, key_expr, box._on_sample,
-                                                        # a publisher this session does not know yet (its
-                                                        # declaration arrives after ours) is queried once seen
                                                         history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
         else:
             sub = self.session.declare_subscriber(key_expr, box._on_sample)
@@ -201,25 +202,32 @@ class ServiceRuntime:
         key = keys.cursor_key("*" if all_streams else self.stream, self.service)
         self._subs.append(self.session.declare_queryable(key, on_query))
 
-    def stream_cursor(self, stage: str, timeout_s: float = 3.0) -> int | None:
+    def stream_cursor(self, stage: str, timeout_s: float = 3.0, settle_s: float = 1.0) -> int | None:
         """The newest seq of ``stage`` in this stream that any running service has received, or None
         (nothing yet: a new stream, or nobody who receives that stage is up).
 
         A new session sees the others' liveliness tokens before their queryables, and a busy
         service may answer late, so it asks again (up to ``timeout_s``) while other services of the
         stream are alive and either none has answered yet or the stream is under way (some stage
-        has a seq) but nobody has answered for ``stage``. With nobody else alive, or every answer
-        saying no stream is under way, it answers None at once."""
-        deadline = time.monotonic() + timeout_s
+        has a seq) but nobody has answered for ``stage``. With every answer saying no stream is under
+        way it answers None at once; with nobody else alive, once ``settle_s`` has passed (right after
+        connecting, a session may see only some of the others' tokens, or none: a restarted flow
+        once started afresh that way, and the frames of its restart went out uncorrected)."""
+        t0 = time.monotonic()
+        deadline = t0 + timeout_s
         self._wait_connected(min(timeout_s, 1.0))
         while True:
             answered, under_way, best = self._ask_cursor(stage)
             if best is not None or (answered and not under_way):
                 return best
-            if time.monotonic() > deadline or self.stop.is_set() or not (self.alive() - {self.service}):
+            alone = time.monotonic() - t0 > settle_s and not (self.alive() - {self.service})
+            if time.monotonic() > deadline or self.stop.is_set() or alone:
                 if under_way:
                     log.warning("%s/%s: the stream is under way but no service reports %s; starting afresh",
                                 self.stream, self.service, stage)
+                elif not answered and not alone:
+                    log.warning("%s/%s: no service answered the cursor query in %.0f s; starting afresh",
+                                self.stream, self.service, timeout_s)
                 return None
             self.stop.wait(0.1)
 
@@ -409,6 +417,14 @@ def setup_logging(service: str, verbose: bool) -> None:
                         format=f"%(asctime)s {service} %(levelname)s: %(message)s")
 
 
+def _ignore_term_while_exiting() -> None:
+    """At interpreter exit, after the service's work and clean-up are done: ignore SIGTERM.
+    CPython puts the default (fatal) handler back while it finalises, so a supervisor's SIGTERM
+    arriving in those last moments (zenoh's objects are dropped there, slowly on a busy machine)
+    turned a clean exit into -15; an ignored signal is left alone (tests/test_runtime.py)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace, zenoh.Config], int],
                  argv: list[str] | None, check: Callable[[argparse.Namespace], Any] | None = None,
                  early: Callable[[argparse.Namespace], int | None] | None = None) -> int:
@@ -424,6 +440,7 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
 
     args = parser.parse_args(argv)
     setup_logging(service, args.verbose)
+    atexit.register(_ignore_term_while_exiting)
     if early is not None and (code := early(args)) is not None:
         return code
     cv2.setNumThreads(1)

@@ -1,4 +1,4 @@
-"""``recorder``: every stage's messages of a stream (or of all streams) into one MCAP file.
+"""``recorder``: every stage's messages of a stream (or of all streams) into an MCAP file.
 
 Subscribes ``quick/@v1/<stream>/*`` (``--all-streams``: ``quick/@v1/*/*``) and
 logs each message's exact bytes on a msgpack channel named after its key (exact
@@ -14,6 +14,15 @@ a drop-oldest queue (``--queue``; drops counted as ``inbox0_dropped``): under CP
 pressure they may thin out, the wire channels never. ``quick-stream recover`` repairs
 the footer-less file, and a restarted recorder writes to ``<name>-1.mcap`` (``-2``, ...)
 instead of overwriting it.
+
+Long runs are split (``--split-mb``, default 4096; ``--split-minutes``): the file is finished
+(footer, indexes) and the next free ``<name>-N.mcap`` starts, with the same channels; no
+message is lost or doubled at the seam. This bounds each file and the writer's in-memory
+index (one entry per chunk, kept for the footer: about 1 MB a minute at 640x480, 30 frames/s).
+
+No loss upstream is silent: the seqs of each stage that never arrived (dropped by a stage,
+lost in transport) are logged and counted in the stats (``unreceived``, per stage
+``unreceived_<stage>``; :mod:`quick_stream.arrivals`).
 """
 from __future__ import annotations
 
@@ -25,9 +34,10 @@ import time
 import zenoh
 
 from quick_stream import foxglove, keys
+from quick_stream.arrivals import ArrivalLedger, Gap
 from quick_stream.cli import argtypes as at
 from quick_stream.foxglove_view import FoxgloveView
-from quick_stream.recording import Recorder, fresh_path
+from quick_stream.recording import SplitRecorder, fresh_path
 from quick_stream.meters import RateMeter
 from quick_stream.runtime import ServiceRuntime, lower_priority, service_main, service_parser
 from quick_stream.wire import WireError
@@ -50,6 +60,10 @@ def build_parser():
     p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="none",
                    help="MCAP chunk compression (default none: images do not compress; zstd saves ~25%% "
                         "on flow and base64 image channels for CPU)")
+    p.add_argument("--split-mb", type=at.nonneg_float, default=4096.0,
+                   help="finish the file and start the next once it holds this many MB (0: never; default 4096)")
+    p.add_argument("--split-minutes", type=at.nonneg_float, default=0.0,
+                   help="finish the file and start the next after this many minutes (default 0: never)")
     return p
 
 
@@ -61,19 +75,41 @@ def run(args, conf: zenoh.Config) -> int:
     views: dict[str, FoxgloveView] = {}
     lock = threading.Lock()  # the writer is shared by zenoh's thread (wire bytes), the flusher and the views
     # the session closes before the file: nothing arrives once the file is finished
+    streams: list[str] = []  # whose Foxglove channels every file registers (a split's next file too)
     # 4 MiB chunks: the writer keeps an index entry per chunk for the footer (memory grows with
     # their number: ~14 per second with 1 MiB chunks at 640x480 and 30 fps); flushes still close
     # a chunk every --flush seconds
-    with Recorder(out, flush_s=args.flush, compression=args.compression, chunk_size=4 << 20) as rec, \
-            ServiceRuntime("recorder", args.stream, conf) as rt:
+    files = SplitRecorder(args.output, out, split_bytes=int(args.split_mb * 2**20), split_s=args.split_minutes * 60,
+                          on_open=lambda rec: [foxglove.register_channels(rec, s) for s in streams],
+                          flush_s=args.flush, compression=args.compression, chunk_size=4 << 20)
+    with files, ServiceRuntime("recorder", args.stream, conf) as rt:
         meter = RateMeter()
         errors = {"bad_keys": 0, "view_errors": 0, "internal_errors": 0}
         logged = {"bytes": 0}
+        ledger = ArrivalLedger()  # seqs of each stage that never arrived: no loss upstream is silent
+        last_gap_log: dict[str, float] = {}
+
+        def gap_seen(gap: Gap) -> None:  # under the lock; one line per stage and second at most
+            now = time.monotonic()
+            if now - last_gap_log.get(gap.stage, -1e9) >= 1.0:
+                last_gap_log[gap.stage] = now
+                log.warning("%s/%s: seq %d-%d never arrived (%d; %d of this stage so far): dropped upstream "
+                            "(see that stage's stats) or lost in transport", gap.stream, gap.stage, gap.first,
+                            gap.last, gap.count, ledger.unreceived().get(gap.stage, 0))
+
+        def wrote(n: int) -> None:  # under the lock
+            finished = files.wrote(n)
+            if finished is not None:
+                log.info("split: finished %s (%d messages), recording to %s", finished, files.done[-1][1],
+                         files.rec.path)
 
         def stats():
             with lock:
-                return {"state": "running", "messages": rec.messages, "bytes": logged["bytes"], **errors,
-                        **meter.take("log")}
+                unreceived = ledger.unreceived()
+                return {"state": "running", "messages": files.messages, "bytes": logged["bytes"],
+                        "files": len(files.done) + 1, **errors, "unreceived": sum(unreceived.values()),
+                        **{f"unreceived_{k}": v for k, v in unreceived.items()}, "late": ledger.late,
+                        "duplicates": ledger.duplicates, **meter.take("log")}
 
         def accept(key_expr: str, payload: bytes, t_ns: int) -> None:
             """Zenoh's thread, on arrival: the exact wire bytes into the file's open chunk at once, so
@@ -86,10 +122,13 @@ def run(args, conf: zenoh.Config) -> int:
                 return
             t0 = time.perf_counter()
             with lock:
-                if rec.closed:
+                if files.rec.closed:
                     return
-                rec.write(key_expr, payload, log_time_ns=t_ns)
+                files.rec.write(key_expr, payload, log_time_ns=t_ns)
                 logged["bytes"] += len(payload)
+                wrote(len(payload))
+                if (gap := ledger.add(key_expr, payload)) is not None:
+                    gap_seen(gap)
                 meter.add((time.perf_counter() - t0) * 1e3)
 
         def view_one(key_expr: str, payload: bytes, t_ns: int) -> None:
@@ -102,7 +141,8 @@ def run(args, conf: zenoh.Config) -> int:
             if view is None:
                 view = views[stream] = FoxgloveView(stream)
                 with lock:
-                    foxglove.register_channels(rec, stream)
+                    streams.append(stream)
+                    foxglove.register_channels(files.rec, stream)
             try:
                 converted = list(view.convert(stage, payload))
             except WireError as e:
@@ -111,12 +151,14 @@ def run(args, conf: zenoh.Config) -> int:
                 return
             with lock:
                 for topic, data in converted:
-                    rec.write(topic, data, log_time_ns=t_ns)
+                    files.rec.write(topic, data, log_time_ns=t_ns)
+                    wrote(len(data))
 
         def flusher() -> None:
             while not rt.stop.wait(min(0.1, args.flush / 4)):
                 with lock:
-                    rec.maybe_flush()
+                    files.rec.maybe_flush()
+                    wrote(0)  # a time split is due even when nothing arrives
 
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
         inbox = rt.inbox(sub_key, args.queue, on_arrival=accept)  # the queue feeds the views only
@@ -136,7 +178,10 @@ def run(args, conf: zenoh.Config) -> int:
             while (item := inbox.pop()) is not None:
                 view_one(*item)
         rt.publish_stats({**stats(), "state": "stopped"})
-    log.info("closed %s: %d messages", out, rec.messages)
+    log.info("closed %s: %d messages%s", files.rec.path, files.rec.messages,
+             f" ({len(files.done)} earlier files, {files.messages} messages in all)" if files.done else "")
+    if unreceived := ledger.unreceived():
+        log.warning("never arrived, per stage: %s", unreceived)
     return 0
 
 

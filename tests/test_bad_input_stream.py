@@ -159,6 +159,11 @@ def test_every_defect_is_counted_in_the_services_stats(run):
     assert f["internal_errors"] == r["internal_errors"] == m["internal_errors"] == 0
     assert m["invalid_motions"] >= 6 and r["flagged"] >= 6
     assert r["resized_frames"] == N - 65  # the smaller frames letterboxed into the MP4's size
+    # the recorder's account of what never reached it: frames 10 (no readable envelope), 52 and
+    # 53 (never sent), and every frame the chain could not stabilize; 47 came late, 44 and 34 twice
+    rec = stats["recorder"]
+    assert rec["unreceived_frame"] == 3 and rec["unreceived_stabilized"] == 9, rec
+    assert rec["late"] >= 1 and rec["duplicates"] >= 2, rec
 
 
 def test_each_problem_is_logged_naming_what_was_wrong(run):

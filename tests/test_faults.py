@@ -5,10 +5,12 @@ router together with a service (issue 7); the numbers come from ``quick-stream b
 For every case: the supervisor restarts each killed process and nothing else; everything stops
 cleanly at the end; the killed stage publishes again within 2 s of the kill (the router, which
 publishes nothing, pauses the stabilized output less than 2 s); every recording is readable, a
-killed recorder's after ``quick-stream recover``; every message of the stream is recorded, except
-what a killed recorder could not receive, and nothing it had received more than 1 s before its
-kill is lost; no frame is lost: a restarted flow, motion or render takes over after the last
-message its predecessor published, from the history its inputs' publishers keep.
+killed recorder's after ``quick-stream recover``; every message of the stream is recorded (a copy
+of it: the one message a killed publisher had in flight may reach the monitor and not the
+recorder, and is then recorded as its successor publishes it again), except what a killed recorder
+could not receive, and nothing it had received more than 1 s before its kill is lost; no frame
+is lost: a restarted flow, motion or render takes over after the last message its predecessor
+published, from the history its inputs' publishers keep.
 """
 from __future__ import annotations
 
@@ -37,8 +39,49 @@ def test_sigkill_mid_stream(tmp_path, case):
         assert [f["repaired"] for f in r["recordings"]] == [True] + [False] * repeat, r
         assert r["not_recorded"] < 200 * repeat, r  # the hole while it restarted (~1 s of messages)
     else:
-        assert len(r["recordings"]) == 1 and r["not_recorded"] == 0, r
+        assert len(r["recordings"]) == 1, r
+        # a message in flight when its publisher is killed can reach some peers (the monitor) and
+        # not others (the recorder); the successor resumes from the recorder's cursor and publishes
+        # that seq again, so the recording holds a copy of every stage's every seq
+        assert r["not_recorded_no_copy"] == 0, r["not_recorded_examples"]
+        assert r["not_recorded"] <= repeat, r["not_recorded_examples"]
     # no frame lost: a restarted flow, motion or render takes over from its inputs' history
     assert r["lost"] == 0 and r["stabilized_unique"] == r["frames_sent"], r
     if "capture" in victims:  # the restarted capture continued the stream's numbering
         assert r["frames_sent"] > 240 and r["flagged"] >= 1, r
+
+
+_SLOW_EXIT = """
+import sys, time
+from quick_stream.runtime import service_main, service_parser
+
+class SlowToDrop:  # stands in for zenoh objects dropped slowly while the interpreter finalises
+    def __del__(self):
+        time.sleep(1.5)
+
+def run(args, conf):
+    global keep
+    keep = SlowToDrop()
+    print("done", flush=True)
+    return 0
+
+sys.exit(service_main("t", service_parser("t", None), run, []))
+"""
+
+
+def test_sigterm_while_a_finished_service_exits_keeps_the_clean_exit():
+    """A supervisor's SIGTERM that reaches a service after its work is done, while CPython finalises
+    (where it reinstalls the default, fatal handler), must not turn exit 0 into -15."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    p = subprocess.Popen([sys.executable, "-c", _SLOW_EXIT], stdout=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "done"
+        time.sleep(0.5)  # now inside finalisation (the object's 1.5 s drop)
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(10) == 0
+    finally:
+        p.kill()

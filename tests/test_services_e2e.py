@@ -15,7 +15,9 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import cv2
 import numpy as np
@@ -132,24 +134,11 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
 def test_recorder_killed_with_sigkill_leaves_a_recoverable_file(tmp_path):
     """SIGKILL the recorder mid-stream: `quick-stream recover` repairs the file and keeps every
     message logged more than ~1 s (the flush period) before the kill."""
-
-    from quick_stream.cli.up_cmd import free_port, open_when_up
-    from quick_stream.launcher import ServiceSpec, Supervisor
     from quick_stream.recording import RecordingError, read_messages
     from quick_stream.wire import Stats, encode_stats
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     rec_path = tmp_path / "rec.mcap"
-    sup = Supervisor([ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint]),
-                      ServiceSpec("recorder", ["-m", "services.recorder", "-e", endpoint, "--no-multicast-scouting",
-                                               "--output", str(rec_path)], restart=False)], tmp_path / "logs")
-    sup.start("router")
-    session = open_when_up(endpoint, 20)
-    try:
-        sup.start("recorder")
-        deadline = time.monotonic() + 30
-        while "recorder" not in _alive(session) and time.monotonic() < deadline:
-            time.sleep(0.1)
+    with router_and_recorder(tmp_path, "--output", str(rec_path)) as (sup, session, _):
         pub = session.declare_publisher("quick/@v1/cam0/stats")
         sent_at = []
         for i in range(60):  # 3 s at 20 Hz
@@ -158,9 +147,6 @@ def test_recorder_killed_with_sigkill_leaves_a_recoverable_file(tmp_path):
             time.sleep(0.05)
         os.kill(sup.pid("recorder"), signal.SIGKILL)
         killed = time.monotonic()
-    finally:
-        session.close()
-        sup.stop()
     with pytest.raises(RecordingError, match="recover"):
         list(read_messages(rec_path))
     fixed = tmp_path / "fixed.mcap"
@@ -171,6 +157,31 @@ def test_recorder_killed_with_sigkill_leaves_a_recoverable_file(tmp_path):
            and decode(d).obj.service == "probe"}
     old_enough = {i for i, t in enumerate(sent_at) if killed - t > 1.3}
     assert old_enough and old_enough <= got
+
+
+@contextmanager
+def router_and_recorder(tmp_path: Path, *recorder_args: str) -> Iterator[tuple[object, object, dict]]:
+    """A router and a recorder (not restarted) plus a session of the test's own, once the recorder
+    is up; yields (supervisor, session, exit codes filled in on leaving)."""
+    from quick_stream.cli.up_cmd import free_port, open_when_up
+    from quick_stream.launcher import ServiceSpec, Supervisor
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sup = Supervisor([ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint]),
+                      ServiceSpec("recorder", ["-m", "services.recorder", "-e", endpoint, "--no-multicast-scouting",
+                                               *recorder_args], restart=False)], tmp_path / "logs")
+    sup.start("router")
+    session = open_when_up(endpoint, 20)
+    codes: dict = {}
+    try:
+        sup.start("recorder")
+        deadline = time.monotonic() + 30
+        while "recorder" not in _alive(session) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        yield sup, session, codes
+    finally:
+        session.close()
+        codes.update(sup.stop())
 
 
 def _alive(session) -> set[str]:
@@ -212,3 +223,32 @@ def test_ctrl_c_stops_every_process_and_leaves_a_complete_recording(tmp_path):
     with open(tmp_path / "recording.mcap", "rb") as f:  # closed with its footer: the indexed reader opens it
         n = sum(1 for _ in make_reader(f).iter_messages(topics=["quick/@v1/cam0/frame"]))
     assert 40 <= n < 900
+
+
+def test_recorder_splits_long_runs_into_finished_files_losing_nothing(tmp_path):
+    """``--split-mb``: each file is finished (readable through its footer), the next keeps the
+    Foxglove channels, and every frame is in exactly one file, in order."""
+    from quick_stream.recording import read_messages
+    from quick_stream.sources import open_source
+    from quick_stream.wire import encode_frame
+
+    split = ("--output", str(tmp_path / "rec.mcap"), "--split-mb", "0.1")
+    with router_and_recorder(tmp_path, *split) as (_, session, codes):
+        pub = session.declare_publisher("quick/@v1/cam0/frame")
+        for f in open_source("synthetic:frames=40,width=96,height=72"):  # ~35 KB a message, views included
+            pub.put(encode_frame(f, "cam0", color="raw", depth="raw"))
+            time.sleep(0.03)
+        time.sleep(1.0)
+    assert codes["recorder"] == 0, codes
+    files = sorted(tmp_path.glob("rec*.mcap"), key=lambda p: int(p.stem.partition("-")[2] or 0))
+    assert len(files) >= 5, files
+    seqs = []
+    for path in files:
+        frames = [decode(d).seq for t, _, d in read_messages(path) if t == "quick/@v1/cam0/frame"]
+        seqs += frames
+        with open(path, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+        views = [c for c in summary.channels.values() if not c.topic.startswith("quick/")]
+        assert views and all(c.schema_id for c in views), path  # Foxglove channels, with schemas, in every file
+    assert seqs == list(range(40))
+    assert "split: finished" in (tmp_path / "logs" / "recorder.log").read_text()

@@ -189,9 +189,11 @@ def _wait_until(cond, timeout: float) -> None:
         time.sleep(0.05)
 
 
-def _recordings(out: Path) -> tuple[set[bytes], list[dict]]:
-    """Digests of every message in the run's recordings (repairing footer-less ones) and per-file notes."""
+def _recordings(out: Path) -> tuple[set[bytes], set[tuple[str, str, int]], list[dict]]:
+    """Digests and (stage, type, seq) of every message in the run's recordings (repairing
+    footer-less ones) and per-file notes."""
     digests: set[bytes] = set()
+    ids: set[tuple[str, str, int]] = set()
     files = []
     def order(p: Path) -> int:  # recording.mcap, recording-1.mcap, recording-2.mcap, ...
         return int(p.stem.rpartition("-")[2]) if "-" in p.stem else 0
@@ -207,17 +209,29 @@ def _recordings(out: Path) -> tuple[set[bytes], list[dict]]:
             msgs = list(read_messages(fixed))
         note["messages"] = len(msgs)
         note["first_log_time"] = min((t for _, t, _ in msgs), default=0) / 1e9
-        digests |= {hashlib.blake2b(d, digest_size=16).digest() for topic, _, d in msgs if topic.startswith("quick/")}
+        for topic, _, d in msgs:
+            if topic.startswith("quick/"):
+                digests.add(hashlib.blake2b(d, digest_size=16).digest())
+                try:
+                    r = unpack(d)
+                    ids.add((topic.rsplit("/", 1)[-1], r.type, r.seq))
+                except WireError:
+                    pass
         files.append(note)
-    return digests, files
+    return digests, ids, files
 
 
 def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: StreamMonitor, st: dict,
             code: int | None, text: str, accept_s: float) -> dict:
     seen = mon.seen
-    sent = sorted({m.seq for m in seen if m.type == "frame"})
+    digests, ids, files = _recordings(out)
+    # what was sent and stabilized: seen by the monitor or recorded (the monitor is a subscriber
+    # like any other and may itself miss a message; the recording is the record)
+    sent = sorted({m.seq for m in seen if m.type == "frame"} | {q for _, t, q in ids if t == "frame"})
     stab = [m for m in seen if m.type == "stabilized"]
-    out_seqs = {m.seq for m in stab}
+    out_seqs = {m.seq for m in stab} | {q for _, t, q in ids if t == "stabilized"}
+    monitor_ids = {(m.stage, m.type, m.seq) for m in seen}
+    monitor_missed = sorted(i for i in ids - monitor_ids if i[1] != "stats")
     per_kill = []
     for k in kills:
         row = {}
@@ -230,11 +244,14 @@ def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: S
         t_out = [m.t for m in stab if m.t > k - 0.5]
         row["stabilized_pause_s"] = round(max(np.diff(t_out), default=0.0), 3) if len(t_out) > 1 else None
         per_kill.append(row)
-    digests, files = _recordings(out)
     if "recorder" in victims:  # the restarted recorder's first message: when recording resumed
         for k, row, note in zip(kills, per_kill, files[1:]):
             row["recorder_resume_s"] = round(note["first_log_time"] - k, 3)
     missing = [m for m in seen if m.digest not in digests and m.type != "stats"]
+    # of those, the ones of which the recording holds no other copy (same stage, type and seq: a
+    # message whose publisher died while sending it can reach some peers and not others, and its
+    # successor publishes that seq again, with other bytes)
+    no_copy = [m for m in missing if (m.stage, m.type, m.seq) not in ids]
     rec_kills = [k for k in kills if "recorder" in victims]
     early = [m for m in missing if any(m.t < k - accept_s for k in rec_kills)]
     # how long before a recorder kill the oldest message it lost had arrived (the loss window)
@@ -246,9 +263,16 @@ def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: S
             "up_exit": code, "clean_stop": code == 0 and "exit codes" not in text,
             "frames_sent": len(sent), "stabilized": len(stab), "stabilized_unique": len(out_seqs),
             "flagged": sum(m.flagged for m in stab), "lost": len(set(sent) - out_seqs),
+            "monitor_missed": len(monitor_missed), "monitor_missed_examples": monitor_missed[:5],
             "render": {k: render.get(k) for k in ("missing", "dropped", "orphans", "refused_frames")},
+            "recorder_unreceived": {k: v for k, v in services.get("recorder", {}).get("stats", {}).items()
+                                    if k.startswith("unreceived_")},
             "recordings": files, "not_recorded": len(missing),
             "not_recorded_by_stage": {s: sum(m.stage == s for m in missing) for s in sorted({m.stage for m in missing})},
+            "not_recorded_no_copy": len(no_copy),
+            "not_recorded_examples": [{"stage": m.stage, "type": m.type, "seq": m.seq,
+                                       "s_from_kill": round(min((m.t - k for k in kills), key=abs, default=0.0), 3),
+                                       "copy_recorded": (m.stage, m.type, m.seq) in ids} for m in missing[:5]],
             "lost_accepted_before_kill": len(early), "loss_window_s": round(window, 3)}
 
 
@@ -257,9 +281,12 @@ def format_report(r: dict) -> str:
     rec = ", ".join(f"{f['file']} {f['messages']} msgs{' (recovered)' if f['repaired'] else ''}" for f in r["recordings"])
     return (f"{r['case']:<12} kills {r['kills']}  [{kills}]\n"
             f"{'':<12} frames sent {r['frames_sent']}, stabilized {r['stabilized_unique']} (flagged {r['flagged']}), "
-            f"lost {r['lost']}; render {r['render']}; restarts "
+            f"lost {r['lost']} (messages recorded that the monitor missed: {r['monitor_missed']} "
+            f"{r['monitor_missed_examples']}); render {r['render']}; never reached the recorder "
+            f"{r['recorder_unreceived']}; restarts "
             f"{ {k: v for k, v in r['restarts'].items() if v} }; clean stop {r['clean_stop']}\n"
-            f"{'':<12} recordings: {rec}; messages not recorded {r['not_recorded']} {r['not_recorded_by_stage']}, "
+            f"{'':<12} recordings: {rec}; messages not recorded {r['not_recorded']} {r['not_recorded_by_stage']} "
+            f"(no copy of that stage's seq recorded: {r['not_recorded_no_copy']}), "
             f"of them seen > 1 s before a recorder kill: {r['lost_accepted_before_kill']} (oldest lost: seen "
             f"{r['loss_window_s']} s before the kill)")
 

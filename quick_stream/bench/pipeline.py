@@ -126,11 +126,13 @@ def prerecord(path: Path, spec: str) -> str:
 
 
 def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
-                 record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1) -> dict:
+                 record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1,
+                 render_slow_ms: float = 0.0) -> dict:
     """One measured run; ``fps`` None = capture as fast as possible; ``replay``: the capture sends a
     pre-encoded recording instead of rendering synthetic frames live; ``streams``: that many cameras
     side by side (``cam0``, ``cam1``, ...; each its own capture, flow, motion and render, synthetic
-    seeds 1, 2, ...; one recorder of all). Returns the report dict."""
+    seeds 1, 2, ...; one recorder of all); ``render_slow_ms``: render sleeps that long per frame
+    (backpressure). Returns the report dict."""
     from ..cli.up_cmd import free_port, open_when_up
 
     out.mkdir(parents=True, exist_ok=True)
@@ -150,7 +152,8 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         specs += [ServiceSpec(_name("flow", cam, streams), ["-m", "services.flow", *z, *s]),
                   ServiceSpec(_name("motion", cam, streams), ["-m", "services.motion", *z, *s]),
                   ServiceSpec(_name("render", cam, streams), ["-m", "services.render", *z, *s,
-                                                                "--output", str(out / f"stabilized-{cam}.mp4")])]
+                                                                "--output", str(out / f"stabilized-{cam}.mp4"),
+                                                                "--slow-ms", str(render_slow_ms)])]
         # the recorder's liveliness token is under its own stream (cam0), even when it records all
         wait = ",".join(["recorder"] * (record and cam == "cam0") + ["flow", "motion", "render"])
         cap = ["-m", "services.capture", *z, *s, "--source", src, "--wait-for", wait]
@@ -163,6 +166,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     subs = [session.declare_subscriber(keys.key(cam, "stabilized"), mons[cam].on_sample) for cam in cams]
     board = StatusBoard(session)
     samples: dict[str, list[tuple[float, float, int, int]]] = {}
+    queues: dict[str, list[float]] = {}  # "<stream>.<service>.<queue>" -> its length, once a second
     try:
         for s in specs[1:]:
             sup.start(s.name)
@@ -179,6 +183,11 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
                 got = proc_sample(pid) if pid else None
                 if got:
                     samples.setdefault(name, []).append((now, *got))
+            if t_start is not None and now - t_start > warmup_s:
+                for (st, svc), vals in board.snapshot().items():
+                    for k, v in vals.items():
+                        if k in QUEUES or k.endswith("_queued"):
+                            queues.setdefault(f"{st}.{svc}.{k}", []).append(float(v))
             if all(m.ended for m in mons.values()) or (t_start and now - t_start > seconds + warmup_s + 30):
                 break
         stats = board.snapshot()
@@ -190,12 +199,19 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         sup.stop([s.name for s in specs if s.name.startswith("capture")]
                  + [s.name for s in specs[1:] if not s.name.startswith("capture")] + ["router"])
     procs = _processes(samples)
+    # max over each half of the measured window: a queue that grows shows a larger second half
+    qs = {k: {"max_first_half": max(v[:max(1, len(v) // 2)]), "max_second_half": max(v[len(v) // 2:]),
+              "mean": round(sum(v) / len(v), 1)} for k, v in sorted(queues.items())}
     per = {cam: _report(fps, seconds, warmup_s, width, height, mons[cam], stats, record, cam) for cam in cams}
     capture = "replay of a pre-encoded recording" if replay else "synthetic, rendered live"
+    common = {"processes": procs, "queues": qs, "capture": capture, "render_slow_ms": render_slow_ms}
     if streams == 1:
-        return {**per["cam0"], "processes": procs, "capture": capture}
-    return {"streams": per, "processes": procs, "capture": capture, "size": f"{width}x{height}",
-            "fps_target": fps or "fast", "seconds": seconds, "recording": record}
+        return {**per["cam0"], **common}
+    return {"streams": per, **common, "size": f"{width}x{height}", "fps_target": fps or "fast",
+            "seconds": seconds, "recording": record}
+
+
+QUEUES = ("buffered", "pending_releases")  # besides every inbox's "inbox<i>_queued": render's held frames
 
 
 def _name(service: str, cam: str, streams: int) -> str:
@@ -281,16 +297,21 @@ def format_report(r: dict) -> str:
         lines.append(f"  {name:<15} {p['cpu_pct']:>6.1f} {p['rss_mb_warm']:>9.1f} {p['rss_mb_end']:>8.1f} "
                      f"{p['rss_growth_pct']:>6.1f}% {p['peak_rss_mb']:>9.1f}        "
                      f"{' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
+    if r.get("queues"):
+        lines.append("  queue lengths after warm-up, sampled each second (max in the first half/max in the second "
+                     "half/mean): " + ", ".join(f"{k} {q['max_first_half']:.0f}/{q['max_second_half']:.0f}/"
+                                                f"{q['mean']:g}" for k, q in r["queues"].items()))
     return "\n".join(lines)
 
 
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
-         record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480") -> int:
+         record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480",
+         render_slow_ms: float = 0.0) -> int:
     reports = []
     w, h = (int(x) for x in size.split("x"))
     for fps in fps_list:
         r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, width=w, height=h, record=record,
-                         replay=replay, streams=streams)
+                         replay=replay, streams=streams, render_slow_ms=render_slow_ms)
         reports.append(r)
         print(format_report(r), flush=True)
     if json_path:

@@ -66,6 +66,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--streams", type=at.int_in(1, 16), default=1,
                     help="cameras side by side, each with its own capture, flow, motion and render (default 1)")
     pl.add_argument("--size", type=at.frame_size, default="640x480", help="frame size WxH (default 640x480)")
+    pl.add_argument("--render-slow-ms", type=at.nonneg_float, default=0.0, metavar="MS",
+                    help="render sleeps MS per frame: a deliberately slow stage (backpressure; default 0)")
     pl.add_argument("--replay", action="store_true",
                     help="capture replays a pre-encoded recording (camera-like cost) instead of rendering live")
     pl.add_argument("--out", type=at.output_dir("--out"), default="out/bench-pipeline",
@@ -119,7 +121,7 @@ def _run(args: argparse.Namespace) -> int:
         from ..bench import pipeline
 
         return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
-                             streams=args.streams, size=args.size,
+                             streams=args.streams, size=args.size, render_slow_ms=args.render_slow_ms,
                              replay=args.replay)
     if args.bench == "faults":
         from ..bench import faults

@@ -1,0 +1,93 @@
+"""Which seqs of each stage never arrived: a receiver's view of loss anywhere upstream.
+
+Every stage numbers its messages with the frame's seq, so a receiver that sees seq 229
+follow 208 knows 209-228 did not reach it: dropped by a stage that says so in its own
+stats (render's ``dropped``, flow's ``refused_frames``), or lost without a word (a
+transport that drops under congestion: zenoh's ``CongestionControl.DROP`` gives up on a
+message after ``wait_before_drop``; a publisher killed mid-send). The recorder keeps this
+account of everything it records, so no loss is silent (docs/reliability.md).
+
+A seq that arrives late (after a higher one) fills its gap again. The missing seqs of a
+stage are remembered up to ``window`` behind its newest; older ones are final.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .wire.codec import peek
+
+
+@dataclass
+class _Stage:
+    newest: int = -1
+    missing: set[int] = field(default_factory=set)
+    unreceived: int = 0  # seqs skipped and not (yet) filled: the stage's count
+
+
+@dataclass
+class Gap:
+    """Seqs ``first``..``last`` of ``stage`` in ``stream`` skipped by the message that just arrived."""
+
+    stream: str
+    stage: str
+    first: int
+    last: int
+
+    @property
+    def count(self) -> int:
+        return self.last - self.first + 1
+
+
+class ArrivalLedger:
+    """Per (stream, stage): the newest seq received and the seqs skipped on the way."""
+
+    def __init__(self, window: int = 4096) -> None:
+        self.window = window
+        self._stages: dict[tuple[str, str], _Stage] = {}
+        self._ended: dict[str, int] = {}  # unreceived of stages whose stream ended, per stage
+        self.late = 0  # arrived after a higher seq (filled a gap)
+        self.duplicates = 0  # arrived again (a restarted publisher republishing, a replay)
+
+    def add(self, key_expr: str, payload: bytes) -> Gap | None:
+        """Account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any.
+        Stats and health (numbered on their own) and unreadable envelopes are not counted; an
+        ``end`` closes the stage's stream (a new one may start again from 0)."""
+        env = peek(payload)
+        if env is None or env[0] in ("stats", "health"):
+            return None
+        mtype, seq = env
+        where = tuple(key_expr.rsplit("/", 2)[-2:])
+        st = self._stages.setdefault(where, _Stage())  # type: ignore[arg-type]
+        if mtype == "end":
+            ended = self._stages.pop(where)
+            if ended.unreceived:
+                self._ended[where[1]] = self._ended.get(where[1], 0) + ended.unreceived
+            return None
+        if st.newest < 0:  # the first message of this stage we see: nothing before it is ours to miss
+            st.newest = seq
+            return None
+        if seq > st.newest:
+            gap = None
+            if seq > st.newest + 1:
+                gap = Gap(where[0], where[1], st.newest + 1, seq - 1)
+                st.missing.update(range(max(st.newest + 1, seq - self.window), seq))
+                st.unreceived += gap.count
+            st.newest = seq
+            if len(st.missing) > self.window:
+                st.missing = {s for s in st.missing if s > seq - self.window}
+            return gap
+        if seq in st.missing:
+            st.missing.discard(seq)
+            st.unreceived -= 1
+            self.late += 1
+        else:
+            self.duplicates += 1
+        return None
+
+    def unreceived(self) -> dict[str, int]:
+        """Seqs never received, summed over streams, per stage (stages without any omitted)."""
+        out = dict(self._ended)
+        for (_, stage), st in self._stages.items():
+            if st.unreceived:
+                out[stage] = out.get(stage, 0) + st.unreceived
+        return out
