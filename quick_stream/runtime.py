@@ -39,8 +39,8 @@ import zenoh
 import zenoh.ext
 
 from . import keys
+from .arrivals import ArrivalLedger, Gap
 from .wire import Decoded, Stats, WireError, decode, encode_stats
-from .wire.codec import peek
 
 log = logging.getLogger(__name__)
 
@@ -48,24 +48,28 @@ log = logging.getLogger(__name__)
 class Inbox:
     """Bounded drop-oldest queue of (key, payload bytes, arrival ns) fed by a zenoh callback subscriber.
 
-    It also keeps ``newest``: per (stream, stage) of the key the highest seq of the data
-    messages that arrived since that stage's last ``end`` (read from the envelope on arrival,
-    so a busy service still answers cursor queries exactly)."""
+    It also keeps ``arrivals``: per (stream, stage) of the key the highest seq of the data
+    messages that arrived since that stage's last ``end`` and the seqs skipped on the way
+    (read from the envelope on arrival, so a busy service still answers cursor queries
+    exactly; :class:`~quick_stream.arrivals.ArrivalLedger`). ``on_gap`` hears each gap."""
 
     def __init__(self, capacity: int, cond: threading.Condition,
-                 on_arrival: Callable[[str, bytes, int], None] | None = None) -> None:
+                 on_arrival: Callable[[str, bytes, int], None] | None = None,
+                 on_gap: Callable[[Gap], None] | None = None) -> None:
         self.capacity = capacity
         self.on_arrival = on_arrival
+        self.on_gap = on_gap
         self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
         self._cond = cond
         self.received = 0
         self.dropped = 0
-        self.newest: dict[tuple[str, str], int] = {}
+        self.arrivals = ArrivalLedger()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, data = str(sample.key_expr), sample.payload.to_bytes()
         item = (key, data, time.time_ns())
-        self._track(key, data)
+        if (gap := self.arrivals.add(key, data)) is not None and self.on_gap is not None:
+            self.on_gap(gap)
         if self.on_arrival is not None:
             self.on_arrival(*item)
         with self._cond:
@@ -75,16 +79,6 @@ class Inbox:
             self._q.append(item)
             self.received += 1
             self._cond.notify_all()
-
-    def _track(self, key: str, data: bytes) -> None:
-        env = peek(data)
-        if env is None or env[0] in ("stats", "health"):
-            return
-        where = tuple(key.rsplit("/", 2)[-2:])  # (stream, stage)
-        if env[0] == "end":
-            self.newest.pop(where, None)  # the stream ended; a new one may start from 0
-        elif env[1] > self.newest.get(where, -1):
-            self.newest[where] = env[1]
 
     def pop(self) -> tuple[str, bytes, int] | None:
         with self._cond:
@@ -144,12 +138,14 @@ class ServiceRuntime:
         return pub
 
     def inbox(self, key_expr: str, capacity: int, history: bool = False,
-              on_arrival: Callable[[str, bytes, int], None] | None = None) -> Inbox:
+              on_arrival: Callable[[str, bytes, int], None] | None = None,
+              on_gap: Callable[[Gap], None] | None = None) -> Inbox:
         """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages. ``history``: first
         receive what the publishers' caches hold (a service restarted mid-stream takes over).
         ``on_arrival(key, payload, arrival_ns)`` runs in zenoh's thread as each message arrives, before it is
-        queued (keep it short; it must not raise)."""
-        box = Inbox(capacity, self._cond, on_arrival)
+        queued (keep it short; it must not raise); ``on_gap(gap)`` before it, when the message skips seqs
+        of its stage (:mod:`quick_stream.arrivals`)."""
+        box = Inbox(capacity, self._cond, on_arrival, on_gap)
         if history:
             # a publisher this session does not know yet (its declaration arrives after ours) is queried
             # once seen
@@ -186,7 +182,7 @@ class ServiceRuntime:
 
     def serve_cursor(self, all_streams: bool = False) -> None:
         """Answer cursor queries (``quick/@v1/<stream>/cursor/<service>``) with, per stage this service
-        receives, the newest seq of the stream under way (its inboxes' ``newest``). A service
+        receives, the newest seq of the stream under way (its inboxes' ``arrivals``). A service
         restarted mid-stream asks for its own output stage, so it takes over where its
         predecessor stopped (:meth:`stream_cursor`). ``all_streams``: for every stream it receives
         (a recorder of all streams), each answered about its own."""
@@ -194,7 +190,7 @@ class ServiceRuntime:
             stream = str(query.key_expr).split("/")[2]
             newest: dict[str, int] = {}
             for box in self._inboxes:
-                for (s, stage), seq in list(box.newest.items()):
+                for (s, stage), seq in box.arrivals.newest().items():
                     if s == stream:
                         newest[stage] = max(seq, newest.get(stage, -1))
             query.reply(keys.cursor_key(stream, self.service), encode_stats(Stats(self.service, newest), stream, 0))

@@ -34,7 +34,7 @@ import time
 import zenoh
 
 from quick_stream import foxglove, keys
-from quick_stream.arrivals import ArrivalLedger, Gap
+from quick_stream.arrivals import Gap
 from quick_stream.cli import argtypes as at
 from quick_stream.foxglove_view import FoxgloveView
 from quick_stream.recording import SplitRecorder, fresh_path
@@ -86,16 +86,15 @@ def run(args, conf: zenoh.Config) -> int:
         meter = RateMeter()
         errors = {"bad_keys": 0, "view_errors": 0, "internal_errors": 0}
         logged = {"bytes": 0}
-        ledger = ArrivalLedger()  # seqs of each stage that never arrived: no loss upstream is silent
         last_gap_log: dict[str, float] = {}
 
-        def gap_seen(gap: Gap) -> None:  # under the lock; one line per stage and second at most
+        def gap_seen(gap: Gap) -> None:  # zenoh's thread; one line per stage and second at most
             now = time.monotonic()
             if now - last_gap_log.get(gap.stage, -1e9) >= 1.0:
                 last_gap_log[gap.stage] = now
                 log.warning("%s/%s: seq %d-%d never arrived (%d; %d of this stage so far): dropped upstream "
                             "(see that stage's stats) or lost in transport", gap.stream, gap.stage, gap.first,
-                            gap.last, gap.count, ledger.unreceived().get(gap.stage, 0))
+                            gap.last, gap.count, inbox.arrivals.unreceived().get(gap.stage, 0))
 
         def wrote(n: int) -> None:  # under the lock
             finished = files.wrote(n)
@@ -105,6 +104,7 @@ def run(args, conf: zenoh.Config) -> int:
 
         def stats():
             with lock:
+                ledger = inbox.arrivals  # seqs of each stage that never arrived: no loss upstream is silent
                 unreceived = ledger.unreceived()
                 return {"state": "running", "messages": files.messages, "bytes": logged["bytes"],
                         "files": len(files.done) + 1, **errors, "unreceived": sum(unreceived.values()),
@@ -127,8 +127,6 @@ def run(args, conf: zenoh.Config) -> int:
                 files.rec.write(key_expr, payload, log_time_ns=t_ns)
                 logged["bytes"] += len(payload)
                 wrote(len(payload))
-                if (gap := ledger.add(key_expr, payload)) is not None:
-                    gap_seen(gap)
                 meter.add((time.perf_counter() - t0) * 1e3)
 
         def view_one(key_expr: str, payload: bytes, t_ns: int) -> None:
@@ -161,7 +159,7 @@ def run(args, conf: zenoh.Config) -> int:
                     wrote(0)  # a time split is due even when nothing arrives
 
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
-        inbox = rt.inbox(sub_key, args.queue, on_arrival=accept)  # the queue feeds the views only
+        inbox = rt.inbox(sub_key, args.queue, on_arrival=accept, on_gap=gap_seen)  # the queue feeds the views only
         rt.serve_cursor(args.all_streams)  # the newest seq of every stage: how far a restarted service's predecessor got
         threading.Thread(target=flusher, name="recorder-flush", daemon=True).start()
         rt.ready()
@@ -180,7 +178,7 @@ def run(args, conf: zenoh.Config) -> int:
         rt.publish_stats({**stats(), "state": "stopped"})
     log.info("closed %s: %d messages%s", files.rec.path, files.rec.messages,
              f" ({len(files.done)} earlier files, {files.messages} messages in all)" if files.done else "")
-    if unreceived := ledger.unreceived():
+    if unreceived := inbox.arrivals.unreceived():
         log.warning("never arrived, per stage: %s", unreceived)
     return 0
 

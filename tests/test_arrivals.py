@@ -38,7 +38,7 @@ def test_stages_and_streams_are_separate_and_stats_are_not_counted():
 
 def test_an_end_closes_the_stream_and_keeps_its_count():
     led = ArrivalLedger()
-    for m in (msg(0), msg(2), msg(3, "end"), msg(0), msg(1)):
+    for m in (msg(0), msg(2), msg(2, "end"), msg(0), msg(1)):
         led.add(KEY, m)
     assert led.unreceived() == {"stabilized": 1}
     assert led.duplicates == 0  # the new stream's 0 and 1 are new
@@ -53,3 +53,13 @@ def test_undecodable_envelopes_are_ignored_and_old_gaps_are_final():
     led.add(KEY, msg(95))  # within the window: fills
     led.add(KEY, msg(3))  # far behind: not remembered as missing any more
     assert led.unreceived() == {"stabilized": 98} and (led.late, led.duplicates) == (1, 1)
+
+
+def test_the_end_marker_reveals_what_never_came_at_the_end():
+    led = ArrivalLedger()
+    for s in (0, 1, 2):
+        assert led.add(KEY, msg(s)) is None
+    gap = led.add(KEY, msg(4, "end"))  # the stream's last seq is 4: 3 and 4 never came
+    assert (gap.first, gap.last) == (3, 4) and led.unreceived() == {"stabilized": 2}
+    assert led.add(KEY, msg(0)) is None and led.add(KEY, msg(0, "end")) is None  # a complete new stream
+    assert led.unreceived() == {"stabilized": 2}
