@@ -30,6 +30,7 @@ import pytest
 
 import quick_stream.cli
 import services.recorder as recorder_service
+from quick_stream.bench.fuzz_mcap import watchdog
 from quick_stream.cli import argtypes
 from quick_stream.keys import key
 from quick_stream.recording import Recorder
@@ -305,24 +306,6 @@ class Reached(BaseException):
     """A bad input got past validation to real work (a BaseException: no ``except Exception`` hides it)."""
 
 
-class Hung(BaseException):
-    """A row ran longer than CASE_TIMEOUT_S."""
-
-
-@contextmanager
-def deadline(seconds: float) -> Iterator[None]:
-    def on_alarm(_signum: int, _frame: object) -> None:
-        raise Hung(f"still running after {seconds:g} s")
-
-    old = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
-
-
 def _reached(what: str) -> Callable[..., None]:
     def fail(*_a: object, **_k: object) -> None:
         raise Reached(f"bad input reached {what}")
@@ -362,7 +345,7 @@ def entry_main(entry: str) -> Callable[[list[str]], int]:
 def run_in_process(entry: str, argv: list[str]) -> int:
     """The exit code of ``main(argv)``, whether returned or raised (argparse raises SystemExit)."""
     try:
-        with deadline(CASE_TIMEOUT_S):
+        with watchdog(CASE_TIMEOUT_S):  # a hang fails the case
             return entry_main(entry)(argv)
     except SystemExit as e:
         return e.code if isinstance(e.code, int) else 1

@@ -255,19 +255,19 @@ MUTATORS: dict[str, Mutator] = {
 
 # --- running the entry points --------------------------------------------------------------------
 
-class _Hang(BaseException):
+class Hang(BaseException):
     """Raised by the watchdog; a BaseException so that no ``except Exception`` swallows it."""
 
 
 @contextlib.contextmanager
-def _watchdog(seconds: float) -> Iterator[None]:
+def watchdog(seconds: float) -> Iterator[None]:
     """Interrupt the body after ``seconds`` (SIGALRM; only in the main thread, else timing only)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
     def fire(_sig, _frame):
-        raise _Hang()
+        raise Hang(f"still running after {seconds:g} s")
 
     old = signal.signal(signal.SIGALRM, fire)
     signal.setitimer(signal.ITIMER_REAL, seconds)
@@ -360,9 +360,9 @@ def _run_entry(rep: McapFuzzReport, entry: str, path: Path, out: Path, hang_s: f
     t0 = time.perf_counter()
     outcome: Outcome = ("bug", None)
     try:
-        with _watchdog(hang_s):
+        with watchdog(hang_s):
             outcome = _ENTRY_FUNCS[entry](path, out)
-    except _Hang:
+    except Hang:
         rep.hangs += 1
         rep.crashes.append(dict(where, kind="hang", entry=entry, error=f"still running after {hang_s} s"))
     except Unclear as e:
