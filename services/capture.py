@@ -130,7 +130,7 @@ def run(args, conf: zenoh.Config) -> int:
         return 2
     depth_scale = float(getattr(source, "depth_scale", 1000.0))
     with ServiceRuntime("capture", args.stream, conf) as rt:
-        pub = rt.publisher("frame", cache=args.history)
+        pub = rt.publisher("frame", lossless=True, cache=args.history)  # lost only where counted (inboxes)
         rt.ready()
         wait = [s for s in args.wait_for.split(",") if s]
         if wait:
