@@ -51,21 +51,19 @@ class ArrivalLedger:
     def add(self, key_expr: str, payload: bytes) -> Gap | None:
         """Account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any.
         Stats and health (numbered on their own) and unreadable envelopes are not counted; an
-        ``end`` closes the stage's stream (a new one may start again from 0); its seq, the stream's
-        last, reveals a gap at the end (the last frame lost on its way: no later seq shows it)."""
+        ``end`` closes the stage's stream (a new one may start again from 0)."""
         env = peek(payload)
         if env is None or env[0] in ("stats", "health"):
             return None
         mtype, seq = env
         where = tuple(key_expr.rsplit("/", 2)[-2:])
         st = self._stages.setdefault(where, _Stage())  # type: ignore[arg-type]
-        if mtype == "end":  # its seq is the stream's last: what did not come before it is missing too
+        if mtype == "end":  # its seq is the stream's last frame, not the stage's last (a flow is
+            # numbered by its pair's first frame): it says nothing about the stage's own seqs
             ended = self._stages.pop(where)
-            gap = Gap(where[0], where[1], ended.newest + 1, seq) if 0 <= ended.newest < seq else None
-            missed = ended.unreceived + (gap.count if gap else 0)
-            if missed:
-                self._ended[where[1]] = self._ended.get(where[1], 0) + missed
-            return gap
+            if ended.unreceived:
+                self._ended[where[1]] = self._ended.get(where[1], 0) + ended.unreceived
+            return None
         if st.newest < 0:  # the first message of this stage we see: nothing before it is ours to miss
             st.newest = seq
             return None

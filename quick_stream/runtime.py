@@ -436,6 +436,7 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
 
     args = parser.parse_args(argv)
     setup_logging(service, args.verbose)
+    atexit.unregister(_ignore_term_while_exiting)  # once, however often main() runs in one process
     atexit.register(_ignore_term_while_exiting)
     if early is not None and (code := early(args)) is not None:
         return code

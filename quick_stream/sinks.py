@@ -80,6 +80,7 @@ class BackgroundSink:
         self.sink = sink
         self._q: "queue.Queue[tuple[int, np.ndarray] | None]" = queue.Queue(max_queued)
         self._error: BaseException | None = None
+        self._accepted = 0
         self._thread = threading.Thread(target=self._run, name="video-sink", daemon=True)
         self._thread.start()
 
@@ -93,7 +94,9 @@ class BackgroundSink:
 
     @property
     def frames(self) -> int:
-        return self.sink.frames
+        """Frames accepted for the file (written, or queued: none is dropped); the worker may be
+        behind, so the file's own count would under-report (render's "end of stream" log did)."""
+        return self._accepted
 
     @property
     def resized(self) -> int:
@@ -103,6 +106,7 @@ class BackgroundSink:
         if self._error is not None:
             raise self._error
         self._q.put((seq, image))
+        self._accepted += 1
 
     def close(self) -> None:
         if self._thread.is_alive():

@@ -36,7 +36,7 @@ import zenoh
 from .. import keys
 from ..recording import RecordingError, read_messages, recover
 from ..wire import WireError
-from ..wire.codec import unpack
+from ..wire.codec import peek, unpack
 
 OUTPUT = {"capture": "frame", "flow": "flow", "motion": "motion", "render": "stabilized"}
 CASES = ("flow", "motion", "render", "capture", "recorder", "router", "flow*3", "render*3", "router+flow")
@@ -212,11 +212,8 @@ def _recordings(out: Path) -> tuple[set[bytes], set[tuple[str, str, int]], list[
         for topic, _, d in msgs:
             if topic.startswith("quick/"):
                 digests.add(hashlib.blake2b(d, digest_size=16).digest())
-                try:
-                    r = unpack(d)
-                    ids.add((topic.rsplit("/", 1)[-1], r.type, r.seq))
-                except WireError:
-                    pass
+                if (env := peek(d)) is not None:  # the envelope is enough: (type, seq)
+                    ids.add((topic.rsplit("/", 1)[-1], *env))
         files.append(note)
     return digests, ids, files
 
