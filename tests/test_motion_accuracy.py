@@ -42,6 +42,31 @@ def test_redkitchen_exact_matches_opencv_odometry(shared_data):
     assert exact["trans_median"] < 0.6 * induced["trans_median"]
 
 
+def test_redkitchen_affine_groups_keep_their_own_fit(shared_data):
+    """docs/method.md 2.3: a real room determines GA(3)/SA(3); the rigid fallback must not fire."""
+    from quick_stream.frame import BadFrame
+    from quick_stream.motion import MotionEstimator
+    from quick_stream.sceneflow import SceneFlow
+    from quick_stream.sources import open_source
+
+    sf = SceneFlow()
+    ests = {g: MotionEstimator(MotionParams(group=g)) for g in ("sa3", "ga3")}
+    prev, n, used = None, 0, {g: [] for g in ests}
+    for fr in open_source(f"tum:{shared_data / '7scenes_redkitchen'}"):
+        if isinstance(fr, BadFrame):
+            continue
+        if prev is not None:
+            flow = sf.compute(prev, fr)
+            n += 1
+            for g, est in ests.items():
+                m = est.estimate(flow)
+                if not m.valid or m.fallback:
+                    used[g].append((m.seq, m.reason))
+        prev = fr
+    assert n == 249
+    assert used == {"sa3": [], "ga3": []}
+
+
 def test_jointvosf_robust_estimator_stays_with_background(shared_data):
     res = moving_objects.run(shared_data)
     assert set(res) == set(moving_objects.MOVING_BOXES)

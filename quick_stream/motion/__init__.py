@@ -15,6 +15,15 @@ Conventions (also in docs/conventions.md):
 
 Estimators: ``exact`` (default, robust fit, :mod:`.exact`) and ``induced``
 (the paper's mean of induced twists, :mod:`.induced`).
+
+Observability (``exact``, docs/method.md section 2.3): a motion is only as
+determined as the spread of the points it was fitted to. When the weighted
+point spread leaves GA(3)'s or SA(3)'s linear part undetermined (a wall, a
+floor: points on one plane), the estimate is the SIM(3) fit (for GA(3)) or the
+SE(3) fit (for SA(3)) of the same flow, expressed as an element of the requested
+group; ``MotionEstimate.fallback`` names the group used and ``reason`` says why.
+When even the rigid fit is undetermined (collinear points, fewer than three
+distinct points) the motion is invalid.
 """
 from __future__ import annotations
 
@@ -24,7 +33,7 @@ import numpy as np
 
 from ..lie import LieGroup, get_group
 from ..sceneflow import SceneFlowResult
-from .exact import ExactParams, irls_closed_form, refine_reprojection
+from .exact import RIGID_FALLBACK, ExactParams, irls_closed_form, observability, refine_reprojection
 from .induced import estimate_induced
 
 ESTIMATORS = ("exact", "induced")
@@ -56,7 +65,10 @@ class MotionParams:
 class MotionEstimate:
     """Camera motion g(xi_t) from frame ``seq`` to ``seq_next`` (see module conventions).
 
-    When ``valid`` is False, ``matrix`` is the identity and ``reason`` says why.
+    When ``valid`` is False, ``matrix`` is the identity and ``reason`` says why. When
+    ``fallback`` is set ("sim3" or "se3"), ``group``'s own fit was not determined by the
+    points' spread and ``matrix`` is that smaller group's fit, an element of ``group``
+    (docs/method.md section 2.3); ``reason`` then says why.
     """
 
     seq: int
@@ -70,7 +82,8 @@ class MotionEstimate:
     n_points: int = 0
     inlier_ratio: float = 0.0
     rms_px: float = float("nan")
-    zeta_bar: np.ndarray | None = None  # log(matrix^-1): the path solver's zeta_bar (design note 4)
+    zeta_bar: np.ndarray | None = None  # log(matrix^-1): the path solver's zeta_bar (docs/method.md (5))
+    fallback: str = ""  # the group whose fit was used instead of ``group``'s ("" = group's own), method.md 2.3
 
 
 def invalid_motion(seq: int, seq_next: int, group: str, estimator: str, reason: str) -> MotionEstimate:
@@ -100,16 +113,37 @@ class MotionEstimator:
                 f"only {n} usable scene-flow pairs (need {p.min_points})",
             )
         x, v, w = flow.points, flow.displacements, flow.weights
+        fallback, why = "", ""
         try:
             if p.estimator == "induced":
                 M = estimate_induced(self.group, x, v, w)
                 inliers, rms = 1.0, float("nan")
             else:
-                M, w1 = irls_closed_form(p.group, x, x + v, w, p.exact, flow.intrinsics.fx)
-                ref = refine_reprojection(
-                    self.group, M, x, flow.pixels_next, x[:, 2] + v[:, 2], flow.intrinsics_next.K, w1, p.exact
-                )
-                M, inliers, rms = ref.M, ref.inlier_ratio, ref.rms_px
+                # (3b) on the flow's weights first (a wall: no affine fit), then on the fit's final weights
+                fit_group, lim = p.group, p.exact.max_spread_error
+                obs0 = obs = observability(x, w, flow.intrinsics.fx, p.exact)
+                if p.group in RIGID_FALLBACK:
+                    if obs.affine_error <= lim:
+                        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                            M, inliers, rms, w_fit = self._fit_exact(p.group, flow)  # checked below
+                        obs = observability(x, w_fit, flow.intrinsics.fx, p.exact)
+                    if obs.affine_error > lim:
+                        fit_group = fallback = RIGID_FALLBACK[p.group]
+                        why = (f"{p.group} linear part not determined by the point spread "
+                               f"(predicted error {obs.affine_error:.2g} > {lim:g}: "
+                               f"points nearly planar or too few for their noise); {fallback} fit used")
+                if fit_group in ("se3", "sim3"):
+                    obs = obs0
+                    if obs.rigid_error <= lim:
+                        M, inliers, rms, w_fit = self._fit_exact(fit_group, flow)
+                        obs = observability(x, w_fit, flow.intrinsics.fx, p.exact)
+                    if obs.rigid_error > lim:
+                        return invalid_motion(
+                            flow.seq, flow.seq_next, p.group, p.estimator,
+                            f"rotation not determined by the point spread (predicted error "
+                            f"{obs.rigid_error:.2g} > {lim:g}: points nearly collinear, "
+                            f"fewer than 3 distinct or too few for their noise)",
+                        )
             g = self.group.inverse(M)
             twist = self.group.log(g)
             zbar = self.group.log(M)
@@ -123,9 +157,20 @@ class MotionEstimator:
                 f"only {inliers:.0%} of scene-flow pairs agree with one motion",
             )
         return MotionEstimate(
-            flow.seq, flow.seq_next, p.group, p.estimator, g, twist, True,
-            n_points=n, inlier_ratio=inliers, rms_px=rms, zeta_bar=zbar,
+            flow.seq, flow.seq_next, p.group, p.estimator, g, twist, True, why,
+            n_points=n, inlier_ratio=inliers, rms_px=rms, zeta_bar=zbar, fallback=fallback,
         )
+
+    def _fit_exact(self, group_name: str, flow: SceneFlowResult) -> tuple[np.ndarray, float, float, np.ndarray]:
+        """The exact estimator in ``group_name``: IRLS closed form, then robust Gauss-Newton
+        (docs/method.md (3)). Returns (point motion M, inlier ratio, rms px, final weights)."""
+        p = self.params
+        x, v, w = flow.points, flow.displacements, flow.weights
+        M, w1 = irls_closed_form(group_name, x, x + v, w, p.exact, flow.intrinsics.fx)
+        ref = refine_reprojection(
+            get_group(group_name), M, x, flow.pixels_next, x[:, 2] + v[:, 2], flow.intrinsics_next.K, w1, p.exact
+        )
+        return ref.M, ref.inlier_ratio, ref.rms_px, ref.weights
 
 
 def integrate_path(motions: list[np.ndarray] | np.ndarray) -> np.ndarray:

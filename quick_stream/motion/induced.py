@@ -9,7 +9,7 @@ that one general formula for any group; the closed forms of the paper
 
 The induced twist describes how the *points* move (x -> x + v), so the mean is
 a point-motion twist; the camera motion is its inverse (see docs/conventions.md).
-Known bias (design note section 2): a pure roll comes back strongly
+Known bias (docs/method.md 2.1): a pure roll comes back strongly
 under-estimated and lateral motions are counted twice.
 """
 from __future__ import annotations
@@ -22,7 +22,7 @@ from ..lie import LieGroup
 def induced_twists(group: LieGroup, x: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Induced twists (N, n) of points ``x`` (N, 3) with displacements ``v`` (N, 3).
 
-    General formula of design note section 2: translation part = v,
+    General formula of docs/method.md (2): translation part = v,
     component k of the linear part = v^T Et_k x / |x|^2.
     """
     lin = group.basis[3:, :3, :3]  # (n-3, 3, 3)
@@ -49,7 +49,7 @@ def closed_form_twists(group_name: str, x: np.ndarray, v: np.ndarray) -> np.ndar
 
     SE(3): omega = x cross v / |x|^2; SIM(3): plus a = x.v / |x|^2; SA(3): omega,
     the symmetric part "|hat(x)| v" read as the symmetric matrix with x's entries
-    (design note section 2), then x^T E7 v and x^T E8 v; GA(3): vec(v x^T)/|x|^2
+    (docs/method.md 2.1), then x^T E7 v and x^T E8 v; GA(3): vec(v x^T)/|x|^2
     (column-major).
     """
     r2 = np.einsum("ni,ni->n", x, x)[:, None]
