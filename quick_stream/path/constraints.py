@@ -1,4 +1,4 @@
-"""End-constraints at keyframes (design note section 4, last paragraph).
+"""End-constraints at keyframes (docs/method.md 4.2).
 
 * ``identity`` (the paper's): no correction at keyframes, so the stabilized path
   passes through the real, jittery keyframe poses and their jitter survives as a

@@ -1,4 +1,4 @@
-"""Keyframe selection (paper section "Optimal camera paths"; design note section 4, step 4).
+"""Keyframe selection (docs/method.md 4.1).
 
 A keyframe closes a segment every ``interval`` frames, or earlier where the
 direction of the camera path's velocity turns by more than ``turn_deg``: the
