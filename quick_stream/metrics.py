@@ -32,21 +32,41 @@ A^T A), which equal the eigenvalues when A is a pure stretch and are
 rotation-invariant otherwise: per frame sigma_min / sigma_max; sequence value
 = the worst (minimum) frame.
 
-Stability. For each pair of consecutive OUTPUT frames, ``H`` maps frame t to
-t+1; its motion is (tx, ty) = the centre's displacement and the angle
-atan2(a10 - a01, a00 + a11) (the rotation of the closest similarity). Each of
-the three per-pair signals is transformed with a real FFT; the score is the
-power in the lowest frequencies -- the 2nd to 6th bins of the spectrum, i.e.
-the first five after the excluded DC bin -- over the power in all bins up to
-Nyquist (DC excluded). ``stability_translation`` is the average of the x and
-y scores (CodingFlow averages the two translation directions; the DIFRINT
-scripts use the magnitude sqrt(tx^2 + ty^2) instead, which is not zero-mean
-and mixes the axes), ``stability_rotation`` is the angle's score and
-``stability`` = min(translation, rotation) (the DIFRINT/StabNet convention).
-A signal with no variation at all (identical frames) scores 1. Pairs whose
-homography cannot be fitted are filled by linear interpolation and counted in
-``warnings``. Note the metric's own limit: a signal that is only estimation
-noise (a truly still axis) scores about 5 / (N/2) whatever the stabiliser did.
+Stability (``stability``: the published definition, docs/method.md (15)-(17)).
+As the public metric scripts of Liu et al. 2013's successors (DIFRINT, StabNet)
+compute it: for each pair of consecutive OUTPUT frames the homography M_t maps
+frame t-1 to frame t (fitted from t-1's keypoints to t's); it is expressed in
+pixel coordinates with the origin at the top-left pixel centre (the scripts use
+OpenCV keypoint coordinates; ours are centred, so M_t = C H_t C^-1, renormalised
+to M_t[2, 2] = 1) and accumulated into the path P_t = P_{t-1} M_t (P_0 = I, t =
+1..L, L = frames - 1, the product not renormalised). Translation signal:
+sqrt(P_t[0, 2]^2 + P_t[1, 2]^2) (px); rotation signal: atan2(P_t[1, 0], P_t[0, 0])
+(deg). Each signal of length L: power of the full complex FFT, DC bin deleted,
+the first (L-1)//2 remaining bins kept, score = power in the first ``low_bins``
+of them (bins 2..6 of the spectrum for 5) over their sum.
+``stability_translation`` and ``stability_rotation`` are those two scores and
+``stability`` is their MEAN (as the DIFRINT script prints). Ours beyond the
+scripts: a signal with no variation at all (identical frames) scores 1 instead
+of 0/0; pairs whose homography cannot be fitted are filled by linear
+interpolation of the neighbouring pairs' (centred, normalised) homographies and
+counted in ``warnings`` (the scripts reuse the previous pair's matrix).
+Properties worth knowing (measured, docs/method.md section 6): the score is
+scale-free, so a still camera is scored on its feature-estimation noise alone;
+per-pair estimation noise accumulates into a random walk, whose spectrum falls
+as 1/k^2, so a still camera scores about 0.83-0.92 (expectation, 15-250 pairs;
+0.71-0.90 measured through this module), not 1; and a steady pan makes the translation signal a ramp that scores about
+0.9 whatever shake rides on it.
+
+Per-pair stability (``stability_pairs``, this module's earlier definition, kept
+for comparison). Each pair's centred homography gives its motion (tx, ty) = the
+centre's displacement and the angle atan2(a10 - a01, a00 + a11) (the rotation
+of the closest similarity); the three per-pair signals (not accumulated) are
+transformed with a real FFT and scored as power in bins 1..``low_bins`` over
+bins 1..L//2 (DC excluded). ``stability_pairs_translation`` is the average of
+the x and y scores, ``stability_pairs_rotation`` the angle's score and
+``stability_pairs`` = min(translation, rotation). Per-pair motions of a still or
+steadily moving camera are white estimation noise, which scores about
+5 / (L/2) whatever the stabiliser did.
 
 Failure (design note section 6: "a frame mapped out of view"). The sequence
 fails when any output frame is essentially empty (more than
@@ -66,8 +86,8 @@ jitter is in OUTPUT pixels: a stabiliser that zooms in by z shows remaining
 shake z times larger, and is charged for it. ``jitter_px`` = RMS
 over frames of the high-passed translation's magnitude, ``jitter_deg`` = RMS of
 the high-passed angle in degrees. The same is computed from consecutive INPUT
-frames (``input_jitter_px/deg``, ``input_stability``) so tables can show the
-reduction.
+frames (``input_jitter_px/deg``, ``input_stability``, ``input_stability_pairs``)
+so tables can show the reduction.
 
 Speed: about 65 ms per 640x480 frame pair on one core (two SIFT descriptions
 at 320x240, three match + RANSAC), i.e. ~17 s for 250 frames (measured on
@@ -82,7 +102,7 @@ from dataclasses import asdict, dataclass, field, fields
 import cv2
 import numpy as np
 
-from .metrics_jitter import low_frequency_ratio, motion_of, trajectory_jitter
+from .metrics_jitter import low_frequency_ratio, motion_of, path_stability, trajectory_jitter
 
 
 @dataclass
@@ -158,14 +178,18 @@ class SequenceMetrics:
     frames: int
     cropping: float
     distortion: float
-    stability: float
+    stability: float  # published: mean of the two path scores below
     stability_translation: float
     stability_rotation: float
+    stability_pairs: float  # earlier per-pair definition: min of the two below
+    stability_pairs_translation: float
+    stability_pairs_rotation: float
     jitter_px: float
     jitter_deg: float
     input_jitter_px: float
     input_jitter_deg: float
-    input_stability: float
+    input_stability: float  # published, of the input frames
+    input_stability_pairs: float
     failed: bool
     failure_reason: str
     per_frame: list[FrameMetrics] = field(default_factory=list)
@@ -246,10 +270,32 @@ def _fill(motions: list[tuple[float, float, float] | None]) -> tuple[np.ndarray,
     return out, int(n - ok.sum())
 
 
+def _fill_homographies(hs: list[np.ndarray | None]) -> np.ndarray:
+    """(L, 3, 3) homographies (normalised to [2, 2] = 1) with missing pairs linearly interpolated
+    entry by entry between the nearest fitted ones (held constant beyond the ends; identity if none)."""
+    n = len(hs)
+    out = np.tile(np.eye(3), (n, 1, 1))
+    ok = [i for i, h in enumerate(hs) if h is not None]
+    if not ok:
+        return out
+    vals = np.array([hs[i] / hs[i][2, 2] for i in ok]).reshape(len(ok), 9)
+    flat = out.reshape(n, 9)
+    for k in range(9):
+        flat[:, k] = np.interp(np.arange(n), ok, vals[:, k])
+    return out
+
+
+def _pairs_stability(motions: np.ndarray, low_bins: int) -> tuple[float, float]:
+    """(translation, rotation) per-pair stability of (L, 3) motions: the ``stability_pairs`` components."""
+    st_x, st_y, st_r = (low_frequency_ratio(motions[:, k], low_bins) for k in range(3))
+    return 0.5 * (st_x + st_y), st_r
+
+
 class MetricsAccumulator:
     """Streaming form of :func:`evaluate_sequence`: ``add`` (input, output) frame by frame, then ``result``.
 
-    Only the previous frame's descriptions are kept, plus a few numbers per frame.
+    Only the previous frame's descriptions are kept, plus a few numbers per frame
+    (and each consecutive pair's 3x3 homography, for the accumulated path).
     """
 
     def __init__(self, fps: float = 30.0, params: MetricParams | None = None) -> None:
@@ -258,6 +304,8 @@ class MetricsAccumulator:
         self.matcher = FeatureMatcher(self.params)
         self.frames: list[FrameMetrics] = []
         self._prev: tuple[Features, Features] | None = None
+        self._pair_h: dict[str, list[np.ndarray | None]] = {"output": [], "input": []}  # centred, frame t -> t+1
+        self._centre: dict[str, tuple[float, float]] = {}
         self._seconds = 0.0
         self._failure = ""
 
@@ -266,6 +314,8 @@ class MetricsAccumulator:
         p = self.params
         fin = self.matcher.describe(input_frame)
         fout = self.matcher.describe(output_frame)
+        for name, img in (("input", input_frame), ("output", output_frame)):
+            self._centre.setdefault(name, ((img.shape[1] - 1) / 2.0, (img.shape[0] - 1) / 2.0))
         fm = FrameMetrics(len(self.frames), black_fraction=fout.black_fraction)
         if fout.black_fraction > p.max_black_fraction:
             fm.problem = f"output is {100 * fout.black_fraction:.0f}% black (mapped out of view)"
@@ -284,9 +334,11 @@ class MetricsAccumulator:
             self._failure = f"frame {fm.index}: {fm.problem}"
         if self._prev is not None:
             prev_fm = self.frames[-1]
-            for attr, a, b in (("motion_to_next", self._prev[1], fout), ("input_motion_to_next", self._prev[0], fin)):
+            for name, attr, a, b in (("output", "motion_to_next", self._prev[1], fout),
+                                     ("input", "input_motion_to_next", self._prev[0], fin)):
                 fit = self.matcher.fit(a, b)
                 setattr(prev_fm, attr, None if fit.H is None else motion_of(fit.H))
+                self._pair_h[name].append(fit.H)
         self._prev = (fin, fout)
         self.frames.append(fm)
         self._seconds += time.perf_counter() - t0
@@ -305,14 +357,15 @@ class MetricsAccumulator:
         for name, missing in (("output", out_missing), ("input", in_missing)):
             if missing:
                 warnings.append(f"{missing} of {n - 1} consecutive {name} pairs had no homography (interpolated)")
-        if n - 1 <= 2 * p.low_bins:
-            warnings.append(f"only {n - 1} frame pairs: stability needs more than {2 * p.low_bins} to mean much")
-        st_x, st_y, st_r = (low_frequency_ratio(out_m[:, k], p.low_bins) for k in range(3))
-        st_t = 0.5 * (st_x + st_y)
-        in_st = min(0.5 * (low_frequency_ratio(in_m[:, 0], p.low_bins) + low_frequency_ratio(in_m[:, 1], p.low_bins)),
-                    low_frequency_ratio(in_m[:, 2], p.low_bins))
+        if n - 1 <= 2 * p.low_bins + 2:  # (L - 1) // 2 <= low_bins: every kept bin is a low one, score 1
+            warnings.append(f"only {n - 1} frame pairs: stability needs more than {2 * p.low_bins + 2} to mean much")
+        sp_t, sp_r = _pairs_stability(out_m, p.low_bins)
+        in_sp = min(_pairs_stability(in_m, p.low_bins))
+        st_t, st_r = path_stability(_fill_homographies(self._pair_h["output"]), self._centre["output"], p.low_bins)
+        in_st = float(np.mean(path_stability(_fill_homographies(self._pair_h["input"]), self._centre["input"],
+                                             p.low_bins)))
         if out_missing == n - 1:
-            st_t = st_r = 0.0
+            st_t = st_r = sp_t = sp_r = 0.0
             warnings.append("no consecutive output pair could be matched: stability 0")
         jit = trajectory_jitter(out_m, sigma) if out_missing < n - 1 else (float("nan"), float("nan"))
         in_jit = trajectory_jitter(in_m, sigma) if in_missing < n - 1 else (float("nan"), float("nan"))
@@ -321,11 +374,14 @@ class MetricsAccumulator:
         dist = float(np.min([f.distortion for f in self.frames])) if not failed else 0.0
         return SequenceMetrics(
             frames=n, cropping=crop, distortion=dist,
-            stability=0.0 if failed else float(min(st_t, st_r)),
+            stability=0.0 if failed else float(0.5 * (st_t + st_r)),
             stability_translation=0.0 if failed else float(st_t),
             stability_rotation=0.0 if failed else float(st_r),
+            stability_pairs=0.0 if failed else float(min(sp_t, sp_r)),
+            stability_pairs_translation=0.0 if failed else float(sp_t),
+            stability_pairs_rotation=0.0 if failed else float(sp_r),
             jitter_px=jit[0], jitter_deg=jit[1], input_jitter_px=in_jit[0], input_jitter_deg=in_jit[1],
-            input_stability=float(in_st), failed=failed, failure_reason=self._failure,
+            input_stability=in_st, input_stability_pairs=float(in_sp), failed=failed, failure_reason=self._failure,
             per_frame=list(self.frames), warnings=warnings, seconds=self._seconds,
         )
 

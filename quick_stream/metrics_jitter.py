@@ -1,9 +1,10 @@
-"""Signal side of the quality metrics: per-pair motion, low-frequency energy ratio, residual jitter.
+"""Signal side of the quality metrics: per-pair motion, accumulated path, stability ratios, residual jitter.
 
-Design note section 6 (stability, Liu et al. 2013 / CodingFlow 2017) plus our
-residual-jitter measure; the conventions are documented in
-:mod:`quick_stream.metrics`. Pure numpy/scipy, so it can score any motion
-signal (e.g. a stabiliser's own estimated path) without images.
+Design note section 6 (stability, Liu et al. 2013 / CodingFlow 2017, in the
+form of the public DIFRINT / StabNet metric scripts) plus our residual-jitter
+measure; the conventions are documented in :mod:`quick_stream.metrics`. Pure
+numpy/scipy, so it can score any motion signal or homography sequence (e.g. a
+stabiliser's own estimated path) without images.
 """
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ def motion_of(H: np.ndarray) -> tuple[float, float, float]:
 def low_frequency_ratio(signal: np.ndarray, low_bins: int = 5) -> float:
     """Power in spectrum bins 1..low_bins (the 2nd to 6th for 5) over bins 1..N//2; DC excluded.
 
+    The per-pair ratio behind ``stability_pairs`` (applied to per-pair motions, not to
+    the accumulated path: see :func:`path_low_frequency_ratio` for the published one).
     Real FFT of the signal as given (its mean only affects the excluded DC bin).
     A signal without any variation (all power ~0) scores 1: nothing to stabilise.
     """
@@ -39,6 +42,80 @@ def low_frequency_ratio(signal: np.ndarray, low_bins: int = 5) -> float:
     if total <= 1e-18 * len(x) ** 2 or np.ptp(x) < 1e-9:
         return 1.0
     return float(power[:low_bins].sum() / total)
+
+
+def to_pixel_origin(H: np.ndarray, centre: tuple[float, float]) -> np.ndarray:
+    """A homography in centred coordinates (pixel minus ``centre``) re-expressed in pixel coordinates.
+
+    ``C H C^-1`` with ``C`` the translation by ``centre``, normalised to ``[2, 2] = 1``
+    (what ``cv2.findHomography`` returns for the same points in pixel coordinates).
+    Works on one (3, 3) matrix or a stack (..., 3, 3).
+    """
+    C = np.eye(3)
+    C[:2, 2] = centre
+    Ci = np.eye(3)
+    Ci[:2, 2] = -np.asarray(centre, float)
+    out = C @ np.asarray(H, float) @ Ci
+    return out / out[..., 2:3, 2:3]
+
+
+def accumulate_path(pair_homographies: np.ndarray) -> np.ndarray:
+    """The accumulated path P_t = P_{t-1} M_t, P_0 = I, for t = 1..L: (L, 3, 3), docs/method.md (15).
+
+    ``pair_homographies`` (L, 3, 3): M_t maps frame t-1 to frame t (as fitted from
+    the keypoints of frame t-1 to those of frame t). No renormalisation of the product.
+    """
+    M = np.asarray(pair_homographies, float).reshape(-1, 3, 3)
+    out = np.empty_like(M)
+    P = np.eye(3)
+    for t in range(len(M)):
+        P = P @ M[t]
+        out[t] = P
+    return out
+
+
+def path_signals(path: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Translation sqrt(P02^2 + P12^2) (px) and rotation atan2(P10, P00) (deg) of each path element.
+
+    docs/method.md (16).
+    """
+    P = np.asarray(path, float).reshape(-1, 3, 3)
+    return np.hypot(P[:, 0, 2], P[:, 1, 2]), np.degrees(np.arctan2(P[:, 1, 0], P[:, 0, 0]))
+
+
+def path_low_frequency_ratio(signal: np.ndarray, low_bins: int = 5) -> float:
+    """Published stability ratio of one path signal x_1..x_L, docs/method.md (17).
+
+    Power |FFT(x)|^2 (full complex FFT), the DC bin deleted, the first (L-1)//2 of the
+    remaining bins kept (bins 1..(L-1)//2: Nyquist excluded for even L), and the
+    ratio of the first ``low_bins`` of them (the 2nd to 6th bins for 5) to their sum.
+    A signal without any variation scores 1 (the scripts would divide 0 by 0), as
+    does one too short to have more than ``low_bins`` bins.
+    """
+    x = np.asarray(signal, float).ravel()
+    if len(x) < 2 or np.ptp(x) < 1e-9:
+        return 1.0
+    power = np.abs(np.fft.fft(x)) ** 2
+    power = power[1:][: (len(x) - 1) // 2]
+    total = float(power.sum())
+    if total <= 1e-18 * len(x) ** 2:
+        return 1.0
+    return float(power[:low_bins].sum() / total)
+
+
+def path_stability(pair_homographies: np.ndarray, centre: tuple[float, float], low_bins: int = 5
+                   ) -> tuple[float, float]:
+    """(translation, rotation) stability of consecutive-frame homographies, the published way.
+
+    ``pair_homographies`` (L, 3, 3) in centred coordinates are moved to pixel
+    coordinates about ``centre`` (the published scripts use OpenCV keypoint
+    coordinates), accumulated (:func:`accumulate_path`), reduced to translation and
+    rotation signals (:func:`path_signals`) and scored (:func:`path_low_frequency_ratio`).
+    docs/method.md (15)-(17). The sequence score is the mean of the two.
+    """
+    M = to_pixel_origin(np.asarray(pair_homographies, float).reshape(-1, 3, 3), centre)
+    t, r = path_signals(accumulate_path(M))
+    return path_low_frequency_ratio(t, low_bins), path_low_frequency_ratio(r, low_bins)
 
 
 def trajectory_jitter(motions: np.ndarray, sigma_frames: float) -> tuple[float, float]:

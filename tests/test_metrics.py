@@ -10,7 +10,10 @@ import pytest
 
 from quick_stream.bench.ffmpeg_baselines import ensure_ffmpeg, run_baselines
 from quick_stream.metrics import MetricParams, evaluate_sequence
-from quick_stream.metrics_jitter import low_frequency_ratio, trajectory_jitter
+from quick_stream.metrics_jitter import (
+    accumulate_path, low_frequency_ratio, path_low_frequency_ratio, path_signals, path_stability, to_pixel_origin,
+    trajectory_jitter,
+)
 
 W, H = 320, 240
 
@@ -110,12 +113,96 @@ def test_shaky_sequence_has_much_more_jitter_and_less_stability():
     assert mk.jitter_px > 5 * ms.jitter_px
     assert mk.jitter_deg > 5 * ms.jitter_deg
     assert ms.stability > mk.stability + 0.2
-    assert ms.stability_translation > mk.stability_translation
-    assert ms.stability_rotation > mk.stability_rotation
+    # (the published translation score of a panning camera is ~0.9 either way: the pan's ramp dominates the path)
+    assert ms.stability_rotation > mk.stability_rotation + 0.3
+    assert ms.stability_pairs > mk.stability_pairs + 0.2
+    assert ms.stability_pairs_translation > mk.stability_pairs_translation
+    assert ms.stability_pairs_rotation > mk.stability_pairs_rotation
     # input jitter is measured on the input frames alone: it is the other run's output jitter
     assert ms.input_jitter_px == pytest.approx(mk.jitter_px) and mk.input_jitter_px == pytest.approx(ms.jitter_px)
     assert ms.input_stability == pytest.approx(mk.stability)
+    assert ms.input_stability_pairs == pytest.approx(mk.stability_pairs)
     assert ms.jitter_px < 0.2 * ms.input_jitter_px
+
+
+def _still(n: int, seed: int) -> list[np.ndarray]:
+    """A still camera: the same view every frame, with independent pixel noise (sigma 3 grey levels)."""
+    rng = np.random.default_rng(seed)
+    base = view(texture(), 0.0, 0.0, 0.0).astype(np.float32)
+    return [np.clip(base + rng.normal(0.0, 3.0, base.shape), 0, 255).astype(np.uint8) for _ in range(n)]
+
+
+def _shaken_still(n: int, seed: int) -> list[np.ndarray]:
+    """A still camera with i.i.d. per-frame shake (+-2 px, +-0.4 deg)."""
+    rng = np.random.default_rng(seed)
+    return [view(texture(), *rng.uniform(-2.0, 2.0, 2), rng.uniform(-0.4, 0.4)) for _ in range(n)]
+
+
+def test_still_camera_is_stable_and_a_shaken_one_is_not():
+    """The published stability accumulates the path before the FFT (docs/method.md (15)-(17)).
+
+    A still camera's per-pair motions are white estimation noise, which the per-pair score
+    (``stability_pairs``, kept) calls unstable; accumulated, that noise is a slow random walk
+    and the published score is high -- but not ~1: the score is scale-free, and a random
+    walk puts ~85 % of its power in bins 2-6 (measured 0.77-0.87 over noise seeds at 40
+    frames). I.i.d. shake of the still camera accumulates into white positions: low.
+    """
+    still = evaluate_sequence(_still(40, 0), _still(40, 0))
+    shaken = evaluate_sequence(_shaken_still(40, 0), _shaken_still(40, 0))
+    assert not still.failed and not shaken.failed
+    assert still.stability >= 0.7 and shaken.stability <= 0.4
+    assert still.stability > shaken.stability + 0.4
+    assert still.stability == pytest.approx(0.5 * (still.stability_translation + still.stability_rotation))
+    # the per-pair score stays available, and is what called the still camera unstable
+    assert still.stability_pairs <= 0.2 and shaken.stability_pairs <= 0.1
+    assert still.stability_pairs == pytest.approx(
+        min(still.stability_pairs_translation, still.stability_pairs_rotation))
+    d = still.as_dict()
+    for k in ("stability", "stability_translation", "stability_rotation", "stability_pairs",
+              "stability_pairs_translation", "stability_pairs_rotation", "input_stability", "input_stability_pairs"):
+        assert k in d
+
+
+def _moves(tx: float, ty: float, deg: float = 0.0) -> np.ndarray:
+    """Centred homography: rotation by ``deg`` about the image centre, then a shift (tx, ty)."""
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, -s, tx], [s, c, ty], [0.0, 0.0, 1.0]])
+
+
+def test_published_stability_steps_on_known_paths():
+    """docs/method.md (15)-(17) step by step on homography sequences whose scores are known in closed form."""
+    L, centre = 40, (159.5, 119.5)
+    t = np.arange(1, L + 1)
+
+    def pairs_for(path_x: np.ndarray) -> np.ndarray:  # per-pair shifts whose accumulated path is path_x (from 0)
+        return np.array([_moves(dx, 0.0) for dx in np.diff(np.concatenate(([0.0], path_x)))])
+
+    # translation path 100 + 20 cos(2 pi 2 t / L): all its varying power in the 3rd bin (a kept low bin)
+    st_t, st_r = path_stability(pairs_for(100 + 20 * np.cos(2 * np.pi * 2 * t / L)), centre)
+    assert st_t == pytest.approx(1.0, abs=1e-9) and st_r == 1.0  # no rotation at all: scores 1
+    # the same amplitude at bin 15 (high frequency): nothing in bins 2-6
+    st_t, _ = path_stability(pairs_for(100 + 20 * np.cos(2 * np.pi * 15 * t / L)), centre)
+    assert st_t < 1e-9
+    # the path is accumulated P_t = P_{t-1} M_t (right multiplication), in pixel coordinates
+    rng = np.random.default_rng(0)
+    Ms = np.array([_moves(*rng.normal(0, 3, 2), rng.normal(0, 1.0)) for _ in range(12)])
+    P = accumulate_path(to_pixel_origin(Ms, centre))
+    C = np.array([[1.0, 0.0, centre[0]], [0.0, 1.0, centre[1]], [0.0, 0.0, 1.0]])
+    expect = C @ np.linalg.multi_dot(list(Ms[:7])) @ np.linalg.inv(C)
+    assert np.allclose(P[6], expect)
+    assert not np.allclose(P[6], C @ np.linalg.multi_dot(list(Ms[:7][::-1])) @ np.linalg.inv(C))
+    # translation and rotation of a pixel-coordinate path element: a rotation by 3 deg about the centre
+    # moves the top-left origin by |(I - R) c|
+    tr, rot = path_signals(to_pixel_origin(_moves(0.0, 0.0, 3.0), centre)[None])
+    R = _moves(0.0, 0.0, 3.0)[:2, :2]
+    assert rot[0] == pytest.approx(3.0) and tr[0] == pytest.approx(np.linalg.norm((np.eye(2) - R) @ centre))
+    # bins: full FFT, DC deleted, the first (L-1)//2 kept (Nyquist of an even length excluded), first 5 over all
+    n = 20
+    k = np.arange(n)
+    assert path_low_frequency_ratio(np.cos(np.pi * k) + 0.1 * np.cos(2 * np.pi * k / n)) == pytest.approx(1.0)
+    x = np.cos(2 * np.pi * 3 * k / n) + np.cos(2 * np.pi * 8 * k / n)  # bins 3 (low) and 8 (kept, high)
+    assert path_low_frequency_ratio(x) == pytest.approx(0.5)
+    assert path_low_frequency_ratio(np.full(n, 7.0)) == 1.0  # no variation: nothing to stabilise
 
 
 def test_black_output_frame_fails_the_sequence(smooth12):
@@ -123,8 +210,9 @@ def test_black_output_frame_fails_the_sequence(smooth12):
     out[7][:] = 0
     m = evaluate_sequence(smooth12, out)
     assert m.failed
-    assert m.cropping == m.distortion == m.stability == 0.0
+    assert m.cropping == m.distortion == m.stability == m.stability_pairs == 0.0
     assert m.stability_translation == m.stability_rotation == 0.0
+    assert m.stability_pairs_translation == m.stability_pairs_rotation == 0.0
     assert "frame 7" in m.failure_reason and "black" in m.failure_reason
 
 

@@ -1,24 +1,33 @@
-"""Rendering a :class:`MeshWarp` with one ``cv2.remap``: design note section 5.
+"""Rendering a :class:`MeshWarp` with one ``cv2.remap``: docs/method.md 5.2.
 
-The inverse map (output pixel -> input pixel) is piecewise projective: in each
-cell, the homography taking the cell's output quad to its input rectangle.
-Output pixels outside the warped mesh use the homography of the nearest cell
-(nearest in input space: the cell whose rectangle is closest to where its own
-homography sends the pixel), so they land outside the source image and come
-out as ``border`` (BORDER_CONSTANT). Because the grid's outer edges are the
-source's border (vertices on pixel centres 0 .. W-1), the covered part of the
-output is exactly the polygon of the mesh's outer output vertices.
+The renderer uses the same cell model as the fit (:mod:`.warp`): each cell maps
+its input rectangle to its output quad *bilinearly*, so an input pixel goes
+exactly where the fit put it (B X, docs/method.md (13a)). The inverse map (output
+pixel -> input pixel) is therefore the inverse of a bilinear map, solved per
+output sample in closed form (a quadratic per cell, docs/method.md (13b)) and
+vectorised over cells and samples. The previous renderer used one homography
+per cell (quad -> rectangle): it agrees with the bilinear cell only at the 4
+corners, and showed control points up to 0.9 px away from where the fit put them
+(7scenes, 0.5-3 degree + 1-5 cm corrections; now < 0.001 px).
+
+Every cell's inverse maps every sample; each sample keeps the cell whose input
+rectangle is nearest (L1) to where that cell's inverse sends it (distance 0 =
+the sample is inside the cell's output quad). Output pixels outside the warped
+mesh thus use the nearest cell's analytic continuation and land outside the
+source image: they come out as ``border`` (BORDER_CONSTANT). A bilinear map is
+affine along each cell edge, so the outer edges of the mesh stay straight and
+the covered part of the output is exactly the polygon of the mesh's outer
+output vertices (what :func:`.framing.border_free_zoom` assumes). Neighbouring
+cells parametrise a shared inner edge identically (affinely between its two
+vertices), so the map is continuous across inner edges with no tangential slip.
 
 Speed: the map is evaluated at every ``step``-th pixel (plus one sample of
 padding on each side, so no output pixel is extrapolated), upsampled with one
 ``cv2.resize`` (INTER_LINEAR), converted to fixed point and used by one remap.
-Within a cell the map is a homography (smooth); across an inner cell edge it is
-continuous in the direction across the edge, but two neighbouring homographies
-can parametrise the shared edge differently (a tangential slip: measured
-0.001 px for a 1 degree + 1 cm stabilising motion, 0.008 px for 3 degrees + 5 cm),
-which the interpolation smooths over one step. Measured against the exact map
-(step 1) for those motions: max error 0.005 / 0.01 px at step 4, 0.02 px at step 8.
-640x480 BGR on one core: ~2 ms per render at step 4 (~1 ms of it the remap itself).
+Within a cell the inverse map is smooth; across an inner cell edge it is
+continuous with a kink, which the interpolation smooths over one step.
+Measured against the exact map (step 1) on 7scenes frames with 0.5-3 degree +
+1-5 cm corrections: see docs/method.md section 5 for the numbers.
 
 Zoom ("framing scale" s >= 1): output pixel q shows what the unzoomed output
 shows at c + (q - c) / s, with c the image centre ((W-1)/2, (H-1)/2).
@@ -38,11 +47,29 @@ from .warp import MeshWarp, grid_geometry
 _CLIP_FACTOR = 4
 
 
-def cell_homographies(mesh: MeshWarp) -> tuple[np.ndarray, np.ndarray]:
-    """Per-cell homographies (C, 3, 3) output quad -> input rectangle, and the rectangles (C, 4).
+def zoom_matrix(width: int, height: int, framing_scale: float) -> np.ndarray:
+    """3x3 map from zoomed output pixels to unzoomed ones (zoom about the image centre)."""
+    if not (np.isfinite(framing_scale) and framing_scale > 0):
+        raise ValueError(f"framing_scale must be finite and > 0, got {framing_scale}")
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    k = 1.0 / framing_scale
+    return np.array([[k, 0.0, cx * (1 - k)], [0.0, k, cy * (1 - k)], [0.0, 0.0, 1.0]])
 
-    Cells are in row-major order; a rectangle is ``[x0, x1, y0, y1]``. Built in
-    closed form (unit square -> quad, Heckbert 1989), vectorised over cells.
+
+def cell_inverse_bilinear(mesh: MeshWarp) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Coefficients of each cell's inverse bilinear map (output quad -> input rectangle), docs/method.md (13b).
+
+    Returns ``R`` (C, 3, 3), ``consts`` (C, 4) and the rectangles (C, 4) ``[x0, x1, y0, y1]``
+    (cells in row-major order). For an output point q (homogeneous column [qx, qy, 1])
+    the rows of ``R @ q`` are ``a = 2 w_c cross(q - p0, f)``, ``b = 2 h_c cross(q - p0, e)``
+    and ``t = cross(e, f) + cross(q - p0, g)``; with ``consts = [2 cross(e, f), kappa, x0, y0]``,
+    ``kappa = 2 cross(g, f) / h_c``, the input point is::
+
+        D = t^2 - kappa b,   x = x0 + a / (2 cross(e, f) - t + sqrt(D)),   y = y0 - b / (t + sqrt(D))
+
+    where p0..p3 are the cell's output corners 00, 10, 11, 01, e = p1 - p0, f = p3 - p0,
+    g = p0 - p1 + p2 - p3 and (w_c, h_c) the input cell's size. Both roots are the
+    ones that stay finite as g -> 0 (the parallelogram case, where the map is affine).
     """
     gx, gy = mesh.grid
     geo = grid_geometry(mesh.width, mesh.height, gx, gy)
@@ -51,41 +78,28 @@ def cell_homographies(mesh: MeshWarp) -> tuple[np.ndarray, np.ndarray]:
     p1 = d[:-1, 1:].reshape(-1, 2)
     p2 = d[1:, 1:].reshape(-1, 2)
     p3 = d[1:, :-1].reshape(-1, 2)
-    s = p0 - p1 + p2 - p3
-    d1 = p1 - p2
-    d2 = p3 - p2
-    den = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
-    g = (s[:, 0] * d2[:, 1] - d2[:, 0] * s[:, 1]) / den
-    h = (d1[:, 0] * s[:, 1] - s[:, 0] * d1[:, 1]) / den
-    Q = np.empty((len(p0), 3, 3))
-    Q[:, 0, 0] = p1[:, 0] - p0[:, 0] + g * p1[:, 0]
-    Q[:, 0, 1] = p3[:, 0] - p0[:, 0] + h * p3[:, 0]
-    Q[:, 0, 2] = p0[:, 0]
-    Q[:, 1, 0] = p1[:, 1] - p0[:, 1] + g * p1[:, 1]
-    Q[:, 1, 1] = p3[:, 1] - p0[:, 1] + h * p3[:, 1]
-    Q[:, 1, 2] = p0[:, 1]
-    Q[:, 2, 0] = g
-    Q[:, 2, 1] = h
-    Q[:, 2, 2] = 1.0
+    e = p1 - p0
+    f = p3 - p0
+    g = p0 - p1 + p2 - p3
     x0, y0 = np.meshgrid(geo.xs[:-1], geo.ys[:-1])
     x1, y1 = np.meshgrid(geo.xs[1:], geo.ys[1:])
     rects = np.column_stack((x0.ravel(), x1.ravel(), y0.ravel(), y1.ravel()))
-    R = np.zeros_like(Q)
-    R[:, 0, 0] = rects[:, 1] - rects[:, 0]
-    R[:, 0, 2] = rects[:, 0]
-    R[:, 1, 1] = rects[:, 3] - rects[:, 2]
-    R[:, 1, 2] = rects[:, 2]
-    R[:, 2, 2] = 1.0
-    return R @ np.linalg.inv(Q), rects
+    cw = (rects[:, 1] - rects[:, 0])[:, None]
+    ch = (rects[:, 3] - rects[:, 2])[:, None]
 
+    def cross_row(v: np.ndarray) -> np.ndarray:
+        """Rows r with r . [qx, qy, 1] = cross(q - p0, v) = (qx - p0x) v_y - (qy - p0y) v_x."""
+        return np.column_stack((v[:, 1], -v[:, 0], p0[:, 1] * v[:, 0] - p0[:, 0] * v[:, 1]))
 
-def zoom_matrix(width: int, height: int, framing_scale: float) -> np.ndarray:
-    """3x3 map from zoomed output pixels to unzoomed ones (zoom about the image centre)."""
-    if not (np.isfinite(framing_scale) and framing_scale > 0):
-        raise ValueError(f"framing_scale must be finite and > 0, got {framing_scale}")
-    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
-    k = 1.0 / framing_scale
-    return np.array([[k, 0.0, cx * (1 - k)], [0.0, k, cy * (1 - k)], [0.0, 0.0, 1.0]])
+    cef = e[:, 0] * f[:, 1] - e[:, 1] * f[:, 0]
+    cgf = g[:, 0] * f[:, 1] - g[:, 1] * f[:, 0]
+    R = np.empty((len(p0), 3, 3))
+    R[:, 0] = 2.0 * cw * cross_row(f)
+    R[:, 1] = 2.0 * ch * cross_row(e)
+    R[:, 2] = cross_row(g)
+    R[:, 2, 2] += cef
+    consts = np.column_stack((2.0 * cef, 2.0 * cgf / ch[:, 0], rects[:, 0], rects[:, 2]))
+    return R, consts, rects
 
 
 class _Workspace:
@@ -96,25 +110,29 @@ class _Workspace:
     the same arithmetic 3-4x slower). One workspace per thread and size.
     """
 
-    def __init__(self, cells: int, k: int) -> None:
-        self.M = np.empty((cells, 3, k))
-        self.x = np.empty((cells, k))
-        self.y = np.empty((cells, k))
-        self.dist = np.empty((cells, k))
-        self.tmp = np.empty((cells, k))
+    def __init__(self, cells: int, k: int, dtype: type = np.float64) -> None:
+        self.M = np.empty((cells, 3, k), dtype)
+        self.x = np.empty((cells, k), dtype)
+        self.y = np.empty((cells, k), dtype)
+        self.dist = np.empty((cells, k), dtype)
+        self.tmp = np.empty((cells, k), dtype)
+        self.sq = np.empty((cells, k), dtype)
         self.bad = np.empty((cells, k), bool)
+        self.bad2 = np.empty((cells, k), bool)
         self.best = np.empty(k, np.intp)
         self.col = np.arange(k)
-        self.xs = np.empty(k)
-        self.ys = np.empty(k)
+        self.xs = np.empty(k, dtype)
+        self.ys = np.empty(k, dtype)
 
 
 class _MapWorkspace(_Workspace):
     """A :class:`_Workspace` for one output size and map step, with the image-sized buffers."""
 
     def __init__(self, width: int, height: int, step: int, cells: int) -> None:
-        self.P, (nh, nw) = _samples(width, height, step)
-        super().__init__(cells, self.P.shape[1])
+        P, (nh, nw) = _samples(width, height, step)
+        # float32 arithmetic for the map (stored as float32 anyway): rounding ~1e-4 px at 640x480
+        self.P = P.astype(np.float32)
+        super().__init__(cells, self.P.shape[1], np.float32)
         self.low = np.empty((nh, nw, 2), np.float32)
         self.up = np.empty((nh * step, nw * step, 2), np.float32) if step > 1 else None
         self.m1 = np.empty((height, width, 2), np.int16)
@@ -139,37 +157,57 @@ def _map_workspace(width: int, height: int, step: int, cells: int) -> _MapWorksp
     return ws
 
 
-def _apply(Hs: np.ndarray, rects: np.ndarray, P: np.ndarray, ws: _Workspace | None = None
+def _apply(R: np.ndarray, consts: np.ndarray, rects: np.ndarray, P: np.ndarray, ws: _Workspace | None = None
            ) -> tuple[np.ndarray, np.ndarray]:
-    """Map homogeneous output points P (3, K) through the piecewise homography -> input (x, y).
+    """Map homogeneous output points P (3, K) through the piecewise inverse bilinear map -> input (x, y).
 
-    Every cell's homography maps every point; each point keeps the cell whose
-    input rectangle is nearest (L1) to where that cell's homography sends it
-    (distance 0 = the point is inside the cell's output quad). A cell sending a
-    point beyond its horizon (w <= 0) is never chosen; a point beyond every
-    cell's horizon maps to -inf. Results are views into ``ws`` when given.
+    ``R``, ``consts``, ``rects`` from :func:`cell_inverse_bilinear` (zoom folded into ``R``).
+    Every cell's inverse maps every point; each point keeps the cell whose input
+    rectangle is nearest (L1) to where that cell's inverse sends it (distance 0 =
+    the point is inside the cell's output quad). A cell with no real inverse at a
+    point (negative discriminant, or a denominator <= 0: far beyond the quad,
+    where the bilinear map folds) is never chosen there; a point with no inverse
+    in any cell maps to -inf. Results are views into ``ws`` when given.
     """
-    C, K = len(Hs), P.shape[1]
-    ws = ws or _Workspace(C, K)
-    M, x, y, dist, tmp, bad = ws.M, ws.x, ws.y, ws.dist, ws.tmp, ws.bad
-    np.matmul(Hs, P, out=M)
-    w = M[:, 2]
-    np.less_equal(w, 1e-12, out=bad)
-    any_bad = bool(bad.any())
+    C, K = len(R), P.shape[1]
+    ws = ws or _Workspace(C, K, P.dtype)
+    M, x, y, dist, tmp, sq, bad = ws.M, ws.x, ws.y, ws.dist, ws.tmp, ws.sq, ws.bad
+    dt = M.dtype
+    np.matmul(R.astype(dt, copy=False), P, out=M)
+    a, b, t = M[:, 0], M[:, 1], M[:, 2]
+    c2, kappa, x0, y0 = (consts[:, i:i + 1].astype(dt) for i in range(4))
+    np.multiply(t, t, out=sq)
+    np.multiply(b, kappa, out=tmp)
+    np.subtract(sq, tmp, out=sq)
+    with np.errstate(invalid="ignore"):
+        np.sqrt(sq, out=sq)  # NaN where the discriminant is negative: caught by the tests below
+    np.add(t, sq, out=y)  # denominator of y
+    np.subtract(c2, t, out=x)
+    np.add(x, sq, out=x)  # denominator of x
+    eps = 1e-6 * np.abs(c2)  # c2 = 2 cross(e, f) > 0 (twice the cell's area scale); the denominators are ~c2
+    # usual case, checked with two reductions: every cell invertible at every point (NaN fails the test)
+    any_bad = not (np.all(x.min(axis=1) > eps[:, 0]) and np.all(y.min(axis=1) > eps[:, 0]))
     if any_bad:
-        np.putmask(w, bad, 1.0)
-    np.divide(M[:, 0], w, out=x)
-    np.divide(M[:, 1], w, out=y)
+        np.greater(x, eps, out=bad)
+        np.logical_and(bad, np.greater(y, eps, out=ws.bad2), out=bad)
+        np.logical_not(bad, out=bad)
+        np.putmask(x, bad, 1.0)
+        np.putmask(y, bad, 1.0)
+    np.divide(a, x, out=x)
+    np.add(x, x0, out=x)
+    np.divide(b, y, out=y)
+    np.subtract(y0, y, out=y)
     if C == 1:
         xs, ys = x[0], y[0]
     else:
-        np.subtract(rects[:, 0:1], x, out=dist)
-        np.subtract(x, rects[:, 1:2], out=tmp)
+        r = rects.astype(dt)
+        np.subtract(r[:, 0:1], x, out=dist)
+        np.subtract(x, r[:, 1:2], out=tmp)
         np.maximum(dist, tmp, out=dist)
         np.maximum(dist, 0.0, out=dist)
-        np.subtract(rects[:, 2:3], y, out=tmp)
+        np.subtract(r[:, 2:3], y, out=tmp)
         np.add(dist, np.maximum(tmp, 0.0, out=tmp), out=dist)  # + max(y0 - y, 0) + max(y - y1, 0):
-        np.subtract(y, rects[:, 3:4], out=tmp)
+        np.subtract(y, r[:, 3:4], out=tmp)
         np.add(dist, np.maximum(tmp, 0.0, out=tmp), out=dist)  # the distance outside [y0, y1]
         if any_bad:
             np.putmask(dist, bad, np.inf)
@@ -188,13 +226,18 @@ def _apply(Hs: np.ndarray, rects: np.ndarray, P: np.ndarray, ws: _Workspace | No
     return xs, ys
 
 
+def _coefficients(mesh: MeshWarp, framing_scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`cell_inverse_bilinear` with the zoom folded in (output pixel -> unzoomed output is affine)."""
+    R, consts, rects = cell_inverse_bilinear(mesh)
+    return R @ zoom_matrix(mesh.width, mesh.height, framing_scale), consts, rects
+
+
 def map_points(mesh: MeshWarp, points: np.ndarray, framing_scale: float = 1.0) -> np.ndarray:
     """Exact inverse map: input-image positions (M, 2) shown at output ``points`` (M, 2)."""
-    Hs, rects = cell_homographies(mesh)
-    Hs = Hs @ zoom_matrix(mesh.width, mesh.height, framing_scale)
+    R, consts, rects = _coefficients(mesh, framing_scale)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     P = np.vstack((pts.T, np.ones(len(pts))))
-    x, y = _apply(Hs, rects, P)
+    x, y = _apply(R, consts, rects, P)
     return np.column_stack((x, y))
 
 
@@ -217,9 +260,8 @@ def _samples(width: int, height: int, step: int) -> tuple[np.ndarray, tuple[int,
 
 def _lowres_map(mesh: MeshWarp, framing_scale: float, ws: _MapWorkspace) -> np.ndarray:
     """The inverse map at the low-resolution samples, (nh, nw, 2) float32 (a view of ``ws.low``)."""
-    Hs, rects = cell_homographies(mesh)
-    Hs = Hs @ zoom_matrix(mesh.width, mesh.height, framing_scale)
-    x, y = _apply(Hs, rects, ws.P, ws)
+    R, consts, rects = _coefficients(mesh, framing_scale)
+    x, y = _apply(R, consts, rects, ws.P, ws)
     lim = _CLIP_FACTOR * max(mesh.width, mesh.height)
     nh, nw = ws.low.shape[:2]
     np.clip(x.reshape(nh, nw), -lim, lim, out=ws.low[..., 0], casting="unsafe")

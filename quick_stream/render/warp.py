@@ -1,4 +1,4 @@
-"""Content-preserving warp (Liu et al. 2009) driven by depth: design note section 5.
+"""Content-preserving warp (Liu et al. 2009) driven by depth: docs/method.md 5.1.
 
 A regular grid of ``gx`` x ``gy`` cells covers the input frame; its vertices sit on
 pixel centres, from (0, 0) to (W-1, H-1), so every pixel lies in some cell and the
@@ -10,21 +10,33 @@ Control points: valid-depth pixels ``p`` on a regular sub-grid (at most
 targets ``p_hat = project(K, T x)`` where ``T`` (4x4 affine) maps real-camera to
 virtual-camera coordinates. Points landing behind the virtual camera are dropped.
 
-Energy, with ``V`` the output vertices::
+Energy (docs/method.md (13)), with ``V`` the output vertices::
 
     E = E_d / N + alpha * E_s
     E_d = sum_p | sum_k w_k(p) V_k - p_hat |^2        (w_k: bilinear weights of p in its input cell)
     E_s = sum_triangles | V1 - V2 - u (V3 - V2) - v R90 (V3 - V2) |^2
 
-``(u, v)`` are the coordinates of V1 in the frame of edge V2->V3 on the *input*
-grid, so E_s = 0 exactly when each triangle is a similar copy of its input.
+``(u, v)`` are the coordinates of V1 in the frame of edge V2->V3 on the *reference*
+grid, so E_s = 0 exactly when each triangle is a similar copy of its reference.
 Each cell contributes its 4 corner triangles (a corner and its two neighbours).
+The reference (``shape_reference``) is by default the input grid moved by the
+correction's rotation, K R K^-1: a rotation moves every pixel by that homography
+whatever its depth, so following it costs nothing and E_s only holds back what
+depth parallax (the correction's translation) would do to the cells; with the
+input grid itself as the reference (Liu et al. 2009) the shape term also fights
+the rotation's perspective (measured: 2.3 px of residual for a 1.5/2/1 degree
+rotation that the mesh can follow to 0.55 px).
+
 Normalisation: the data term is a *mean* over the control points, so ``alpha``
 weighs "one control point's squared error" against the shape term and keeps its
-meaning whatever the resolution or the number of control points (the paper's
-alpha = 0.1 with a sum over all ~300k VGA pixels would make E_s irrelevant).
-All coefficients are dimensionless, so the 2n x 2n normal matrix is
-scale-free and its condition number is a meaningful singularity test.
+meaning whatever the resolution or the number of control points. The paper's
+E_d + 0.1 E_s with the data term *summed* over N points is alpha = 0.1 / N here
+(about 5e-5 for N = 2000): with full-frame control points the shape term is then
+irrelevant, and the mesh shears to fit depth parallax (whole stabilizer on
+7scenes: distortion 0.942 against 0.989 at alpha = 0.1; docs/method.md section 5
+has the measurements behind the default). All coefficients are dimensionless,
+so the 2n x 2n normal matrix is scale-free and its condition number is a
+meaningful singularity test.
 
 A failed solve (too few control points, singular system, folded mesh) gives the
 identity mesh with ``ok = False`` and a ``reason``, so callers can flag the frame.
@@ -36,7 +48,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..frame import RGBDFrame
+from ..frame import Intrinsics, RGBDFrame
 
 
 @dataclass
@@ -44,7 +56,17 @@ class WarpParams:
     """Parameters of :func:`solve_warp` (each one documented where it acts)."""
 
     grid: tuple[int, int] = (2, 2)  # cells in x and y
-    alpha: float = 0.1  # weight of the similarity term (data term is a mean, see module doc)
+    # Weight of the similarity term against the MEAN squared control-point error, docs/method.md (13):
+    # alpha = 1 prices a 1 px similarity residual on every corner triangle like a 1 px error on
+    # every control point. Independent of the number of control points and of the resolution.
+    # The paper's E_d + 0.1 E_s with E_d summed over N points is alpha = 0.1 / N here (~5e-5): the
+    # mesh then shears to fit depth parallax (measured: docs/method.md section 5).
+    alpha: float = 0.1
+    # What the similarity term compares each output triangle with: "rotation" = its input triangle
+    # moved by the correction's rotation (the homography K R K^-1, parallax-free, so it costs nothing
+    # to follow a camera rotation and only depth parallax is held back); "input" = the input
+    # triangle itself (Liu et al. 2009, which also resists the rotation's perspective).
+    shape_reference: str = "rotation"
     max_control_points: int = 2000  # valid-depth pixels are subsampled on a regular grid to at most this
     min_control_points: int = 8  # fewer usable control points: identity mesh, ok=False
     min_depth: float = 0.0  # metres; control points need depth > min_depth (0 = invalid)
@@ -62,6 +84,8 @@ class WarpParams:
             raise ValueError(f"warp grid must be two integers >= 1, got {self.grid}")
         if not (np.isfinite(self.alpha) and self.alpha >= 0):
             raise ValueError(f"warp alpha must be finite and >= 0, got {self.alpha}")
+        if self.shape_reference not in ("rotation", "input"):
+            raise ValueError(f"warp shape_reference must be 'rotation' or 'input', got {self.shape_reference!r}")
         if self.max_control_points < self.min_control_points or self.min_control_points < 1:
             raise ValueError("warp needs 1 <= min_control_points <= max_control_points")
 
@@ -97,6 +121,21 @@ class MeshWarp:
         src = grid_geometry(width, height, int(grid[0]), int(grid[1])).src
         return cls(width, height, src, src.copy(), ok=not reason, reason=reason, n_controls=n_controls)
 
+    def cell_distortion(self) -> np.ndarray:
+        """Per output cell (gy, gx): sigma_min / sigma_max of the cell's affine part, 1 = no shear or stretch.
+
+        The affine part is the least-squares affine map of the cell's 4 corners, which
+        for a bilinear cell is its mean Jacobian: columns ((p1 - p0) + (p2 - p3)) / 2w and
+        ((p3 - p0) + (p2 - p1)) / 2h for corners p0..p3 = 00, 10, 11, 01 and input size w x h.
+        """
+        s, d = self.src, self.dst
+        w = s[0, 1, 0] - s[0, 0, 0]
+        h = s[1, 0, 1] - s[0, 0, 1]
+        p0, p1, p2, p3 = d[:-1, :-1], d[:-1, 1:], d[1:, 1:], d[1:, :-1]
+        J = np.stack(((p1 - p0 + p2 - p3) / (2 * w), (p3 - p0 + p2 - p1) / (2 * h)), axis=-1)
+        sv = np.linalg.svd(J, compute_uv=False)
+        return sv[..., 1] / sv[..., 0]
+
     def quads_convex(self) -> bool:
         """True when every output cell is a convex quad with the input's orientation (no fold)."""
         d = self.dst
@@ -124,42 +163,97 @@ def grid_geometry(width: int, height: int, gx: int, gy: int) -> GridGeometry:
     xs = np.linspace(0.0, width - 1.0, gx + 1)
     ys = np.linspace(0.0, height - 1.0, gy + 1)
     src = np.stack(np.meshgrid(xs, ys), axis=-1)
-    n = (gx + 1) * (gy + 1)
+    for a in (xs, ys, src):
+        a.setflags(write=False)
+    sn = similarity_normal(src)
+    sn.setflags(write=False)
+    return GridGeometry(xs, ys, src, sn)
+
+
+@lru_cache(maxsize=16)
+def _corner_triangles(gx: int, gy: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertex indices (V1, V2, V3) of every cell's 4 corner triangles: a corner and its two neighbours."""
     jj, ii = np.mgrid[0:gy, 0:gx]
     ii, jj = ii.ravel(), jj.ravel()
     # Vertex indices of each cell's corners in cyclic order 00, 10, 11, 01.
     cyc = np.stack([jj * (gx + 1) + ii, jj * (gx + 1) + ii + 1,
                     (jj + 1) * (gx + 1) + ii + 1, (jj + 1) * (gx + 1) + ii], axis=1)
-    flat = src.reshape(-1, 2)
-    rows = []
-    for q in range(4):  # corner q with its neighbours q-1 (V2) and q+1 (V3)
-        k1, k2, k3 = cyc[:, q], cyc[:, (q - 1) % 4], cyc[:, (q + 1) % 4]
-        e = flat[k3] - flat[k2]
-        d = flat[k1] - flat[k2]
-        ee = np.einsum("ij,ij->i", e, e)
-        u = np.einsum("ij,ij->i", d, e) / ee
-        v = (d[:, 0] * e[:, 1] - d[:, 1] * e[:, 0]) / ee  # d . R90 e with R90 (x, y) = (y, -x)
-        for m in range(len(k1)):
-            # residual = V1 - (1-u) V2 - u V3 - v R90 (V3 - V2)
-            rx = np.zeros(2 * n)
-            ry = np.zeros(2 * n)
-            rx[k1[m]] += 1
-            rx[k2[m]] -= 1 - u[m]
-            rx[k3[m]] -= u[m]
-            rx[n + k3[m]] -= v[m]
-            rx[n + k2[m]] += v[m]
-            ry[n + k1[m]] += 1
-            ry[n + k2[m]] -= 1 - u[m]
-            ry[n + k3[m]] -= u[m]
-            ry[k3[m]] += v[m]
-            ry[k2[m]] -= v[m]
-            rows += [rx, ry]
-    S = np.array(rows)
-    for a in (xs, ys, src):
+    k1 = np.concatenate([cyc[:, q] for q in range(4)])
+    k2 = np.concatenate([cyc[:, (q - 1) % 4] for q in range(4)])
+    k3 = np.concatenate([cyc[:, (q + 1) % 4] for q in range(4)])
+    for a in (k1, k2, k3):
         a.setflags(write=False)
-    sn = S.T @ S
-    sn.setflags(write=False)
-    return GridGeometry(xs, ys, src, sn)
+    return k1, k2, k3
+
+
+def similarity_normal(reference: np.ndarray) -> np.ndarray:
+    """S^T S of the similarity term of docs/method.md (13), with (u, v) taken from ``reference`` (..., gy+1, gx+1, 2).
+
+    For each corner triangle (V1, V2, V3) of every cell, (u, v) are the coordinates of
+    the reference's V1 in the frame of its edge V2 -> V3, and the residual pair is
+    ``V1 - V2 - u (V3 - V2) - v R90 (V3 - V2)`` with R90 (x, y) = (y, -x), linear in
+    X = [x_0..x_n-1, y_0..y_n-1]: zero exactly when every output triangle is a similar
+    copy of its reference triangle. All coefficients are dimensionless. Leading
+    dimensions of ``reference`` are a batch: returns (..., 2n, 2n).
+    """
+    ref = np.asarray(reference, dtype=np.float64)
+    gy, gx = ref.shape[-3] - 1, ref.shape[-2] - 1
+    n = (gx + 1) * (gy + 1)
+    k1, k2, k3 = _corner_triangles(gx, gy)
+    flat = ref.reshape(*ref.shape[:-3], -1, 2)
+    e = flat[..., k3, :] - flat[..., k2, :]
+    d = flat[..., k1, :] - flat[..., k2, :]
+    ee = np.einsum("...ij,...ij->...i", e, e)
+    u = np.einsum("...ij,...ij->...i", d, e) / ee
+    v = (d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]) / ee  # d . R90 e
+    m = len(k1)
+    r = np.arange(m)
+    S = np.zeros(ref.shape[:-3] + (2 * m, 2 * n))
+    # x rows: V1x - (1-u) V2x - u V3x - v (V3y - V2y); y rows: V1y - (1-u) V2y - u V3y + v (V3x - V2x)
+    S[..., r, k1] = 1.0
+    S[..., r, k2] = -(1.0 - u)
+    S[..., r, k3] = -u
+    S[..., r, n + k3] = -v
+    S[..., r, n + k2] = v
+    S[..., m + r, n + k1] = 1.0
+    S[..., m + r, n + k2] = -(1.0 - u)
+    S[..., m + r, n + k3] = -u
+    S[..., m + r, k3] = v
+    S[..., m + r, k2] = -v
+    return np.swapaxes(S, -1, -2) @ S
+
+
+def rotation_references(K: np.ndarray, point_transforms: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Grid vertices ``src`` moved by each correction's rotation alone: the homography K R K^-1.
+
+    R is the rotation of the point transform's linear part (its polar factor: the part
+    itself for SE(3); scale has no image effect; shear is left to the data term). A
+    rotation moves every pixel by this homography whatever its depth, so it is the
+    parallax-free part of the correction. ``K`` (..., 3, 3) and ``point_transforms``
+    (..., 4, 4) broadcast; where a vertex would leave the virtual camera's front
+    half-space the input grid itself is the reference. Returns the references
+    (..., gy+1, gx+1, 2) and where the rotation could be used (...,) bool.
+    """
+    A = np.asarray(point_transforms, dtype=np.float64)[..., :3, :3]
+    U, _, Vt = np.linalg.svd(A)
+    D = np.ones(A.shape[:-2] + (3,))
+    D[..., 2] = np.sign(np.linalg.det(U @ Vt))
+    R = (U * D[..., None, :]) @ Vt
+    K = np.asarray(K, dtype=np.float64)
+    Hr = K @ R @ np.linalg.inv(K)
+    pts = src.reshape(-1, 2)
+    h = np.einsum("...ij,mj->...mi", Hr[..., :, :2], pts) + Hr[..., None, :, 2]
+    ok = np.all(np.isfinite(h), axis=(-1, -2)) & np.all(h[..., 2] > 1e-3, axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        moved = h[..., :2] / h[..., 2:]
+    out = np.where(ok[..., None, None], moved, pts)
+    return out.reshape(out.shape[:-2] + src.shape), ok
+
+
+def rotation_reference(intrinsics: Intrinsics, point_transform: np.ndarray, src: np.ndarray) -> np.ndarray | None:
+    """:func:`rotation_references` for one correction; None when a vertex would leave the front half-space."""
+    ref, ok = rotation_references(intrinsics.K, point_transform, src)
+    return ref if bool(ok) else None
 
 
 @lru_cache(maxsize=8)
@@ -232,6 +326,8 @@ def solve_warp(frame: RGBDFrame, point_transform: np.ndarray, params: WarpParams
     ``point_transform`` (4x4 affine) maps real-camera coordinates to
     virtual-camera coordinates; the virtual camera has the frame's intrinsics.
     ``prepared`` (from :func:`prepare_warp` with the same params) skips recomputing it.
+    With ``shape_reference="rotation"`` the similarity term's reference is the grid
+    moved by the correction's rotation (:func:`rotation_reference`), docs/method.md (13).
     """
     p = params or WarpParams()
     p.validate()
@@ -248,9 +344,13 @@ def solve_warp(frame: RGBDFrame, point_transform: np.ndarray, params: WarpParams
     tgt = np.empty((y.shape[0], 2))
     tgt[:, 0] = K.fx * y[:, 0] / y[:, 2] + K.cx
     tgt[:, 1] = K.fy * y[:, 1] / y[:, 2] + K.cy
+    ref = None
+    if p.shape_reference == "rotation":
+        gx, gy = (int(g) for g in p.grid)
+        ref = rotation_reference(K, T, grid_geometry(wi.width, wi.height, gx, gy).src)
     if every:
-        return _solve(wi.B, wi.BtB, tgt, wi.width, wi.height, p)
-    return solve_mesh(wi.pixels[front], tgt, wi.width, wi.height, p)
+        return _solve(wi.B, wi.BtB, tgt, wi.width, wi.height, p, ref)
+    return solve_mesh(wi.pixels[front], tgt, wi.width, wi.height, p, ref)
 
 
 def bilinear_weights(pixels: np.ndarray, geo: GridGeometry) -> tuple[np.ndarray, np.ndarray]:
@@ -271,16 +371,18 @@ def bilinear_weights(pixels: np.ndarray, geo: GridGeometry) -> tuple[np.ndarray,
 
 
 def solve_mesh(pixels: np.ndarray, targets: np.ndarray, width: int, height: int,
-               params: WarpParams | None = None) -> MeshWarp:
-    """Minimise E = E_d / N + alpha E_s for control ``pixels`` (N, 2) -> ``targets`` (N, 2).
+               params: WarpParams | None = None, reference: np.ndarray | None = None) -> MeshWarp:
+    """Minimise E = E_d / N + alpha E_s (docs/method.md (13)) for control ``pixels`` (N, 2) -> ``targets`` (N, 2).
 
-    The normal equations are accumulated in one matrix product (the data term's
-    x and y blocks share the n x n matrix B^T B) and the 2n x 2n system is solved
-    directly. See the module docstring for the energy and its normalisation.
+    ``reference`` (gy+1, gx+1, 2): the vertex positions whose triangles E_s keeps
+    the output similar to (None: the input grid). The normal equations are
+    accumulated in one matrix product (the data term's x and y blocks share the
+    n x n matrix B^T B) and the 2n x 2n system is solved directly. See the module
+    docstring for the energy and its normalisation.
     """
     p = params or WarpParams()
     B, BtB = _design(pixels, width, height, p)
-    return _solve(B, BtB, targets, width, height, p)
+    return _solve(B, BtB, targets, width, height, p, reference)
 
 
 def _design(pixels: np.ndarray, width: int, height: int, p: WarpParams) -> tuple[np.ndarray, np.ndarray]:
@@ -298,7 +400,7 @@ def _design(pixels: np.ndarray, width: int, height: int, p: WarpParams) -> tuple
 
 
 def _solve(B: np.ndarray, BtB: np.ndarray, targets: np.ndarray, width: int, height: int,
-           p: WarpParams) -> MeshWarp:
+           p: WarpParams, reference: np.ndarray | None = None) -> MeshWarp:
     gx, gy = (int(g) for g in p.grid)
     geo = grid_geometry(width, height, gx, gy)
     n = (gx + 1) * (gy + 1)
@@ -308,7 +410,7 @@ def _solve(B: np.ndarray, BtB: np.ndarray, targets: np.ndarray, width: int, heig
     G = np.zeros((2 * n, 2 * n))
     G[:n, :n] = BtB
     G[n:, n:] = BtB
-    G += p.alpha * geo.sim_normal
+    G += p.alpha * (geo.sim_normal if reference is None else similarity_normal(reference))
     rhs = np.concatenate((B.T @ targets[:, 0], B.T @ targets[:, 1])) / N
     if not np.all(np.isfinite(G)) or not np.all(np.isfinite(rhs)):
         return MeshWarp.identity(width, height, (gx, gy), "non-finite control point targets", N)
