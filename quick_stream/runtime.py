@@ -41,6 +41,7 @@ import zenoh.ext
 from . import keys
 from .arrivals import ArrivalLedger, Gap
 from .wire import Decoded, Stats, WireError, decode, encode_stats
+from .wire.codec import peek
 
 log = logging.getLogger(__name__)
 
@@ -56,13 +57,15 @@ class Inbox:
     def __init__(self, capacity: int, cond: threading.Condition,
                  on_arrival: Callable[[str, bytes, int], None] | None = None,
                  on_gap: Callable[[Gap], None] | None = None) -> None:
-        self.capacity = capacity
+        self.capacity = self.base_capacity = capacity
         self.on_arrival = on_arrival
         self.on_gap = on_gap
         self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
         self._cond = cond
         self.received = 0
         self.dropped = 0
+        self.skipped = 0
+        self.skip_through: int | None = None  # data messages with a seq <= this are not queued (taken over)
         self.arrivals = ArrivalLedger()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -72,6 +75,13 @@ class Inbox:
             self.on_gap(gap)
         if self.on_arrival is not None:
             self.on_arrival(*item)
+        if self.skip_through is not None:
+            # A service taking over skips what its predecessor already handled; a history
+            # replay of many of those must not push the ones it needs out of the queue.
+            env = peek(data)
+            if env is not None and env[0] != "end" and env[1] <= self.skip_through:
+                self.skipped += 1
+                return
         with self._cond:
             if len(self._q) >= self.capacity:
                 self._q.popleft()
@@ -82,7 +92,12 @@ class Inbox:
 
     def pop(self) -> tuple[str, bytes, int] | None:
         with self._cond:
-            return self._q.popleft() if self._q else None
+            if not self._q:
+                return None
+            item = self._q.popleft()
+            if not self._q and self.capacity != self.base_capacity:
+                self.capacity = self.base_capacity  # caught up: back to the live bound
+            return item
 
     def __len__(self) -> int:
         return len(self._q)
@@ -139,13 +154,20 @@ class ServiceRuntime:
 
     def inbox(self, key_expr: str, capacity: int, history: bool = False,
               on_arrival: Callable[[str, bytes, int], None] | None = None,
-              on_gap: Callable[[Gap], None] | None = None) -> Inbox:
+              on_gap: Callable[[Gap], None] | None = None, skip_through: int | None = None,
+              catch_up: int = 0) -> Inbox:
         """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages. ``history``: first
-        receive what the publishers' caches hold (a service restarted mid-stream takes over).
+        receive what the publishers' caches hold (a service restarted mid-stream takes over);
+        ``skip_through``: data messages with a seq up to this one are counted (``skipped``) but not
+        queued, so a history replay of what the predecessor handled leaves room for the rest;
+        ``catch_up``: the capacity until the queue first drains (the backlog a restarted service
+        finds in the history is longer than the live bound).
         ``on_arrival(key, payload, arrival_ns)`` runs in zenoh's thread as each message arrives, before it is
         queued (keep it short; it must not raise); ``on_gap(gap)`` before it, when the message skips seqs
         of its stage (:mod:`quick_stream.arrivals`)."""
         box = Inbox(capacity, self._cond, on_arrival, on_gap)
+        box.skip_through = skip_through
+        box.capacity = max(capacity, catch_up)
         if history:
             # a publisher this session does not know yet (its declaration arrives after ours) is queried
             # once seen
@@ -287,6 +309,8 @@ class ServiceRuntime:
         for i, b in enumerate(self._inboxes):
             vals[f"inbox{i}_dropped"] = b.dropped
             vals[f"inbox{i}_queued"] = len(b)
+            if b.skip_through is not None:
+                vals[f"inbox{i}_skipped"] = b.skipped
         self._stats_pub.put(encode_stats(Stats(self.service, vals), self.stream, self._stats_seq))
         self._stats_seq += 1
         if self._stats_seq % TRIM_EVERY == 0:

@@ -52,6 +52,10 @@ class SceneFlowParams:
     outlier_k: float = 6.0  # |v| outlier if | |v| - median| > outlier_k * 1.4826 * MAD
     outlier_floor_m: float = 0.01  # ... and more than this many metres from the median
     min_contrast: float = 2.0  # grey-level std below this (black, saturated, blank): no flow
+    refine: str = "lk"  # "lk": refine each kept sample's flow with Lucas-Kanade started from DIS | "none"
+    lk_window: int = 9  # LK window (px, odd)
+    lk_iters: int = 10  # LK iterations at most (it starts from the DIS flow)
+    lk_max_shift_px: float = 2.0  # LK moving a sample further than this from DIS: sample dropped
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -67,6 +71,10 @@ class SceneFlowParams:
                 raise ValueError(f"sceneflow {name} must be in [0.1, 1], got {val}")
         if self.grid_step < 1 or self.max_points < 3:
             raise ValueError("sceneflow grid_step must be >= 1 and max_points >= 3")
+        if self.refine not in ("lk", "none"):
+            raise ValueError(f"sceneflow refine must be 'lk' or 'none', got {self.refine!r}")
+        if self.lk_window < 3 or self.lk_window % 2 == 0 or self.lk_iters < 1 or not self.lk_max_shift_px > 0:
+            raise ValueError("sceneflow lk_window must be odd >= 3, lk_iters >= 1 and lk_max_shift_px > 0")
 
 
 @dataclass
@@ -134,7 +142,7 @@ def sample_depth(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) ->
     """Bilinear depth at sub-pixel (u, v) where the 4 neighbours are valid and agree within ``rel``.
 
     Returns 0 where the neighbours straddle a depth edge or an invalid pixel
-    (design note section 1: no blending across depth edges).
+    (docs/method.md (1): no blending across depth edges).
     """
     h, w = depth.shape
     u0 = np.clip(np.floor(u).astype(np.intp), 0, w - 2)
@@ -234,7 +242,40 @@ class SceneFlow:
                     f0, f1, f"{f.label}: too little image contrast for optical flow (grey std {std:.2f})"
                 )
         fwd, bwd = self.optical_flow(f0, f1)
-        return lift_flow(f0, f1, fwd, bwd, self.params)
+        return lift_flow(f0, f1, fwd, bwd, self.params, self.refiner(f0, f1))
+
+    def refiner(self, f0: RGBDFrame, f1: RGBDFrame):
+        """The sample-flow refinement :func:`lift_flow` takes for this pair (None when ``refine`` is "none")."""
+        if self.params.refine != "lk":
+            return None
+        g0, g1 = self._greys(f0)[1.0], self._greys(f1)[1.0]
+
+        def refine(u0: np.ndarray, v0: np.ndarray, u1: np.ndarray, v1: np.ndarray):
+            return refine_lk(g0, g1, u0, v0, u1, v1, self.params)
+        return refine
+
+
+def refine_lk(g0: np.ndarray, g1: np.ndarray, u0: np.ndarray, v0: np.ndarray, u1: np.ndarray, v1: np.ndarray,
+              p: SceneFlowParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lucas-Kanade refinement of sample flows started from DIS (docs/method.md (1)).
+
+    DIS interpolates its flow from overlapping patches at a coarse scale, which leaves
+    errors correlated across the image (they do not average out over the samples); a
+    few LK iterations per sample at full resolution, started from the DIS estimate,
+    remove most of them. Returns the refined (u1, v1) and a mask of samples LK kept: it
+    converged and moved the sample at most ``lk_max_shift_px`` from DIS.
+    """
+    if u0.size == 0:
+        return u1, v1, np.ones(0, bool)
+    p0 = np.column_stack((u0, v0)).astype(np.float32).reshape(-1, 1, 2)
+    p1 = np.column_stack((u1, v1)).astype(np.float32).reshape(-1, 1, 2)
+    out, st, _ = cv2.calcOpticalFlowPyrLK(
+        g0, g1, p0, p1, winSize=(p.lk_window, p.lk_window), maxLevel=0, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, p.lk_iters, 0.01))
+    out = out.reshape(-1, 2).astype(np.float64)
+    ok = st.ravel().astype(bool) & np.all(np.isfinite(out), axis=1)
+    ok &= np.hypot(out[:, 0] - u1, out[:, 1] - v1) <= p.lk_max_shift_px
+    return np.where(ok, out[:, 0], u1), np.where(ok, out[:, 1], v1), ok
 
 
 def _f32(a: np.ndarray) -> np.ndarray:
@@ -249,11 +290,14 @@ def lift_flow(
     fwd: np.ndarray,
     bwd: np.ndarray | None,
     p: SceneFlowParams,
+    refine=None,
 ) -> SceneFlowResult:
-    """Lift optical flow to 3D and apply the masks (design note section 1).
+    """Lift optical flow to 3D and apply the masks (docs/method.md (1)).
 
     Candidates are pixels on a regular grid (about twice ``max_points`` of them);
-    each mask shrinks the candidate set before the next, dearer one runs.
+    each mask shrinks the candidate set before the next, dearer one runs. ``refine``
+    (u0, v0, u1, v1) -> (u1, v1, kept), e.g. :func:`refine_lk`, corrects the flow of the
+    samples that passed the image masks, before the second frame's depth is read.
     """
     h, w = f0.depth.shape
     s = p.flow_scale
@@ -288,6 +332,11 @@ def lift_flow(
         ok &= ~bad
     sel = np.flatnonzero(ok)
     uu, vv, z0, u1, v1 = uu[sel], vv[sel], z0[sel], u1[sel], v1[sel]
+    if refine is not None:
+        u1, v1, kept = refine(uu, vv, u1, v1)
+        kept &= (u1 >= b) & (u1 <= w - 1 - b) & (v1 >= b) & (v1 <= h - 1 - b)
+        counts["lk_rejected"] = int(kept.size - np.count_nonzero(kept))
+        uu, vv, z0, u1, v1 = uu[kept], vv[kept], z0[kept], u1[kept], v1[kept]
     z1 = sample_depth(f1.depth, u1, v1, p.depth_edge if p.depth_edge > 0 else 0.05)
     ok = (z1 >= p.min_depth) & (z1 <= p.max_depth)
     counts["invalid_depth_next"] = int(ok.size - np.count_nonzero(ok))

@@ -32,6 +32,9 @@ def build_parser():
                    help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)")
     p.add_argument("--history", type=at.int_in(0), default=60,
                    help="flows kept for a restarted motion service to take over from (default 60; 0: none)")
+    p.add_argument("--catch-up", type=at.positive_int, default=150,
+                   help="frames held while a restarted flow works through the frames' history (default 150, "
+                        "the capture's history)")
     add_stabilizer_args(p)
     return p
 
@@ -44,7 +47,8 @@ def run(args, conf: zenoh.Config) -> int:
         if resume_after is not None:
             log.warning("stream %s under way (flows out up to frame %d): taking over from the frames' history",
                         args.stream, resume_after)
-        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, history=resume_after is not None)
+        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, history=resume_after is not None,
+                         skip_through=resume_after, catch_up=args.catch_up if resume_after is not None else 0)
         pub = rt.publisher("flow", lossless=True, cache=args.history)
         rt.serve_cursor()
         rt.ready()

@@ -105,3 +105,18 @@ def test_depth_is_not_blended_across_edges():
     d[:, 2:] = 3.0
     z = sample_depth(d, np.array([0.5, 1.5, 2.5]), np.array([1.0, 1.0, 1.0]), 0.05)
     np.testing.assert_allclose(z, [1.0, 0.0, 3.0])
+
+
+def test_lk_refinement_brings_sample_flow_closer_to_the_truth(pair):
+    a, b = pair
+    M = point_motion(a, b)
+    K = b.intrinsics
+    errs = {}
+    for refine in ("none", "lk"):
+        r = SceneFlow(SceneFlowParams(refine=refine)).compute(a, b)
+        y = r.points @ M[:3, :3].T + M[:3, 3]  # where the sample's 3D point really is in frame t+1
+        truth = np.column_stack((K.fx * y[:, 0] / y[:, 2] + K.cx, K.fy * y[:, 1] / y[:, 2] + K.cy))
+        errs[refine] = float(np.median(np.linalg.norm(r.pixels_next - truth, axis=1)))
+    assert errs["lk"] < 0.75 * errs["none"], errs
+    with pytest.raises(ValueError, match="refine"):
+        SceneFlowParams(refine="sift").validate()

@@ -37,17 +37,17 @@ def run(pairs: int = 100, width: int = 640, height: int = 480, group: str = "se3
     source_fps = len(frames) / (time.perf_counter() - t0)
     sf = SceneFlow(flow_params)
     me = MotionEstimator(MotionParams(group=group))
-    stages: dict[str, list[float]] = {"optical flow (fwd+bwd)": [], "lift + masks": [], "motion": []}
+    stages: dict[str, list[float]] = {"optical flow (fwd+bwd)": [], "lift + masks + LK": [], "motion": []}
     for a, b in zip(frames[:-1], frames[1:]):
         t0 = time.perf_counter()
         fwd, bwd = sf.optical_flow(a, b)
         t1 = time.perf_counter()
-        res = lift_flow(a, b, fwd, bwd, sf.params)
+        res = lift_flow(a, b, fwd, bwd, sf.params, sf.refiner(a, b))
         t2 = time.perf_counter()
         me.estimate(res)
         t3 = time.perf_counter()
         stages["optical flow (fwd+bwd)"].append((t1 - t0) * 1e3)
-        stages["lift + masks"].append((t2 - t1) * 1e3)
+        stages["lift + masks + LK"].append((t2 - t1) * 1e3)
         stages["motion"].append((t3 - t2) * 1e3)
     total = np.sum([np.asarray(v) for v in stages.values()], axis=0)
     stages["total"] = list(total)

@@ -1,0 +1,36 @@
+"""The services' inbox: drop-oldest bound, and what a service taking over skips and catches up on."""
+import threading
+from types import SimpleNamespace
+
+from quick_stream.runtime import Inbox
+from quick_stream.wire import encode_end
+from quick_stream.wire.codec import pack
+from quick_stream.wire.messages import EndOfStream
+
+
+def sample(seq: int, mtype: str = "frame"):
+    data = encode_end(EndOfStream(seq, "done"), "cam0") if mtype == "end" else pack({}, mtype, "cam0", seq)
+    return SimpleNamespace(key_expr="quick/@v1/cam0/frame", payload=SimpleNamespace(to_bytes=lambda: data))
+
+
+def test_a_history_replay_neither_crowds_out_nor_drops_what_a_taking_over_service_needs():
+    box = Inbox(5, threading.Condition())
+    box.skip_through = 93  # the predecessor's output went up to frame 93
+    box.capacity = 40  # catching up
+    for seq in range(0, 130):  # the capture's history, then live frames
+        box._on_sample(sample(seq))
+    assert box.skipped == 94 and box.dropped == 0
+    got = []
+    while (item := box.pop()) is not None:
+        got.append(item)
+    assert len(got) == 36 and box.capacity == 5  # all of 94..129, then back to the live bound once drained
+    for seq in range(130, 140):
+        box._on_sample(sample(seq))
+    assert box.dropped == 5 and len(box) == 5
+
+
+def test_end_markers_are_never_skipped():
+    box = Inbox(5, threading.Condition())
+    box.skip_through = 10
+    box._on_sample(sample(3, "end"))
+    assert len(box) == 1 and box.skipped == 0
