@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -19,7 +19,7 @@ from .motion import MotionParams
 from .path.planner import PlannerParams
 from .render import FramingParams
 from .sources.tum import TumSource
-from .stabilizer import Stabilizer, StabilizerParams
+from .stabilizer import StabilizedFrame, Stabilizer, StabilizerParams
 
 GROUPS = ("se3", "sim3", "sa3", "ga3")
 AVERAGED = ("cropping", "distortion", "stability", "jitter_px", "jitter_deg", "input_jitter_px")
@@ -44,6 +44,25 @@ def pick_starts(n_frames: int, p: EvaluateParams) -> list[int]:
     return sorted(int(s) for s in rng.choice(choices, p.subsequences, replace=p.subsequences > choices))
 
 
+def run_timed(st: Stabilizer, source: Iterable[RGBDFrame | BadFrame],
+              take: Callable[[list[StabilizedFrame]], None]) -> tuple[float, int]:
+    """Push ``source`` through ``st`` (then finish), handing each output batch to ``take``.
+
+    Returns (seconds spent in the stabilizer alone, frames read)."""
+    t, frames = 0.0, 0
+    for fr in source:
+        frames += 1
+        t0 = time.perf_counter()
+        batch = st.push(fr)
+        t += time.perf_counter() - t0
+        take(batch)
+    t0 = time.perf_counter()
+    batch = st.finish()
+    t += time.perf_counter() - t0
+    take(batch)
+    return t, frames
+
+
 def stabilize_and_score(source: Iterable[RGBDFrame | BadFrame], params: StabilizerParams, fps: float) -> dict:
     """Stabilize ``source`` (read lazily) and score the output against its input.
 
@@ -52,24 +71,15 @@ def stabilize_and_score(source: Iterable[RGBDFrame | BadFrame], params: Stabiliz
     """
     st = Stabilizer(params, keep_inputs=True)
     acc = MetricsAccumulator(fps)
-    t, frames, flagged = 0.0, 0, 0
+    flagged = 0
 
-    def score(batch) -> None:
+    def score(batch: list[StabilizedFrame]) -> None:
         nonlocal flagged
         for sf in batch:
             acc.add(sf.input_image, sf.image)
             flagged += bool(sf.flags)
 
-    for fr in source:
-        frames += 1
-        t0 = time.perf_counter()
-        batch = st.push(fr)
-        t += time.perf_counter() - t0
-        score(batch)
-    t0 = time.perf_counter()
-    batch = st.finish()
-    t += time.perf_counter() - t0
-    score(batch)
+    t, frames = run_timed(st, source, score)
     m = acc.result().as_dict()
     m.update(ms_per_frame=1e3 * t / max(frames, 1), flagged_frames=flagged, bad_frames=len(st.bad_frames),
              segments=len(st.planner.segments))

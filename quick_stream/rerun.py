@@ -238,7 +238,7 @@ def _rerun_flow(ch: dict[str, list[_Msg]], stream: str, params: StabilizerParams
 
 
 def _rerun_motion(ch: dict[str, list[_Msg]], stream: str, params: StabilizerParams, res: RerunResult) -> None:
-    stage = MotionStage(params.motion, params.planner)
+    stage = MotionStage(params.motion, params.planner, params.warp)
     numbering = ReleaseNumbering()
     motions: list[bytes] = []
     corrections: list[bytes] = []
@@ -251,7 +251,7 @@ def _rerun_motion(ch: dict[str, list[_Msg]], stream: str, params: StabilizerPara
         if msg.type == "end":
             corrections.extend(numbering.encode(stage.finish(), stream))
             corrections.append(encode_end(msg.obj, stream))
-            stage = MotionStage(params.motion, params.planner)
+            stage = MotionStage(params.motion, params.planner, params.warp)
             continue
         if msg.type != "flow":
             continue

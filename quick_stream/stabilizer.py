@@ -52,7 +52,7 @@ class Stabilizer:
         record every motion estimate (reports, plots). Both off, memory stays bounded by one segment."""
         self.params = p = params or StabilizerParams()
         self.flow = FlowStage(p.flow, p.continuity)
-        self.motion = MotionStage(p.motion, p.planner)
+        self.motion = MotionStage(p.motion, p.planner, p.warp)
         self.render = RenderStage(p.warp, p.framing, max_frames=1 << 30, keep_inputs=keep_inputs)
         self.timer = StageTimer()
         self.keep_motions = keep_motions

@@ -33,6 +33,7 @@ from .continuity import ContinuityCheck, ContinuityParams
 from .frame import RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .motion_pipeline import StageTimer
+from .path.budget import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
 from .render.warp import WarpInput, prepare_warp
@@ -80,9 +81,11 @@ class FlowStage:
 class MotionStage:
     """Motion estimation plus path planning: flows in, motions and correction batches out."""
 
-    def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None) -> None:
+    def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None,
+                 warp: WarpParams | None = None) -> None:
+        """``warp``: the render stage's warp parameters (the path's crop budget fits the same mesh)."""
         self.estimator = MotionEstimator(motion)
-        self.planner = PathPlanner(planner)
+        self.planner = PathPlanner(planner, warp)
         if self.planner.params.group != self.estimator.params.group:
             raise ValueError(f"motion group {self.estimator.params.group!r} and path group "
                              f"{self.planner.params.group!r} differ")
@@ -125,11 +128,20 @@ class MotionStage:
         m = self.estimator.estimate(flow)
         t1 = time.perf_counter()
         motions.append(m)
-        batches.append(self.planner.push(m))
+        batches.append(self.planner.push(m, self.frame_model(flow)))
         self.timer.add("motion", (t1 - t0) * 1e3)
         self.timer.add("path", (time.perf_counter() - t1) * 1e3)
         self._last = flow.seq_next
         return motions, [b for b in batches if b]
+
+    def frame_model(self, flow: SceneFlowResult) -> FrameModel | None:
+        """The 3D points of the flow's second frame (x + v at the pixels the flow reached), for the crop budget."""
+        b = self.planner.params.budget
+        if not (self.planner.params.mode == "smooth" and b.enabled) or flow.problem or len(flow) == 0:
+            return None
+        K = flow.intrinsics_next
+        return FrameModel.from_points(K.width, K.height, K, flow.pixels_next, flow.points + flow.displacements,
+                                      b.model_points)
 
     def finish(self) -> list[list[Correction]]:
         """End of stream: the last segment's batch (if any)."""
@@ -269,7 +281,7 @@ class RenderStage:
         if not items:
             return []
         t1 = time.perf_counter()
-        zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom)
+        zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom, [c.zoom for c, _, _ in items])
         t2 = time.perf_counter()
         n = len(items)
         for _ in range(n):  # per-frame samples (the batch's average)

@@ -55,13 +55,14 @@ class Releaser:
 
 def run(args, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
-    stage = MotionStage(params.motion, params.planner)
+    stage = MotionStage(params.motion, params.planner, params.warp)
     with ServiceRuntime("motion", args.stream, conf) as rt:
         resume_after = rt.stream_cursor("correction")  # not None: a restarted motion; take over after it
         if resume_after is not None:
             log.warning("stream %s under way (corrections out up to frame %d): the path restarts after it, "
                         "from the flows' history", args.stream, resume_after)
-        inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue, history=resume_after is not None)
+        inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue, history=resume_after is not None,
+                         skip_through=resume_after)
         motion_pub = rt.publisher("motion", lossless=True)
         release = Releaser(rt.publisher("correction", lossless=True, cache=args.history), args.stream)
         rt.serve_cursor()
@@ -98,7 +99,7 @@ def run(args, conf: zenoh.Config) -> int:
                 release(stage.finish())
                 release.pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream: %d segments, %d corrections", len(stage.planner.segments), release.sent)
-                stage = MotionStage(params.motion, params.planner)  # a new stream may follow
+                stage = MotionStage(params.motion, params.planner, params.warp)  # a new stream may follow
                 resume_after = None
                 continue
             with rt.contained(f"flow {msg.seq}->{msg.obj.seq_next}", errors):

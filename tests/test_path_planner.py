@@ -32,7 +32,7 @@ def run_planner(motions, params, first=0):
 
 def test_corrections_are_released_one_segment_late_and_cover_every_frame():
     poses = SyntheticSource(frames=95, width=64, height=48).poses()
-    pl, released = run_planner(truth_motions(poses), PlannerParams(end="identity"))
+    pl, released = run_planner(truth_motions(poses), PlannerParams(mode="ep", end="identity"))
     seqs = [c.seq for batch in released for c in batch]
     assert seqs == list(range(95))
     # nothing is released between keyframes; at most one segment waits
@@ -63,19 +63,21 @@ def test_turning_path_gets_an_early_keyframe():
     assert [det.push(slow) for _ in range(30)][-1] == "interval"
 
 
-@pytest.mark.parametrize("end", ["identity", "smoothed"])
+@pytest.mark.parametrize("end", ["identity", "smoothed", "smooth"])
 def test_stabilized_rotation_shake_is_much_smaller_than_input(end):
     src = SyntheticSource(frames=450, width=64, height=48, seed=2)
     poses, intended = src.poses(), src.intended_poses()
-    # identity: the paper's path (full undo, identity end-constraints); smoothed: the defaults
-    params = PlannerParams(end="identity", lowpass_sigma=0.0) if end == "identity" else PlannerParams()
+    # identity: the paper's path (full undo, identity end-constraints); smoothed: the EP path with smoothed
+    # targets; smooth: the default smoothed path (no crop budget here: no frame models)
+    params = {"identity": PlannerParams(mode="ep", end="identity", lowpass_sigma=0.0),
+              "smoothed": PlannerParams(mode="ep"), "smooth": PlannerParams()}[end]
     pl, released = run_planner(truth_motions(poses), params)
     gs = np.array([c.matrix for batch in released for c in sorted(batch, key=lambda c: c.seq)])
     before = shake(poses, src.fps, reference=intended)
     after = shake(poses @ gs, src.fps, reference=intended)
     ratio = before["rot_deg"] / after["rot_deg"]
     roll_ratio = before["roll_deg"] / after["roll_deg"]
-    if end == "smoothed":
+    if end != "identity":
         assert ratio > 10 and roll_ratio > 10, (before, after)
         assert before["trans_mm"] / after["trans_mm"] > 8, (before, after)
     else:  # the paper's identity constraints leave the keyframes' jitter as a wobble
@@ -99,7 +101,7 @@ def test_invalid_motion_restarts_the_path_visibly():
 
 def test_solver_failure_falls_back_to_identity_and_is_flagged():
     poses = SyntheticSource(frames=31, width=64, height=48).poses()
-    params = PlannerParams(end="smoothed", path=PathParams(max_iters=1, tol=1e-30))
+    params = PlannerParams(mode="ep", end="smoothed", path=PathParams(max_iters=1, tol=1e-30))
     pl, released = run_planner(truth_motions(poses), params)
     corr = [c for batch in released for c in batch][1:]
     assert all(not c.valid and "not stabilized" in c.reason for c in corr)

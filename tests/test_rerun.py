@@ -63,7 +63,7 @@ def make_recording(path: Path) -> dict[str, int]:
     """Run the stages as the services do, logging every message they would publish."""
     cv2.setNumThreads(1)
     params = default_params()
-    flow, motion = FlowStage(params.flow), MotionStage(params.motion, params.planner)
+    flow, motion = FlowStage(params.flow), MotionStage(params.motion, params.planner, params.warp)
     render = RenderStage(params.warp, params.framing)
     log, release, counts = Log(path), 0, {"stabilized": 0, "orphans": 0}
 
@@ -187,6 +187,6 @@ def test_different_settings_do_not_reproduce(recording):
     path, _ = recording
     p = argparse.ArgumentParser()
     add_stabilizer_args(p)
-    r = rerun_stage(path, "motion", None, stabilizer_params(p.parse_args(["--lowpass-sigma", "5"])))
+    r = rerun_stage(path, "motion", None, stabilizer_params(p.parse_args(["--smoothness", "5"])))
     assert not r.ok and any(m.topic == topic("correction") for m in r.mismatches)
     assert all(m.seq is not None for m in r.mismatches)

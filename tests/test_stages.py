@@ -1,8 +1,10 @@
 """The pipeline stages the services drive: gaps, orphans, order and bounds (quick_stream/stages.py)."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
+from quick_stream.path.planner import Correction
 from quick_stream.sources import open_source
 from quick_stream.stages import FlowStage, MotionStage, RenderStage
 
@@ -84,8 +86,7 @@ def test_render_stage_bounds_what_it_holds(frames):
     for f in frames[:8]:
         r.add_frame(f.seq, f)
     assert r.buffered == 5 and r.dropped == 3
-    m = MotionStage()
-    out = r.render_batch(m.start(0))  # frame 0 was dropped: counted missing, the rest waits
+    out = r.render_batch([Correction(0, np.eye(4), 0, True)])  # frame 0 was dropped: counted missing, the rest waits
     assert out == [] and r.missing == 1 and r.buffered == 5
 
 
@@ -96,7 +97,7 @@ def test_render_stage_reports_a_frame_that_cannot_be_loaded(frames):
         raise ValueError("truncated JPEG")
 
     r.add_frame(0, broken)
-    assert r.render_batch(MotionStage().start(0)) == []
+    assert r.render_batch([Correction(0, np.eye(4), 0, True)]) == []
     assert r.bad == [{"seq": 0, "error": "ValueError: truncated JPEG"}]
 
 

@@ -1,7 +1,8 @@
 """FFmpeg baselines: two-pass vid.stab and ``deshake``, run on BGR frames, scored with the same metrics.
 
 Design note section 7 (comparison with other stabilisers). Debian's ffmpeg
-(``apt-get install ffmpeg``) is built with libvidstab. The exact command lines
+(``sudo apt-get install ffmpeg``) is built with libvidstab; nothing here installs it:
+:func:`ensure_ffmpeg` says what is missing and prints that command. The exact command lines
 (``W``x``H``, ``FPS`` and file names filled in; :func:`run_baselines` returns
 them as run):
 
@@ -59,6 +60,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import shutil
 import subprocess
 import tempfile
@@ -73,6 +75,7 @@ from ..metrics import MetricParams, evaluate_sequence
 
 REQUIRED_FILTERS = ("vidstabdetect", "vidstabtransform", "deshake")
 QUIET = ["-hide_banner", "-loglevel", "error", "-y"]
+INSTALL_COMMAND = "sudo apt-get install ffmpeg"  # Debian/Ubuntu; their ffmpeg has libvidstab
 
 
 @dataclass
@@ -113,6 +116,7 @@ class BaselineOutputs(dict):
         super().__init__()
         self.commands: dict[str, list[str]] = {}  # step name -> argv
         self.seconds: dict[str, float] = {}  # method -> wall time of its ffmpeg passes
+        self.cpu_seconds: dict[str, float] = {}  # method -> CPU time (user + system) of its ffmpeg passes
         self.ffmpeg_version: str = ""
 
 
@@ -132,28 +136,32 @@ def find_ffmpeg() -> str | None:
         return None
 
 
-def ensure_ffmpeg() -> str:
-    """``ffmpeg`` with vidstabdetect, vidstabtransform and deshake; installs Debian's package if missing.
+def ffmpeg_problem() -> str:
+    """Why the FFmpeg baselines cannot run here, with the command that fixes it; "" when they can."""
+    try:
+        ensure_ffmpeg()
+    except RuntimeError as e:
+        return str(e)
+    return ""
 
-    Runs ``apt-get update && apt-get install -y ffmpeg`` (needs root) only when no
-    ffmpeg is on PATH. Raises RuntimeError when it cannot be had or lacks a filter.
+
+def ensure_ffmpeg() -> str:
+    """``ffmpeg`` with vidstabdetect, vidstabtransform and deshake, else RuntimeError saying how to install it.
+
+    Nothing is installed here: the message names the command (:data:`INSTALL_COMMAND`, Debian's
+    ffmpeg, which is built with libvidstab).
     """
     ffmpeg = shutil.which("ffmpeg")
     if ffmpeg is None:
-        if shutil.which("apt-get") is None:
-            raise RuntimeError("ffmpeg is not on PATH and apt-get is unavailable to install it")
-        cmd = "apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y ffmpeg"
-        r = subprocess.run(["sh", "-c", cmd], capture_output=True, text=True)
-        ffmpeg = shutil.which("ffmpeg")
-        if r.returncode != 0 or ffmpeg is None:
-            raise RuntimeError(f"installing ffmpeg failed (rc {r.returncode}): {r.stderr.strip()[-800:]}")
+        raise RuntimeError(f"ffmpeg is not on PATH; install it with: {INSTALL_COMMAND}")
     try:
         present = _filters_present(ffmpeg)
     except (OSError, subprocess.CalledProcessError) as e:
         raise RuntimeError(f"cannot list the filters of {ffmpeg}: {e}") from e
     missing = sorted(set(REQUIRED_FILTERS) - present)
     if missing:
-        raise RuntimeError(f"{ffmpeg} lacks the filter(s) {missing} (needs a build with --enable-libvidstab)")
+        raise RuntimeError(f"{ffmpeg} lacks the filter(s) {missing} (needs a build with --enable-libvidstab, "
+                           f"e.g. Debian's: {INSTALL_COMMAND})")
     return ffmpeg
 
 
@@ -177,7 +185,7 @@ def run_baselines(frames: list[np.ndarray], fps: float = 30.0, workdir: Path | N
     """Stabilise BGR ``frames`` with vid.stab (two passes) and deshake; same frame count and size out.
 
     ``workdir`` holds input.mkv and transforms.trf (a temporary folder when None).
-    ``ffmpeg`` defaults to :func:`ensure_ffmpeg` (which may install it).
+    ``ffmpeg`` defaults to :func:`ensure_ffmpeg` (RuntimeError with the install command when missing).
     """
     if not frames:
         raise ValueError("no frames")
@@ -205,14 +213,20 @@ def run_baselines(frames: list[np.ndarray], fps: float = 30.0, workdir: Path | N
     }
     out.commands = steps
     _run(steps["encode"], workdir, b"".join(np.ascontiguousarray(f).tobytes() for f in frames))
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _children_cpu()
     _run(steps["vidstab pass 1"], workdir)
     out["vidstab"] = _decode(_run(steps["vidstab pass 2"], workdir), n, h, w, "vidstab")
-    out.seconds["vidstab"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    out.seconds["vidstab"], out.cpu_seconds["vidstab"] = time.perf_counter() - t0, _children_cpu() - c0
+    t0, c0 = time.perf_counter(), _children_cpu()
     out["deshake"] = _decode(_run(steps["deshake"], workdir), n, h, w, "deshake")
-    out.seconds["deshake"] = time.perf_counter() - t0
+    out.seconds["deshake"], out.cpu_seconds["deshake"] = time.perf_counter() - t0, _children_cpu() - c0
     return out
+
+
+def _children_cpu() -> float:
+    """User + system CPU seconds of this process's finished children (the ffmpeg runs)."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 def load_tum_rgb(folder: Path, frames: int | None = None) -> list[np.ndarray]:
@@ -267,7 +281,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--smoothing", type=int, default=BaselineParams.smoothing)
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
-    r = run(a.folder, a.frames, params=BaselineParams(smoothing=a.smoothing))
+    try:
+        r = run(a.folder, a.frames, params=BaselineParams(smoothing=a.smoothing))
+    except RuntimeError as e:
+        print(f"ffmpeg baselines: {e}")
+        return 2
     print(json.dumps(r, indent=2, default=float) if a.json else format_table(r))
     return 0
 

@@ -1,64 +1,515 @@
-"""Quality on real footage: ours (four groups x both end-constraint modes) beside FFmpeg's stabilizers.
+"""Quality benchmark: ours against the 2D stabilisers people use, on real and known-shake clips.
 
-Every method's output is scored by :mod:`quick_stream.metrics` against the same
-input frames: cropping, distortion, stability and residual jitter (px, deg).
-Ours runs with ``auto`` framing (border-free), vid.stab and deshake as
-:mod:`.ffmpeg_baselines` documents (ffmpeg is installed from Debian if missing).
+Clips (TUM layout, read with :class:`~quick_stream.sources.tum.TumSource`):
+
+* ``DATA/7scenes_redkitchen``, every frame (``frames`` shortens every clip to its first N);
+* known-shake clips made from it by the external shake tool (:mod:`.shake_clips`): per
+  ``SEED:FIRST-LAST`` a shaken clip (RMS pitch/yaw/roll, default 0.6/0.6/0.8 deg) and its
+  unshaken reference (same seed, frames and crop, no shake), cached under ``WORK/clips``.
+
+Methods, all given the same BGR input frames and all scored by :mod:`quick_stream.metrics`
+(:class:`~quick_stream.metrics.MetricsAccumulator`, one scorer for everyone) plus the
+border-free cropping of :mod:`quick_stream.metrics_border`:
+
+* ``ours``: the stabiliser at exactly the settings ``quick-stream stabilize`` uses with no flags
+  (the stabiliser flags of :mod:`quick_stream.cli.settings` parsed from an empty argv, then
+  ``stabilizer_params``), and every ``--variant NAME='--flag value ...'`` (the same flags);
+* FFmpeg vid.stab (two passes) and deshake (:mod:`.ffmpeg_baselines`);
+* python ``vidstab`` and vidgear's ``Stabilizer`` at their defaults, when importable
+  (:mod:`.peers`: how their delayed outputs are aligned with the inputs);
+* the textbook LK + moving-average stabiliser (:mod:`.lk_average`);
+* the unstabilised input.
+
+Columns: residual jitter (px, deg), cropping, border-free cropping, distortion, stability (as
+``quick_stream.metrics`` defines it), the method's own wall time per frame (ours: the
+stabiliser's push/finish, no reading, no scoring; FFmpeg: its passes on the lossless
+intermediate, decoding included; peers: their calls), and failure.
+
+On the known-shake clips, the share of the injected high-frequency rotation ours (and each
+variant) removed, per axis: ours' per-frame corrections on the shaken clip and, with the same
+settings, on the unshaken reference go to ``WORK/corrections`` and through the tool's
+``score_rotation.py`` without and with ``--reference``.
 """
 from __future__ import annotations
 
+import argparse
+import dataclasses
+import json
+import math
+import platform
+import re
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, Iterable
 
 import cv2
+import numpy as np
 
-from .. import evaluate
-from ..motion import MotionParams
-from ..path.planner import PlannerParams
-from ..render import FramingParams
+from ..evaluate import run_timed
+from ..frame import BadFrame
+from ..metrics import MetricsAccumulator
+from ..metrics_border import BorderFreeAccumulator, border_free_cropping
+from ..sources import SourceError
 from ..sources.tum import TumSource
-from ..stabilizer import StabilizerParams
-from . import ffmpeg_baselines
+from ..stabilizer import Stabilizer, StabilizerParams
+from . import ffmpeg_baselines, lk_average, peers
+from .shake_clips import DEFAULT_AMPLITUDES, DEFAULT_TOOL, ShakeSpec, make_clip, score_rotation, write_corrections
 
+REAL_CLIP = "7scenes_redkitchen"
+DEFAULT_CLIPS = ("7:0-149", "11:100-249")
+DEFAULT_WORK = Path("out/bench-quality")
+COLUMNS = (("jitter_px", "jitter px", "{:10.3f}"), ("jitter_deg", "jitter deg", "{:10.4f}"),
+           ("cropping", "cropping", "{:10.3f}"), ("border_free_cropping", "bf crop", "{:10.3f}"),
+           ("distortion", "distortion", "{:10.3f}"), ("stability", "stability", "{:10.3f}"),
+           ("ms_per_frame", "ms/frame", "{:10.1f}"), ("failed", "failed", "{!s:>10}"))
+AXES = ("pitch", "yaw", "roll", "total")
 GROUPS = ("se3", "sim3", "sa3", "ga3")
 ENDS = ("identity", "smoothed")
-COLUMNS = ("cropping", "distortion", "stability", "jitter_px", "jitter_deg", "failed")
+
+Progress = Callable[[str], None]
 
 
-def stabilize_and_score(folder: Path, group: str, end: str, frames: int | None, framing: str = "auto",
-                        lowpass_sigma: float = PlannerParams.lowpass_sigma) -> dict:
-    """Stabilize a TUM clip with these settings and score it (:func:`quick_stream.evaluate.stabilize_and_score`)."""
-    src = TumSource(folder, count=frames)
-    params = StabilizerParams(motion=MotionParams(group=group),
-                              planner=PlannerParams(group=group, end=end, lowpass_sigma=lowpass_sigma),
-                              framing=FramingParams(mode=framing))
-    return evaluate.stabilize_and_score(src, params, src.fps)
+# ----------------------------------------------------------------------------------------------
+# ours: settings and variants
 
 
-def run(data_root: Path, frames: int | None = None, baselines: bool = True) -> dict:
-    cv2.setNumThreads(1)
-    folder = data_root / "7scenes_redkitchen"
-    out: dict = {"folder": str(folder), "methods": {}}
-    for group in GROUPS:
-        for end in ENDS:
-            out["methods"][f"quick {group} {end}"] = stabilize_and_score(folder, group, end, frames)
-    # the paper's own path for reference: full undo between identity end-constraints
-    out["methods"]["paper path (se3 identity, no low-pass)"] = stabilize_and_score(
-        folder, "se3", "identity", frames, lowpass_sigma=0.0)
-    if baselines:
-        b = ffmpeg_baselines.run(folder, frames)
-        out["ffmpeg"] = b["ffmpeg"]
-        out["commands"] = b["commands"]
-        for name, m in b["methods"].items():
-            out["methods"][name if name != "input" else "input (unstabilized)"] = m
+class _RaisingParser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise ValueError(message)
+
+
+@dataclass
+class Variant:
+    """A named setting of ours: the stabiliser flags and the StabilizerParams they give."""
+
+    name: str
+    argv: list[str]
+    params: StabilizerParams
+    flags: dict  # every stabiliser flag's value (defaults included)
+
+
+def parse_settings(argv: list[str], name: str = "ours") -> Variant:
+    """Stabiliser flags -> Variant, exactly as ``quick-stream stabilize`` parses them; ValueError if wrong."""
+    from ..cli.settings import add_stabilizer_args, stabilizer_params
+
+    p = _RaisingParser(prog=name, add_help=False)
+    add_stabilizer_args(p)
+    args = p.parse_args(list(argv))
+    return Variant(name, list(argv), stabilizer_params(args), vars(args))
+
+
+def default_settings() -> Variant:
+    """Ours at the defaults: the stabiliser flags parsed from an empty argv."""
+    return parse_settings([], "ours")
+
+
+def parse_variant(text: str) -> Variant:
+    """``NAME=--flag value ...`` (shell-quoted flags of ``quick-stream stabilize``) -> Variant."""
+    name, sep, rest = text.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise ValueError(f"expected NAME='--flag value ...', got {text!r}")
+    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]*", name) or name == "ours":
+        raise ValueError(f"variant name {name!r}: use letters, digits and _ . + - (and not 'ours')")
+    try:
+        argv = shlex.split(rest)
+    except ValueError as e:
+        raise ValueError(f"variant {name}: {e}") from None
+    try:
+        return parse_settings(argv, name)
+    except ValueError as e:
+        raise ValueError(f"variant {name}: {e}") from None
+
+
+def grid_variants() -> list[Variant]:
+    """The former benchmark: every group x both end modes, and the paper's own path (no low-pass)."""
+    out = [parse_settings(["--group", g, "--end", e], f"{g}-{e}") for g in GROUPS for e in ENDS]
+    out.append(parse_settings(["--group", "se3", "--end", "identity", "--lowpass-sigma", "0"], "paper-path"))
     return out
 
 
-def format_table(r: dict) -> str:
-    lines = [f"{r['folder']}: quality metrics (design note section 6) + residual jitter",
-             f"{'method':40s} " + " ".join(f"{c:>11s}" for c in COLUMNS)]
-    for name, m in r["methods"].items():
-        vals = " ".join(f"{m[c]!s:>11s}" if isinstance(m[c], bool) else f"{m[c]:11.3f}" for c in COLUMNS)
-        lines.append(f"{name:40s} {vals}")
-    for k, v in r.get("commands", {}).items():
-        lines.append(f"  {k}: ffmpeg {v}")
+# ----------------------------------------------------------------------------------------------
+# configuration and clips
+
+
+@dataclass
+class QualityConfig:
+    data: Path = Path("../shared/data")
+    frames: int | None = None  # every clip shortened to its first N frames
+    clips: list[ShakeSpec] = field(default_factory=lambda: [ShakeSpec.parse(c) for c in DEFAULT_CLIPS])
+    shake_tool: Path = DEFAULT_TOOL
+    work: Path = DEFAULT_WORK
+    variants: list[Variant] = field(default_factory=list)
+    baselines: bool = True  # FFmpeg, vidstab, vidgear, LK moving average
+
+
+@dataclass
+class Clip:
+    name: str
+    folder: Path
+    spec: ShakeSpec | None = None  # shaken clips only
+    reference: Path | None = None  # the unshaken reference clip's folder
+    made: dict = field(default_factory=dict)  # "shaken"/"reference" -> inject command, or "cached"
+
+
+def source_folder(data: Path) -> Path:
+    folder = Path(data) / REAL_CLIP
+    if not folder.is_dir():
+        raise SourceError(f"TUM folder not found: {folder}")
+    return folder
+
+
+def prepare_clips(cfg: QualityConfig, progress: Progress | None = None) -> list[Clip]:
+    """The real clip and the shaken clips with their references (made or taken from the cache)."""
+    src = source_folder(cfg.data)
+    clips = [Clip(REAL_CLIP, src)]
+    for spec in cfg.clips:
+        made = {}
+        folders = {}
+        for kind, s in (("shaken", spec), ("reference", spec.reference())):
+            if progress:
+                progress(f"clip {s.folder_name(src)}")
+            folders[kind], cmd = make_clip(src, s, Path(cfg.work) / "clips", cfg.shake_tool)
+            made[kind] = "cached" if cmd is None else cmd
+        clips.append(Clip(folders["shaken"].name, folders["shaken"], spec, folders["reference"], made))
+    return clips
+
+
+def load_frames(folder: Path, frames: int | None) -> tuple[list[int], list[np.ndarray], list[int], float]:
+    """(seqs, BGR images, timestamps ns, fps) of the readable frames of a TUM clip (first ``frames``)."""
+    src = TumSource(folder, count=frames)
+    seqs, images, stamps = [], [], []
+    for fr in src:
+        if isinstance(fr, BadFrame):
+            continue
+        seqs.append(fr.seq)
+        images.append(fr.color)
+        stamps.append(fr.timestamp_ns)
+    return seqs, images, stamps, src.fps
+
+
+# ----------------------------------------------------------------------------------------------
+# scoring
+
+
+class Scorer:
+    """The one scorer: quality metrics and border-free cropping, frame pair by frame pair."""
+
+    def __init__(self, fps: float) -> None:
+        self.metrics = MetricsAccumulator(fps)
+        self.border = BorderFreeAccumulator()
+        self.seconds = 0.0
+
+    def add(self, input_frame: np.ndarray, output_frame: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        self.metrics.add(input_frame, output_frame)
+        self.border.add(output_frame)
+        self.seconds += time.perf_counter() - t0
+
+    def result(self) -> dict:
+        m = self.metrics.result().as_dict()
+        m.update(self.border.as_dict())
+        m["border_free_cropping"] = border_free_cropping(m["cropping"], self.border.scale)
+        m["scorer_seconds"] = self.seconds
+        return m
+
+
+def score_frames(inputs: list[np.ndarray], outputs: Iterable[np.ndarray], fps: float) -> dict:
+    """Metrics of ``outputs`` (aligned with ``inputs``, same count) with :class:`Scorer`."""
+    sc = Scorer(fps)
+    n = 0
+    for a, b in zip(inputs, outputs):
+        sc.add(a, b)
+        n += 1
+    if n != len(inputs):
+        raise ValueError(f"{n} output frames for {len(inputs)} inputs")
+    return sc.result()
+
+
+def _row(status: str = "ok", **kw: object) -> dict:
+    return {"status": status, **kw}
+
+
+# ----------------------------------------------------------------------------------------------
+# methods
+
+
+def run_ours(folder: Path, variant: Variant, frames: int | None, inputs: dict[int, np.ndarray] | None,
+             fps: float) -> tuple[dict, list[tuple[int, np.ndarray]]]:
+    """Stabilise a TUM clip with ``variant``; score against ``inputs`` (seq -> image) unless None.
+
+    Returns (row, [(timestamp_ns, correction g_s)] per output frame).
+    """
+    src = TumSource(folder, count=frames)
+    st = Stabilizer(variant.params)
+    scorer = Scorer(fps) if inputs is not None else None
+    corrections: list[tuple[int, np.ndarray]] = []
+    flagged, missing = 0, 0
+
+    def take(batch: list) -> None:
+        nonlocal flagged, missing
+        for sf in batch:
+            corrections.append((sf.timestamp_ns, np.array(sf.correction.matrix, float)))
+            flagged += bool(sf.flags)
+            if scorer is not None:
+                if sf.seq in inputs:
+                    scorer.add(inputs[sf.seq], sf.image)
+                else:
+                    missing += 1
+
+    t, n_in = run_timed(st, src, take)
+    row: dict = scorer.result() if scorer is not None else {}
+    row.update(status="ok", ms_per_frame=1e3 * t / max(n_in, 1), seconds=t, frames_in=n_in,
+               frames_out=len(corrections), flagged_frames=flagged, bad_frames=len(st.bad_frames),
+               segments=len(st.planner.segments))
+    if inputs is not None and len(corrections) != len(inputs):
+        row["notes"] = [f"{len(corrections)} output frames for {len(inputs)} readable inputs"]
+    return row, corrections
+
+
+def _peer_rows(inputs: list[np.ndarray], fps: float, work: Path, progress: Progress | None) -> tuple[dict, dict]:
+    """Rows of the 2D peers (FFmpeg, vidstab, vidgear, LK) and the FFmpeg commands run."""
+    rows: dict[str, dict] = {}
+    commands: dict = {}
+    n = len(inputs)
+    problem = ffmpeg_baselines.ffmpeg_problem()
+    if problem:
+        rows["vid.stab 2-pass (ffmpeg)"] = rows["deshake (ffmpeg)"] = _row("not run", reason=problem)
+    else:
+        if progress:
+            progress("ffmpeg vid.stab + deshake")
+        try:
+            outs = ffmpeg_baselines.run_baselines(inputs, fps, workdir=work)
+            commands = {k: " ".join(v[1:]) for k, v in outs.commands.items()}
+            for key, name in (("vidstab", "vid.stab 2-pass (ffmpeg)"), ("deshake", "deshake (ffmpeg)")):
+                frames_out = outs.pop(key)
+                row = score_frames(inputs, frames_out, fps)
+                del frames_out
+                row.update(status="ok", seconds=outs.seconds[key], cpu_seconds=outs.cpu_seconds[key],
+                           ms_per_frame=1e3 * outs.seconds[key] / n)
+                rows[name] = row
+        except (RuntimeError, AssertionError, OSError) as e:
+            rows.setdefault("vid.stab 2-pass (ffmpeg)", _row("error", reason=str(e)))
+            rows.setdefault("deshake (ffmpeg)", _row("error", reason=str(e)))
+    avail = peers.available()
+    for key, name, runner in (("vidstab", "vidstab (python)", peers.run_vidstab),
+                              ("vidgear", "vidgear Stabilizer", peers.run_vidgear)):
+        if avail[key]:
+            rows[name] = _row("not run", reason=avail[key])
+            continue
+        if progress:
+            progress(name)
+        try:
+            pr = runner(inputs)
+        except Exception as e:  # noqa: BLE001 - a peer that crashes is a row, not the end of the benchmark
+            rows[name] = _row("error", reason=f"{type(e).__name__}: {e}")
+            continue
+        row = score_frames(inputs, pr.frames, fps)
+        row.update(status="ok", seconds=pr.seconds, ms_per_frame=1e3 * pr.seconds / n, calls=pr.calls,
+                   notes=pr.notes)
+        rows[name] = row
+        del pr
+    if progress:
+        progress("LK moving average")
+    t0 = time.perf_counter()
+    lk = lk_average.stabilize(inputs)
+    t = time.perf_counter() - t0
+    row = score_frames(inputs, lk, fps)
+    row.update(status="ok", seconds=t, ms_per_frame=1e3 * t / n,
+               notes=[f"GFTT + LK + estimateAffinePartial2D, centred moving average +-{lk_average.LKParams.radius}"])
+    rows["LK moving average"] = row
+    return rows, commands
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]+", "_", name)
+
+
+def run_clip(clip: Clip, cfg: QualityConfig, progress: Progress | None = None) -> dict:
+    """Every method on one clip; for a shaken clip also ours' share of the shake removed."""
+    def say(what: str) -> None:
+        if progress:
+            progress(f"{clip.name}: {what}")
+
+    seqs, images, _, fps = load_frames(clip.folder, cfg.frames)
+    if len(images) < 2:
+        raise SourceError(f"{clip.folder}: fewer than 2 readable frames")
+    h, w = images[0].shape[:2]
+    out: dict = {"name": clip.name, "folder": str(clip.folder), "frames": len(images), "size": f"{w}x{h}",
+                 "fps": fps, "methods": {}}
+    if clip.spec is not None:
+        out.update(shake=dataclasses.asdict(clip.spec), reference_folder=str(clip.reference), made=clip.made)
+    inputs = dict(zip(seqs, images))
+    ours = [default_settings(), *cfg.variants]
+    corr_dir = Path(cfg.work) / "corrections" / (clip.name + (f"_first{cfg.frames}" if cfg.frames else ""))
+    shake_scores: dict = {}
+    for v in ours:
+        label = "ours" if v.name == "ours" else f"ours [{v.name}]"
+        say(label)
+        row, corr = run_ours(clip.folder, v, cfg.frames, inputs, fps)
+        row["settings"] = v.flags
+        out["methods"][label] = row
+        if clip.spec is None:
+            continue
+        say(f"{label} on the unshaken reference")
+        _, corr_ref = run_ours(clip.reference, v, cfg.frames, None, fps)
+        est, ref = corr_dir / f"{_slug(v.name)}.txt", corr_dir / f"{_slug(v.name)}_reference.txt"
+        write_corrections(est, corr)
+        write_corrections(ref, corr_ref)
+        shake = clip.folder / "shake.txt"
+        try:
+            plain = score_rotation(cfg.shake_tool, shake, est)
+            with_ref = score_rotation(cfg.shake_tool, shake, est, ref)
+            shake_scores[label] = {"without_reference": plain, "with_reference": with_ref,
+                                   "corrections": str(est), "reference_corrections": str(ref)}
+        except (RuntimeError, ValueError, OSError) as e:
+            shake_scores[label] = {"error": str(e)}
+    if cfg.baselines:
+        rows, commands = _peer_rows(images, fps, Path(cfg.work) / "ffmpeg" / clip.name, say)
+        out["methods"].update(rows)
+        out["ffmpeg_commands"] = commands
+    say("input (unstabilized)")
+    row = score_frames(images, images, fps)
+    row.update(status="ok", ms_per_frame=0.0)
+    out["methods"]["input (unstabilized)"] = row
+    if clip.spec is not None:
+        out["shake_removed"] = shake_scores
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# the whole benchmark
+
+
+def _git() -> dict:
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, timeout=10).stdout
+        return {"head": head, "modified_files": [ln for ln in dirty.splitlines() if ln.strip()]}
+    except (OSError, subprocess.SubprocessError):
+        return {}
+
+
+def versions() -> dict:
+    ff = ffmpeg_baselines.find_ffmpeg()
+    ffv = ""
+    if ff:
+        ffv = subprocess.run([ff, "-version"], capture_output=True, text=True).stdout.split("\n")[0]
+    return {"ffmpeg": ffv or None, "vidstab": peers.version("vidstab"), "vidgear": peers.version("vidgear"),
+            "imutils": peers.version("imutils"), "opencv": cv2.__version__, "numpy": np.__version__,
+            "python": platform.python_version(), "quick-stream git": _git()}
+
+
+def run(cfg: QualityConfig, progress: Progress | None = None) -> dict:
+    """The benchmark (module docstring); a JSON-able dict with every setting, command, version and metric."""
+    cv2.setNumThreads(1)
+    started = time.time()
+    clips = prepare_clips(cfg, progress)
+    ours = default_settings()
+    r: dict = {
+        "settings": {"data": str(cfg.data), "frames": cfg.frames, "clips": [f"{c.seed}:{c.frames}" for c in cfg.clips],
+                     "amplitudes_deg": [cfg.clips[0].pitch, cfg.clips[0].yaw, cfg.clips[0].roll]
+                     if cfg.clips else list(DEFAULT_AMPLITUDES),
+                     "shake_tool": str(cfg.shake_tool), "work": str(cfg.work), "baselines": cfg.baselines,
+                     "opencv_threads": 1},
+        "ours": {"argv": [], "flags": ours.flags, "params": dataclasses.asdict(ours.params)},
+        "variants": {v.name: {"argv": v.argv, "flags": v.flags, "params": dataclasses.asdict(v.params)}
+                     for v in cfg.variants},
+        "ffmpeg_params": ffmpeg_baselines.BaselineParams.describe(),
+        "versions": versions(),
+        "clips": [],
+    }
+    for clip in clips:
+        r["clips"].append(run_clip(clip, cfg, progress))
+    r["seconds"] = time.time() - started
+    return r
+
+
+# ----------------------------------------------------------------------------------------------
+# tables
+
+
+def _fmt(fmt: str, v: object) -> str:
+    if isinstance(v, float) and not math.isfinite(v):
+        return f"{'nan':>10}"
+    return fmt.format(v)
+
+
+def format_clip(c: dict) -> str:
+    title = f"{c['name']}: {c['frames']} frames {c['size']} @ {c['fps']:.3g} fps"
+    if "shake" in c:
+        s = c["shake"]
+        title += (f"; known shake seed {s['seed']}, frames {s['first']}-{s['last']}, "
+                  f"RMS {s['pitch']:g}/{s['yaw']:g}/{s['roll']:g} deg (pitch/yaw/roll)")
+    width = max(30, *(len(k) for k in c["methods"]))
+    lines = [title, f"{'method':{width}s} " + " ".join(f"{h:>10s}" for _, h, _ in COLUMNS)]
+    for name, m in c["methods"].items():
+        if m.get("status") != "ok":
+            lines.append(f"{name:{width}s} {m.get('status')}: {m.get('reason', '')}")
+            continue
+        lines.append(f"{name:{width}s} " + " ".join(_fmt(f, m.get(k, float('nan'))) for k, _, f in COLUMNS))
+    for name, m in c["methods"].items():
+        if m.get("status") == "ok" and m.get("failed"):
+            lines.append(f"  {name} failed: {m.get('failure_reason')}")
+    sr = c.get("shake_removed")
+    if sr:
+        lines.append("injected high-frequency rotation removed (score_rotation.py, kind correction, > 1 Hz):")
+        lines.append(f"{'':{width}s} " + " ".join(f"{a:>7s}" for a in AXES) + "   | with --reference: "
+                     + " ".join(f"{a:>7s}" for a in AXES))
+        for name, s in sr.items():
+            if "error" in s:
+                lines.append(f"{name:{width}s} error: {s['error']}")
+                continue
+            a = " ".join(f"{100 * x:6.1f}%" for x in s["without_reference"]["removed_fraction"])
+            b = " ".join(f"{100 * x:6.1f}%" for x in s["with_reference"]["removed_fraction"])
+            lines.append(f"{name:{width}s} {a}   |                   {b}")
+            for key in ("without_reference", "with_reference"):
+                if "warning" in s[key]:
+                    lines.append(f"  {name} ({key.replace('_', ' ')}): WARNING {s[key]['warning']}")
+        first = next((s for s in sr.values() if "error" not in s), None)
+        if first:
+            inj = first["without_reference"]["injected_hp_rms_deg"]
+            lines.append(f"{'(injected HP RMS, deg)':{width}s} " + " ".join(f"{x:7.3f}" for x in inj))
     return "\n".join(lines)
+
+
+def format_tables(r: dict) -> str:
+    out = [format_clip(c) for c in r["clips"]]
+    v = r["versions"]
+    out.append("versions: " + ", ".join(f"{k} {v[k]}" for k in ("ffmpeg", "vidstab", "vidgear", "opencv") if v.get(k)))
+    cmds = next((c.get("ffmpeg_commands") for c in r["clips"] if c.get("ffmpeg_commands")), None)
+    if cmds:
+        out.append("ffmpeg commands (first clip; W, H, FPS per clip):\n" + "\n".join(f"  {k}: ffmpeg {c}"
+                                                                                  for k, c in cmds.items()))
+    for name, var in r.get("variants", {}).items():
+        out.append(f"variant {name}: {' '.join(shlex.quote(a) for a in var['argv'])}")
+    return "\n\n".join(out)
+
+
+def write_json(r: dict, path: Path) -> None:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(r, indent=1, default=_json_default))
+
+
+def _json_default(o: object) -> object:
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    return str(o)
+
+
+def progress_to_stderr(t0: float | None = None) -> Progress:
+    start = time.perf_counter() if t0 is None else t0
+
+    def say(msg: str) -> None:
+        print(f"[{time.perf_counter() - start:7.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    return say

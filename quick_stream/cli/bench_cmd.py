@@ -5,10 +5,15 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..lie import GROUPS
 from ..sources import SourceError
 from . import argtypes as at
+
+if TYPE_CHECKING:
+    from ..bench.quality import Variant
+    from ..bench.shake_clips import ShakeSpec
 
 DEFAULT_DATA = Path("../shared/data")
 
@@ -29,12 +34,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     o.add_argument("--no-opencv", action="store_true")
     m = b.add_parser("moving-objects", help="robust vs mean estimators on jointvosf_pairs (people moving)")
     m.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    q = b.add_parser("quality", help="ours (4 groups x 2 end modes) vs FFmpeg vid.stab/deshake on 7scenes_redkitchen")
-    q.add_argument("--data", type=Path, default=DEFAULT_DATA)
-    q.add_argument("--frames", type=at.positive_int, default=None)
-    q.add_argument("--no-baselines", action="store_true", help="skip FFmpeg (no install)")
-    ps = b.add_parser("path", help="optimal-path solver ms per frame for every group")
-    for q in (s, o, m, q, ps):
+    _add_quality_parser(b)
+    ra = b.add_parser("rotation", help="known-shake clips: which part of the pipeline leaves injected rotation "
+                      "(motion noise, path, warp; single changes to the defaults)")
+    ra.add_argument("--data", type=Path, default=DEFAULT_DATA, help=f"folder holding 7scenes_redkitchen "
+                    f"(default {DEFAULT_DATA})")
+    ra.add_argument("--clip", dest="clips", action="append", type=at.checked(_clip, "clip"), default=None,
+                    metavar="SEED:FIRST-LAST", help="a known-shake clip (repeatable; default 7:0-149 and 11:100-249)")
+    ra.add_argument("--shake-tool", type=Path, default=Path("../shared/tools/shake"), metavar="DIR",
+                    help="folder of the shake tool (default ../shared/tools/shake)")
+    ra.add_argument("--work", type=at.output_dir("--work"), default="out/bench-quality", metavar="DIR",
+                    help="made clips are cached in DIR/clips (default out/bench-quality)")
+    ps = b.add_parser("path", help="optimal-path solver ms per frame for every group (--shake: large-motion "
+                      "stress: failed segments, iterations, residuals)")
+    ps.add_argument("--shake", type=at.checked(_shake, "shake"), default=None, metavar="DEG,M",
+                    help="stress mode: random per-frame rotations of DEG degrees and translations of M metres "
+                    "(rms) on a smooth path, seeded, e.g. 4,0.05")
+    ps.add_argument("--segments", type=at.positive_int, default=None,
+                    help="30-frame segments per group (default 20; with --shake 100)")
+    ps.add_argument("--seed", type=int, default=0, help="--shake: seed of the stress segments (default 0)")
+    for q in (s, o, m, ps, ra):
         q.add_argument("--json", action="store_true", help="print one JSON object")
     fz = b.add_parser("fuzz", help="the wire decoder (or MCAP readers) against malformed input (crashes, hangs)")
     fz.add_argument("--n", type=at.positive_int, default=None,
@@ -74,6 +93,98 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="folder for recordings and logs")
     pl.add_argument("--json", type=at.output_file("--json"), default=None, metavar="FILE",
                     help="also write the reports as JSON here")
+
+
+def _shake(text: str) -> tuple[float, float]:
+    """``DEG,M`` for ``bench path --shake``: per-frame shake rotation (deg) and translation (m), rms."""
+    parts = text.split(",")
+    try:
+        deg, m = (float(x) for x in parts) if len(parts) == 2 else (float("nan"),) * 2
+    except ValueError:
+        deg = m = float("nan")
+    if not (0.0 <= deg <= 45.0 and 0.0 <= m <= 1.0):
+        raise ValueError(f"must be DEG,M with 0 <= DEG <= 45 and 0 <= M <= 1, got {text!r}")
+    return deg, m
+
+
+def _variant(text: str) -> "Variant":
+    from ..bench.quality import parse_variant
+
+    return parse_variant(text)
+
+
+def _clip(text: str) -> "ShakeSpec":
+    from ..bench.shake_clips import ShakeSpec
+
+    return ShakeSpec.parse(text)
+
+
+def _amplitudes(text: str) -> tuple[float, float, float]:
+    from ..bench.shake_clips import parse_amplitudes
+
+    return parse_amplitudes(text)
+
+
+def _add_quality_parser(b: argparse._SubParsersAction) -> None:
+    q = b.add_parser("quality", help="ours vs FFmpeg vid.stab/deshake, vidstab, vidgear and an LK baseline, "
+                     "on 7scenes_redkitchen and known-shake clips made from it",
+                     description="Quality benchmark (quick_stream/bench/quality.py): every method scored by "
+                     "quick_stream.metrics against the same input frames; on the known-shake clips also the "
+                     "share of the injected rotation ours removed (the shake tool's score_rotation.py).")
+    q.add_argument("--data", type=Path, default=DEFAULT_DATA, help=f"folder holding 7scenes_redkitchen "
+                   f"(default {DEFAULT_DATA})")
+    q.add_argument("--frames", type=at.positive_int, default=None,
+                   help="use only the first N frames of every clip (default: all)")
+    q.add_argument("--clip", dest="clips", action="append", type=at.checked(_clip, "clip"), default=None,
+                   metavar="SEED:FIRST-LAST", help="a known-shake clip: inject.py seed and inclusive source "
+                   "frame range (repeatable; default 7:0-149 and 11:100-249)")
+    q.add_argument("--no-shake", action="store_true", help="only the real clip, no known-shake clips")
+    q.add_argument("--amplitude", type=at.checked(_amplitudes, "amplitude"), default=(0.6, 0.6, 0.8),
+                   metavar="PITCH,YAW,ROLL", help="RMS shake in deg per axis (default 0.6,0.6,0.8)")
+    q.add_argument("--shake-tool", type=Path, default=Path("../shared/tools/shake"), metavar="DIR",
+                   help="folder of the shake tool (inject.py, score_rotation.py; default ../shared/tools/shake)")
+    q.add_argument("--work", type=at.output_dir("--work"), default="out/bench-quality", metavar="DIR",
+                   help="cache of made clips (DIR/clips, reused), corrections, FFmpeg files "
+                   "(default out/bench-quality)")
+    q.add_argument("--variant", dest="variants", action="append", type=at.checked(_variant, "variant"),
+                   default=[], metavar="NAME='--flag value ...'",
+                   help="also run ours with these stabilizer flags (those of quick-stream stabilize; repeatable)")
+    q.add_argument("--grid", action="store_true",
+                   help="add the variants every group x both end modes, and the paper's path (se3, identity, "
+                   "--lowpass-sigma 0)")
+    q.add_argument("--no-baselines", action="store_true",
+                   help="skip the peers (FFmpeg, vidstab, vidgear, LK moving average): ours and the input only")
+    q.add_argument("--json", type=at.output_file("--json"), default=None, metavar="FILE",
+                   help="also write everything (settings, commands, versions, metrics) as JSON here")
+
+
+def _quality(args: argparse.Namespace) -> int:
+    from ..bench import quality
+    from ..bench.shake_clips import ShakeSpec, check_tool
+
+    quality.source_folder(args.data)  # SourceError (exit 2) before any work
+    specs = [] if args.no_shake else (args.clips or [ShakeSpec.parse(c) for c in quality.DEFAULT_CLIPS])
+    specs = [ShakeSpec(s.seed, s.first, s.last, *args.amplitude) for s in specs]
+    names = [v.name for v in args.variants] + ([v.name for v in quality.grid_variants()] if args.grid else [])
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        print(f"quick-stream bench quality: --variant: name(s) used twice: {', '.join(dup)}", file=sys.stderr)
+        return 2
+    if specs:
+        try:
+            check_tool(args.shake_tool)
+        except FileNotFoundError as e:
+            print(f"quick-stream bench quality: {e}", file=sys.stderr)
+            return 2
+    variants = list(args.variants) + (quality.grid_variants() if args.grid else [])
+    cfg = quality.QualityConfig(data=args.data, frames=args.frames, clips=specs, shake_tool=args.shake_tool,
+                                work=Path(args.work), variants=variants, baselines=not args.no_baselines)
+    r = quality.run(cfg, quality.progress_to_stderr())
+    print(quality.format_tables(r))
+    if args.json:
+        quality.write_json(r, Path(args.json))
+        print(f"wrote {args.json}")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -131,6 +242,8 @@ def _run(args: argparse.Namespace) -> int:
                            kill_after=args.kill_after)
     if args.bench == "fuzz":
         return _fuzz(args)
+    if args.bench == "quality":
+        return _quality(args)
     if args.bench == "speed":
         from ..bench import speed
 
@@ -142,16 +255,27 @@ def _run(args: argparse.Namespace) -> int:
         methods = [(g, e) for g in args.groups for e in ("exact", "induced")]
         r = odometry.run(args.source, methods, opencv=not args.no_opencv, frames=args.frames)
         text = odometry.format_table(r)
+    elif args.bench == "rotation":
+        from ..bench import rotation_ablation
+        from ..bench.shake_clips import ShakeSpec, check_tool
+
+        try:
+            check_tool(args.shake_tool)
+        except FileNotFoundError as e:
+            print(f"quick-stream bench rotation: {e}", file=sys.stderr)
+            return 2
+        specs = args.clips or [ShakeSpec.parse(c) for c in rotation_ablation.DEFAULT_CLIPS]
+        r = rotation_ablation.run(args.data, specs, Path(args.work) / "clips", args.shake_tool)
+        text = rotation_ablation.format_table(r)
     elif args.bench == "path":
         from ..bench import path_speed
 
-        r = path_speed.run()
-        text = path_speed.format_table(r)
-    elif args.bench == "quality":
-        from ..bench import quality
-
-        r = quality.run(args.data, args.frames, baselines=not args.no_baselines)
-        text = quality.format_table(r)
+        if args.shake is None:
+            r = path_speed.run(args.segments or 20)
+            text = path_speed.format_table(r)
+        else:
+            r = path_speed.run_stress(*args.shake, segments=args.segments or 100, seed=args.seed)
+            text = path_speed.format_stress_table(r, *args.shake)
     else:
         from ..bench import moving_objects
 

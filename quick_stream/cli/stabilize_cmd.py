@@ -27,7 +27,7 @@ from ..sinks import VideoSink
 from ..sources import SourceError, open_source
 from ..stabilizer import StabilizedFrame, Stabilizer
 from . import argtypes as at
-from .settings import add_stabilizer_args, stabilizer_params
+from .settings import add_stabilizer_args, path_label, stabilizer_params, stabilizer_settings
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -133,8 +133,7 @@ def run(args: argparse.Namespace) -> int:
     compute_ms = sum(s["mean"] for k, s in timing.items())
     report: dict = {
         "source": args.source,
-        "settings": {"group": args.group, "estimator": args.estimator, "keyframe_interval": args.keyframe_interval,
-                     "end": args.end, "lowpass_sigma": args.lowpass_sigma, "framing": args.framing, "crop_zoom": args.crop_zoom},
+        "settings": stabilizer_settings(stab.params),
         "frames_in": total, "frames_out": len(records),
         "wall_s": wall,
         "fps_wall": len(records) / wall if wall > 0 else 0.0,
@@ -171,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
         Path(args.report).write_text(json.dumps(report, indent=1, default=float))
 
     print(f"stabilized {len(records)} of {total} frames from {args.source} "
-          f"({args.group}, {args.end} end-constraints, {args.framing} framing) in {wall:.1f} s")
+          f"({args.group}, {path_label(stab.params.planner)}, {args.framing} framing) in {wall:.1f} s")
     print(f"stabilizer: {report['fps_compute']:.1f} frames/s (all stages, no I/O); overall {report['fps_wall']:.1f} "
           f"frames/s including reading, writing"
           + (f" and quality metrics ({report['metrics_ms_per_frame']:.0f} ms/frame; --no-metrics skips them)"

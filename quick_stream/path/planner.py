@@ -1,15 +1,23 @@
 """Online path planning with one-segment latency: motions in, per-frame corrections out.
 
-The planner integrates the camera path g_c, detects keyframes, and when a
-segment closes solves its optimal path (:func:`~.optimal.solve_segment`) between
-the end-constraints (:class:`~.constraints.EndConstraints`) and releases the
-corrections g_s of the segment's frames. The streaming ``motion`` service and
-the offline ``stabilize`` command both drive this same object.
+The planner integrates the camera path g_c and, when a keyframe closes a segment,
+releases the corrections g_s of the segment's frames. Two modes (docs/method.md section 4):
+
+* ``smooth`` (default): the smoothed path of a window of ``keyframes.interval`` frames
+  (:mod:`.smoother`), kept inside the crop budget (:mod:`.budget`) with a planned zoom
+  track (:mod:`.zoom`), then the EP problem through it; the window's last ``lookahead``
+  frames are planned again with the next window before they are released;
+* ``ep``: the optimal path of each segment (:func:`~.optimal.solve_segment`) between
+  the end-constraints (:class:`~.constraints.EndConstraints`), the paper's method.
+
+The streaming ``motion`` service and the offline ``stabilize`` command both drive
+this same object.
 
 Fallbacks are visible, never silent: an invalid motion closes the segment at
 the frame before it, and the path restarts after it with no correction (those
-frames carry ``valid=False`` and the reason); a segment whose solver does not
-converge gets identity corrections, flagged the same way.
+frames carry ``valid=False`` and the reason); an ``ep`` segment whose solver does
+not converge gets the solver's fallback path (docs/method.md 4.1), valid with the
+reason, and identity corrections, flagged, only if that misses the end-constraint.
 """
 from __future__ import annotations
 
@@ -20,20 +28,47 @@ import numpy as np
 
 from ..lie import LieGroup, get_group
 from ..motion import MotionEstimate
+from ..render.warp import WarpParams
+from .budget import BudgetParams, BudgetReport, FrameModel, SegmentMeshes, constrain
 from .constraints import EndConstraints
 from .keyframes import KeyframeDetector, KeyframeParams
 from .optimal import PathParams, solve_segment
+from .smoother import SegmentSystem, chart_path, segment_system
+from .zoom import plan_zooms
+
+
+PATH_MODES = ("smooth", "ep")
 
 
 @dataclass
 class PlannerParams:
     group: str = "se3"
-    end: str = "smoothed"  # end-constraint mode: identity | smoothed
-    alpha: float = 0.1  # smoothed mode: keyframe-pose filter gains
+    mode: str = "smooth"  # smooth: smoothed path with a crop budget (docs/method.md 4.3) | ep: targets of 4.2
+    smoothness: float = 1e4  # smooth: lam of docs/method.md (8); gain 0.5 at 0.47 Hz at 30 fps
+    velocity_weight: float = 100.0  # smooth: weight of the low-passed camera velocity as the path's velocity target
+    velocity_sigma: float = 20.0  # smooth: frames; Gaussian low-pass of that velocity (window ends at the keyframe)
+    lookahead: int = 20  # smooth: of each keyframe interval's frames, the last this many are planned but
+    # released only with the next segment (re-planned with more frames after them); < the interval
+    budget: BudgetParams = field(default_factory=BudgetParams)  # smooth: the crop budget
+    zoom_smoothness: float = 10.0  # smooth with a budget: mu of the zoom track, docs/method.md (14)
+    zoom_hold: float = 1e-3  # smooth with a budget: pull towards zoom 1 of the look-ahead frames' zooms (1 = as released)
+    end: str = "smoothed"  # ep: end-constraint mode: identity | smoothed
+    alpha: float = 0.1  # ep, smoothed ends: keyframe-pose filter gains
     beta: float = 0.4
-    lowpass_sigma: float = 20.0  # frames; > 0: keep the low-passed camera velocity (0: the paper, undo all)
+    lowpass_sigma: float = 20.0  # ep: frames; > 0: keep the low-passed camera velocity (0: the paper, undo all)
     keyframes: KeyframeParams = field(default_factory=KeyframeParams)
     path: PathParams = field(default_factory=PathParams)
+
+    def validate(self) -> None:
+        if self.mode not in PATH_MODES:
+            raise ValueError(f"path mode must be one of {PATH_MODES}, got {self.mode!r}")
+        if not (np.isfinite(self.smoothness) and self.smoothness >= 0):
+            raise ValueError(f"smoothness must be a finite number >= 0, got {self.smoothness!r}")
+        self.budget.validate()
+        self.keyframes.validate()
+        if self.mode == "smooth" and not 0 <= self.lookahead < self.keyframes.interval:
+            raise ValueError(f"look-ahead must be >= 0 and below the keyframe interval "
+                             f"({self.keyframes.interval}), got {self.lookahead}")
 
 
 @dataclass
@@ -46,6 +81,7 @@ class Correction:
     keyframe: bool
     valid: bool = True
     reason: str = ""
+    zoom: float | None = None  # framing zoom planned with the path (smooth mode with a budget), else None
 
     @property
     def point_transform(self) -> np.ndarray:
@@ -65,13 +101,18 @@ class SegmentInfo:
     cost: float
     solve_ms: float
     reason: str = ""
+    budget_frames: int = 0  # smooth mode: frames that got crop-budget constraints
+    budget_margin_px: float = float("inf")  # smooth mode: smallest margin to the border left (px; < 0 over budget)
 
 
 class PathPlanner:
     """One stream's keyframes, end-constraints and optimal path."""
 
-    def __init__(self, params: PlannerParams | None = None) -> None:
+    def __init__(self, params: PlannerParams | None = None, warp: WarpParams | None = None) -> None:
+        """``warp``: the renderer's warp parameters (the crop budget fits the same mesh)."""
         self.params = p = params or PlannerParams()
+        p.validate()
+        self.warp = warp or WarpParams()
         self.group: LieGroup = get_group(p.group)
         self.detector = KeyframeDetector(p.keyframes)
         self.ends = EndConstraints(self.group, p.end, p.alpha, p.beta)
@@ -83,23 +124,50 @@ class PathPlanner:
         self._zbar: list[np.ndarray] = []
         self._motions: list[np.ndarray] = []
         self._history: list[np.ndarray] = []  # camera-motion twists of recent frames (for the low-pass)
+        self._path: list[np.ndarray] = []  # smooth mode: camera poses g_c of the open segment's frames
+        self._models: list[FrameModel | None] = []  # smooth mode: frame models of the open segment's frames
+        self._model: FrameModel | None = None  # the newest frame model (frames without one reuse it)
+        self._committed: list[np.ndarray] = [np.eye(4)]  # smooth mode: last <= 3 stabilized poses, oldest first
+        self._systems: dict[tuple[int, int], SegmentSystem] = {}
+        self._zooms: list[float] = [1.0]  # smooth mode with a budget: last <= 3 planned zooms
+        self._planned: list[float] = []  # the last window's zooms for the frames it kept (look-ahead)
+        self._real: list[np.ndarray] = [np.eye(4)]  # smooth mode: real camera poses up to the open segment's start
 
     def start(self, seq: int) -> list[Correction]:
-        """First frame of the stream (a keyframe, no correction)."""
+        """First frame of the stream. ``ep``: a keyframe with no correction, released at once.
+        ``smooth``: the first frame of the first window, corrected and released with it (nothing now)."""
         self._begin(seq, restart=True)
+        self._zooms, self._planned = [], []
+        if self.params.mode == "smooth":
+            self._committed, self._real = [], []  # no past: the first window places its first frame too
+            self._seqs, self._path, self._models = [seq], [self._pose.copy()], [None]
+            self._zbar, self._motions = [np.zeros(self.group.dim)], [np.eye(4)]
+            return []
         return [Correction(seq, np.eye(4), len(self.segments), True)]
+
+    def _held_zoom(self) -> float | None:
+        """The zoom of a frame the path does not correct: the track holds still (None without a planned track)."""
+        if not (self.params.mode == "smooth" and self.params.budget.enabled):
+            return None
+        self._zooms = (self._zooms + [self._zooms[-1] if self._zooms else 1.0])[-3:]
+        return self._zooms[-1]
 
     def _begin(self, seq: int, restart: bool) -> None:
         self._start = seq
-        self._seqs, self._zbar, self._motions = [], [], []
+        self._seqs, self._zbar, self._motions, self._path, self._models = [], [], [], [], []
         self.detector.reset()
         if restart:
             self._C0 = np.eye(4)
             self.ends.reset(self._pose)
             self._history = []
+            self._committed = [self._pose.copy()]  # the path restarts at the real camera, at rest
+            self._real = [self._pose.copy()]
 
-    def push(self, motion: MotionEstimate) -> list[Correction]:
-        """Add the motion from frame ``motion.seq`` to ``motion.seq_next``; returns released corrections."""
+    def push(self, motion: MotionEstimate, model: FrameModel | None = None) -> list[Correction]:
+        """Add the motion from frame ``motion.seq`` to ``motion.seq_next``; returns released corrections.
+
+        ``model``: 3D points of frame ``motion.seq_next`` for the crop budget (smooth mode;
+        without one the frame reuses the newest model)."""
         if self._start is None:
             raise RuntimeError("PathPlanner.start() must be called with the first frame")
         if not motion.valid:
@@ -107,7 +175,7 @@ class PathPlanner:
             self._begin(motion.seq_next, restart=True)
             out.append(Correction(motion.seq_next, np.eye(4), len(self.segments), True, False,
                                   f"motion {motion.seq}->{motion.seq_next} invalid ({motion.reason}): "
-                                  "path restarted, frame not corrected"))
+                                  "path restarted, frame not corrected", zoom=self._held_zoom()))
             return out
         zb = motion.zeta_bar if motion.zeta_bar is not None else self.group.log(self.group.inverse(motion.matrix))
         self._seqs.append(motion.seq_next)
@@ -116,7 +184,14 @@ class PathPlanner:
         if self.params.lowpass_sigma > 0:
             self._history.append(motion.twist if motion.twist is not None else self.group.log(motion.matrix))
         self._pose = self._pose @ motion.matrix
-        why = self.detector.push(motion.matrix)
+        self._path.append(self._pose.copy())
+        if model is not None:
+            self._model = model
+        self._models.append(self._model)
+        if self.params.mode == "smooth":  # the window is the keyframe interval; the smoother needs no turn keyframes
+            why = "interval" if len(self._path) >= self.params.keyframes.interval else ""
+        else:
+            why = self.detector.push(motion.matrix)
         return self._close(why) if why else []
 
     def finish(self) -> list[Correction]:
@@ -124,6 +199,93 @@ class PathPlanner:
         return self._close("end-of-stream") if self._seqs else []
 
     def _close(self, closed_by: str) -> list[Correction]:
+        if self.params.mode == "smooth":
+            return self._close_smooth(closed_by)
+        return self._close_ep(closed_by)
+
+    def _close_smooth(self, closed_by: str) -> list[Correction]:
+        """Smoothed path with the crop budget (docs/method.md 4.3), then the EP path through it."""
+        seg = len(self.segments)
+        g, p = self.group, self.params
+        t0 = time.perf_counter()
+        X = np.asarray(self._path)
+        N = len(X)
+        base = self._committed[-1] if self._committed else X[0]
+        x = chart_path(g, base, X)
+        committed = chart_path(g, base, np.asarray(self._committed)) if self._committed else np.zeros((0, g.dim))
+        key = (N, len(committed))
+        if key not in self._systems:
+            self._systems[key] = segment_system(N, len(committed), p.smoothness, p.velocity_weight)
+        system = self._systems[key]
+        q = system.unconstrained(x, committed, self._velocity_targets(base) if p.velocity_weight > 0 else None)
+        rep = BudgetReport()
+        zooms: list[float | None] = [None] * N
+        if p.budget.enabled:
+            meshes = SegmentMeshes(self._models, self.warp)
+            Xinv_base = np.linalg.inv(X) @ base
+
+            def correction(frames: np.ndarray, P: np.ndarray) -> np.ndarray:
+                return Xinv_base[frames][:, None] @ g.exp(P)
+
+            limits = p.budget.frame_limits(N, self._zooms[-1] if self._zooms else p.budget.max_zoom, self._planned)
+            q, rep = constrain(g, system, q, correction, meshes, p.budget, limits)
+            zooms = self._plan_zooms(meshes, correction(np.arange(N), q[:, None])[:, 0], limits)
+        # Released: the segment up to its closing keyframe; the look-ahead frames after it are
+        # planned again with the next segment (none at the end of the stream or a break).
+        R = N - p.lookahead if closed_by == "interval" else N
+        # The EP problem (docs/method.md (4)-(6)) with the smoothed path's own velocities as
+        # targets and its keyframe pose as end-constraint: its solution is that path.
+        Q = g.exp(q[:R])
+        targets = g.log(np.linalg.inv(np.concatenate([np.eye(4)[None], Q[:-1]])) @ Q)
+        sol = solve_segment(g, np.eye(4)[None].repeat(R, 0), None, Q[-1], p.path, zbar=targets)
+        path = base[None] @ (sol.corrections[1:] if sol.converged else Q)
+        corrections = np.linalg.inv(X[:R]) @ path
+        ms = (time.perf_counter() - t0) * 1e3
+        self.segments.append(SegmentInfo(seg, self._start, self._seqs[R - 1], closed_by, sol.converged,
+                                         sol.iterations, sol.residual, sol.cost, ms, sol.reason, rep.constrained,
+                                         rep.worst_margin_px))
+        if zooms[0] is not None:
+            self._zooms = (self._zooms + zooms[:R])[-3:]
+            self._planned = zooms[R:]
+        out = [Correction(s, corrections[i], seg, i == R - 1, zoom=zooms[i]) for i, s in enumerate(self._seqs[:R])]
+        self._committed = (self._committed + list(path))[-3:]
+        self._real = (self._real + list(X[:R]))[-(int(3 * p.velocity_sigma) + 2):]
+        kept = (self._seqs[R:], self._zbar[R:], self._motions[R:], self._path[R:], self._models[R:])
+        self._begin(self._seqs[R - 1], restart=False)
+        self._seqs, self._zbar, self._motions, self._path, self._models = (list(k) for k in kept)
+        return out
+
+    def _velocity_targets(self, base: np.ndarray) -> np.ndarray:
+        """Low-passed velocity of the real path, in the segment's chart, for the steps into its frames."""
+        p, g = self.params, self.group
+        hist = self._real[-(len(self._path) + int(3 * p.velocity_sigma) + 1):] or self._path[:1]
+        xs = chart_path(g, base, np.asarray(hist + self._path))
+        vel = np.diff(xs, axis=0)
+        n = len(self._path)
+        idx = np.arange(len(vel))
+        out = np.empty((n, vel.shape[1]))
+        for i, t in enumerate(range(len(vel) - n, len(vel))):
+            w = np.exp(-0.5 * ((idx - t) / p.velocity_sigma) ** 2)
+            out[i] = w @ vel / w.sum()
+        return out
+
+    def _plan_zooms(self, meshes: SegmentMeshes, corrections: np.ndarray, limits: np.ndarray) -> list[float | None]:
+        """The segment's zoom track (docs/method.md (14)) from the zooms its corrections need on the models,
+        with the budget's margin (the renderer's mesh may differ from the model's by that much)."""
+        p = self.params
+        has = np.flatnonzero(meshes.frames >= 0)
+        required = np.ones(len(corrections))
+        if has.size:
+            idx = meshes.frames[has]
+            m = meshes.margins(idx, corrections[has][:, None], p.budget.max_zoom, 0.0)[:, 0]
+            margin = p.budget.margin_px / np.array([meshes.half(f) for f in idx])
+            t = m.min(axis=1) + 1.0 / p.budget.max_zoom - margin
+            required[has] = np.where(t > 0, 1.0 / np.maximum(t, 1e-9), np.inf)
+        z = plan_zooms(np.minimum(required, limits), np.asarray(self._zooms), p.zoom_smoothness, p.budget.max_zoom,
+                       p.lookahead, p.zoom_hold)
+        return [float(v) for v in z]
+
+    def _close_ep(self, closed_by: str) -> list[Correction]:
         seg = len(self.segments)
         zbar, smooth = self._targets()
         C1 = self.ends.at_keyframe(self._pose, len(self._seqs), smooth)
@@ -136,6 +298,10 @@ class PathPlanner:
         last = len(self._seqs) - 1
         if sol.converged:
             out = [Correction(s, sol.corrections[i + 1], seg, i == last) for i, s in enumerate(self._seqs)]
+            next_C0 = sol.corrections[-1]
+        elif sol.fallback:  # not optimal, but smooth and on the end-constraints: used (docs/method.md 4.1)
+            why = f"segment {seg} stabilized by the fallback path: {sol.reason}"
+            out = [Correction(s, sol.corrections[i + 1], seg, i == last, True, why) for i, s in enumerate(self._seqs)]
             next_C0 = sol.corrections[-1]
         else:
             why = f"segment {seg} not stabilized: {sol.reason}"

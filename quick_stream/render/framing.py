@@ -1,4 +1,4 @@
-"""Framing of the stabilised frames: black borders, a fixed crop or an automatic crop (design note section 5).
+"""Framing of the stabilised frames: black borders, a fixed crop or an automatic crop (docs/method.md 5.3).
 
 * ``black``: zoom 1, out-of-frame areas are black;
 * ``crop``: a fixed zoom (``crop_zoom``) about the image centre for every frame;
@@ -64,53 +64,65 @@ class FramingParams:
             raise ValueError("framing fall_per_frame and rise_per_frame must be > 0")
 
 
-def _outline(mesh: MeshWarp) -> np.ndarray:
-    """Outer output vertices of the mesh in cyclic order (top, right, bottom, left), (M, 2)."""
-    d = mesh.dst
-    return np.concatenate((d[0, :-1], d[:-1, -1], d[-1, :0:-1], d[:0:-1, 0]))
+def outline(dst: np.ndarray) -> np.ndarray:
+    """Outer output vertices of mesh vertex arrays ``dst`` (..., gy+1, gx+1, 2) in cyclic order
+    (top, right, bottom, left): (..., M, 2)."""
+    return np.concatenate((dst[..., 0, :-1, :], dst[..., :-1, -1, :], dst[..., -1, :0:-1, :],
+                           dst[..., :0:-1, 0, :]), axis=-2)
 
 
-def _inside_polygon(poly: np.ndarray, q: np.ndarray) -> bool:
-    """Point ``q`` strictly inside the closed polygon ``poly`` (even-odd rule)."""
+def _inside_polygon(poly: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Point ``q`` strictly inside each closed polygon ``poly`` (..., M, 2) (even-odd rule): (...,) bool."""
     a = poly
-    b = np.roll(poly, -1, axis=0)
-    cross = (a[:, 1] > q[1]) != (b[:, 1] > q[1])
+    b = np.roll(poly, -1, axis=-2)
+    cross = (a[..., 1] > q[1]) != (b[..., 1] > q[1])
     with np.errstate(divide="ignore", invalid="ignore"):
-        xi = a[:, 0] + (q[1] - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
-    return bool(np.count_nonzero(cross & (q[0] < xi)) % 2)
+        xi = a[..., 0] + (q[1] - a[..., 1]) * (b[..., 0] - a[..., 0]) / (b[..., 1] - a[..., 1])
+    return np.count_nonzero(cross & (q[0] < xi), axis=-1) % 2 == 1
+
+
+def edge_extents(dst: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Per outer mesh edge, the half-size t of the largest centred output rectangle that edge allows.
+
+    With c the centre and a = (W-1)/2, b = (H-1)/2, the output at zoom s shows the
+    rectangle R(1/s) = {q : max(|q_x - c_x| / a, |q_y - c_y| / b) <= 1/s} of the
+    unzoomed output (docs/method.md (12)). Edge e of the covered polygon (the mesh's
+    outer output vertices) allows R(t) up to t_e, the minimum over the edge of that
+    weighted max norm: a convex piecewise-linear function of the edge parameter,
+    attained at an end point or where |x|/a = |y|/b. ``dst``: (..., gy+1, gx+1, 2) mesh
+    vertices; returns (..., M) with M outer edges, 0 for every edge of a polygon that
+    does not contain the centre. The border-free zoom is 1 / min_e t_e.
+    """
+    a, b = (width - 1) / 2.0, (height - 1) / 2.0
+    poly = outline(np.asarray(dst, dtype=np.float64))
+    p = (poly - (a, b)) / (a, b)  # centred, normalised: R(t) is the square max(|x|, |y|) <= t
+    d = np.roll(p, -1, axis=-2) - p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.stack([
+            np.zeros(p.shape[:-1]), np.ones(p.shape[:-1]),
+            (p[..., 1] - p[..., 0]) / (d[..., 0] - d[..., 1]),  # x = y
+            -(p[..., 0] + p[..., 1]) / (d[..., 0] + d[..., 1]),  # x = -y
+        ], axis=-1)
+    lam = np.clip(np.nan_to_num(lam, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
+    x = p[..., :1] + lam * d[..., :1]
+    y = p[..., 1:] + lam * d[..., 1:]
+    t = np.min(np.maximum(np.abs(x), np.abs(y)), axis=-1)
+    inside = _inside_polygon(poly, np.array([a, b]))
+    return np.where(inside[..., None], t, 0.0)
 
 
 def border_free_zoom(mesh: MeshWarp, width: int | None = None, height: int | None = None) -> float:
     """Smallest zoom s >= 1 about the image centre whose output has a source pixel everywhere.
 
-    With c the centre and a = (W-1)/2, b = (H-1)/2, the output at zoom s shows the
-    rectangle R(1/s) = {q : max(|q_x - c_x| / a, |q_y - c_y| / b) <= 1/s} of the
-    unzoomed output. R(t) stays inside the covered polygon until t reaches the
-    polygon boundary's distance from c in that (weighted max) norm; per edge that
-    distance is the minimum of a convex piecewise-linear function, attained at an
-    end point or where |x|/a = |y|/b. Returns inf when the centre itself is uncovered.
-    ``width``/``height`` default to the mesh's (the output has the source's size).
+    1 / min over the outer edges of :func:`edge_extents` (docs/method.md (12)); inf when the
+    centre itself is uncovered. ``width``/``height`` default to the mesh's (the output has
+    the source's size).
     """
     w = mesh.width if width is None else int(width)
     h = mesh.height if height is None else int(height)
     if (w, h) != (mesh.width, mesh.height):
         raise ValueError(f"border_free_zoom: output {w}x{h} differs from the mesh's {mesh.width}x{mesh.height}")
-    a, b = (w - 1) / 2.0, (h - 1) / 2.0
-    poly = _outline(mesh)
-    if not _inside_polygon(poly, np.array([a, b])):
-        return float("inf")
-    p = (poly - (a, b)) / (a, b)  # centred, normalised: R(t) is the square max(|x|, |y|) <= t
-    d = np.roll(p, -1, axis=0) - p
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = np.stack([
-            np.zeros(len(p)), np.ones(len(p)),
-            (p[:, 1] - p[:, 0]) / (d[:, 0] - d[:, 1]),  # x = y
-            -(p[:, 0] + p[:, 1]) / (d[:, 0] + d[:, 1]),  # x = -y
-        ], axis=1)
-    lam = np.clip(np.nan_to_num(lam, nan=0.0, posinf=0.0, neginf=0.0), 0.0, 1.0)
-    x = p[:, :1] + lam * d[:, :1]
-    y = p[:, 1:] + lam * d[:, 1:]
-    t = float(np.min(np.maximum(np.abs(x), np.abs(y))))
+    t = float(np.min(edge_extents(mesh.dst, w, h)))
     if t <= 0:
         return float("inf")
     s = 1.0 / t
@@ -133,6 +145,20 @@ class ZoomSmoother:
         self.params = params or FramingParams()
         self.params.validate()
         self.last = last
+        self.raised = 0  # planned zooms raised to what the rendered mesh needed
+
+    def follow(self, planned: Sequence[float], required: Sequence[float]) -> np.ndarray:
+        """Zooms planned with the path, each raised to its frame's ``required`` zoom if the plan
+        (made on the planner's model of the frame) fell short; capped at ``max_zoom``."""
+        z = np.asarray(planned, dtype=np.float64).ravel()
+        req = np.clip(np.nan_to_num(np.asarray(required, dtype=np.float64).ravel(), nan=np.inf), 1.0,
+                      self.params.max_zoom)
+        short = req > z + 1e-9
+        self.raised += int(np.count_nonzero(short))
+        z = np.minimum(np.where(short, req, z), max(self.params.max_zoom, float(z.max(initial=1.0))))
+        if len(z):
+            self.last = float(z[-1])
+        return z
 
     def smooth(self, required: Sequence[float]) -> np.ndarray:
         """Zooms for one segment's ``required`` zooms (inf/NaN = no border-free zoom: max_zoom)."""
@@ -157,11 +183,13 @@ class ZoomSmoother:
 
 
 def segment_zooms(meshes: Sequence[MeshWarp], params: FramingParams | None = None,
-                  smoother: ZoomSmoother | None = None) -> np.ndarray:
+                  smoother: ZoomSmoother | None = None, planned: Sequence[float | None] | None = None) -> np.ndarray:
     """Per-frame zooms of one segment for the framing mode in ``params``.
 
     ``auto`` needs the stream's ``smoother`` (one per stream, it carries the last
     zoom across segments); a failed mesh (``ok`` False) is the identity and needs zoom 1.
+    ``planned``: zooms planned with the path (docs/method.md (14)); ``auto`` follows them
+    when every frame has one (:meth:`ZoomSmoother.follow`).
     """
     p = params or FramingParams()
     p.validate()
@@ -173,4 +201,7 @@ def segment_zooms(meshes: Sequence[MeshWarp], params: FramingParams | None = Non
         return np.full(n, p.crop_zoom)
     if smoother is None:
         raise ValueError("auto framing needs the stream's ZoomSmoother")
-    return smoother.smooth([border_free_zoom(m) if m.ok else 1.0 for m in meshes])
+    required = [border_free_zoom(m) if m.ok else 1.0 for m in meshes]
+    if planned is not None and len(planned) == n and all(z is not None for z in planned):
+        return smoother.follow(planned, required)
+    return smoother.smooth(required)

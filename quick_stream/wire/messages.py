@@ -248,8 +248,11 @@ def _decode_motion(r: Reader) -> Decoded:
 
 def encode_correction(c: Correction, stream: str, zoom: float | None = None,
                       batch: tuple[int, int, int] | None = None) -> bytes:
-    """A Correction as a ``correction`` message, with the optional framing ``zoom`` and
-    ``batch`` = (release id, index in it, release size): the planner's release it belongs to."""
+    """A Correction as a ``correction`` message, with the optional framing ``zoom`` (default: the
+    zoom planned with the path, ``c.zoom``) and ``batch`` = (release id, index in it, release
+    size): the planner's release it belongs to."""
+    if zoom is None:
+        zoom = c.zoom
     if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
         raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
     if batch is not None and not (len(batch) == 3 and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
@@ -263,7 +266,7 @@ def encode_correction(c: Correction, stream: str, zoom: float | None = None,
 
 def _decode_correction(r: Reader) -> Decoded:
     c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
-                   r.bool("valid"), r.str("reason"))
+                   r.bool("valid"), r.str("reason"), r.float("zoom", positive=True, optional=True))
     batch = r.get("batch", optional=True)
     if batch is not None:
         if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
@@ -271,7 +274,7 @@ def _decode_correction(r: Reader) -> Decoded:
             raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {batch!r}")
         batch = tuple(batch)
     return Decoded("correction", c, r.stream, r.seq,
-                   extra={"zoom": r.float("zoom", positive=True, optional=True), "batch": batch})
+                   extra={"zoom": c.zoom, "batch": batch})
 
 
 # --- stabilized ---------------------------------------------------------------------------------
