@@ -4,23 +4,20 @@ The renderer warps a frame with a mesh fitted to where the stabilized camera see
 frame's 3D points, and the output pixels with a source are exactly the polygon of the
 mesh's outer vertices (docs/method.md (12)). So whether a correction leaves a border at
 zoom Z is decided by the mesh, and the planner can decide it before any image exists:
-a :class:`FrameModel` holds a few hundred of the frame's 3D points (from the scene flow
-that reached the frame), :func:`edge_margins` fits the same mesh to them and returns, per
-outer mesh edge, how far the zoom-Z crop rectangle stays inside it.
+a :class:`FrameModel` holds up to ``model_points`` of the frame's 3D points (from the scene
+flow that reached the frame), :class:`SegmentMeshes` fits the same mesh to them and returns,
+per outer mesh edge, how far a centred crop rectangle stays inside it.
 
-:func:`constrain` then solves the smoother's problem (:mod:`.smoother`) with those
-margins as inequality constraints, by sequential quadratic programming: margins
-linearised by finite differences at the current path, the quadratic program solved in
-its dual (non-negative least squares over the constraints that can become active), the
-margins re-evaluated on the new path, up to ``max_rounds`` times. A path far from the
-budget has no constraint near activity and comes back unchanged.
+:func:`constrain` then plans the path and its zoom track together (the smoother's problem,
+:mod:`.smoother`, plus the price of the crop, with those margins as inequality constraints),
+by sequential quadratic programming. A path that already keeps every frame border-free at
+Z comes back unchanged, with only its zoom track planned.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.optimize import nnls
 
 from ..frame import Intrinsics
 from ..lie import LieGroup
@@ -33,13 +30,13 @@ from .smoother import SegmentSystem
 class BudgetParams:
     """Crop budget of the smoothed path (each parameter documented where it acts)."""
 
-    max_zoom: float = 1.12  # every frame border-free at this zoom (0: no budget, the path is unconstrained)
+    max_zoom: float = 1.15  # every frame border-free at this zoom (0: no budget, the path is unconstrained)
     margin_px: float = 1.0  # kept between the crop rectangle and the border, in pixels (model error)
     model_points: int = 128  # 3D points per frame model (a regular subset of the flow's)
     near_px: float = 16.0  # frames whose crop comes this close (px) to the border get constraints
     max_rounds: int = 4  # SQP rounds: re-linearise the margins at the new path
-    zoom_rise: float = 0.01  # a window's frames may need at most this much more zoom per frame than the last
-    # committed zoom (docs/method.md (10)): the zoom track never has to jump at a window's start
+    crop_weight: float = 1.0  # price of one pixel of crop (per frame, squared) against one pixel of path
+    # deviation in the smoother's cost: docs/method.md (11)
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -53,20 +50,9 @@ class BudgetParams:
         if not (np.isfinite(self.max_zoom) and (self.max_zoom == 0 or self.max_zoom >= 1.0)):
             raise ValueError(f"max zoom must be 0 (no budget) or >= 1, got {self.max_zoom}")
         if not (self.margin_px >= 0 and self.near_px > self.margin_px and self.model_points >= 8
-                and self.max_rounds >= 1 and self.zoom_rise > 0):
+                and self.max_rounds >= 1 and self.crop_weight >= 0):
             raise ValueError("budget needs margin_px >= 0, near_px > margin_px, model_points >= 8, max_rounds >= 1, "
-                             "zoom_rise > 0")
-
-    def frame_limits(self, n: int, last_zoom: float, planned: list[float] | None = None) -> np.ndarray:
-        """Largest zoom each of a window's ``n`` frames may need (docs/method.md (10)): Z, or less near the
-        window's start when the last committed zoom is lower (it may rise by ``zoom_rise`` per frame),
-        unless the previous window's zoom track (``planned``, for the frames it did not release) already
-        rose further for them."""
-        lim = max(last_zoom, 1.0) + self.zoom_rise * np.arange(1, n + 1)
-        if planned:
-            k = min(len(planned), n)
-            lim[:k] = np.maximum(lim[:k], np.asarray(planned[:k]) + self.zoom_rise)
-        return np.minimum(self.max_zoom, lim)
+                             "crop_weight >= 0")
 
 
 @dataclass
@@ -181,34 +167,46 @@ class SegmentMeshes:
         """Per model in ``idx`` (F,), correction (F, P, 4, 4) and outer mesh edge: t_e - t_Z (F, P, E).
 
         >= 0 where the budget holds (docs/method.md (10)); t_e from
-        :func:`~quick_stream.render.framing.edge_extents`, t_Z = 1/Z plus the margin in the
-        same normalised units, Z a number or one per model (F,). Multiply by :meth:`half` to read pixels.
+        :func:`~quick_stream.render.framing.edge_extents` (the border-free zoom is 1 / min t_e),
+        t_Z = 1/Z plus the margin in the same normalised units, Z a number or one per model (F,).
+        Times :meth:`half`: pixels.
         """
         zmax = np.broadcast_to(np.asarray(max_zoom, dtype=np.float64), (len(idx),))
         V = self.vertices(idx, np.linalg.inv(corrections))
-        out = np.empty(V.shape[:2] + (2 * (self.shape[0] + self.shape[1] - 2),))
+        t = np.empty(V.shape[:2] + (2 * (self.shape[0] + self.shape[1] - 2),))
         sizes = self.size[idx]
-        for w, h in np.unique(sizes, axis=0):  # frames of one size share edge_extents' normalisation
+        for w, h in np.unique(sizes, axis=0):  # frames of one size share the normalisation
             sel = np.flatnonzero(np.all(sizes == (w, h), axis=1))
-            out[sel] = edge_extents(V[sel], int(w), int(h)) - (1.0 / zmax[sel, None, None]
-                                                               + margin_px / (0.5 * (min(w, h) - 1)))
-        return out
+            t[sel] = edge_extents(V[sel], int(w), int(h))
+        half = 0.5 * (sizes.min(axis=1) - 1.0)
+        return t - (1.0 / zmax + margin_px / half)[:, None, None]
 
     def half(self, f: int) -> float:
         """Half the short side of model f's frame (px): margins times this are pixels."""
         return 0.5 * (float(self.size[f].min()) - 1.0)
 
 
-def component_scales(group: LieGroup, model: FrameModel, h: float = 1e-4) -> np.ndarray:
-    """Pixels moved per unit of each twist component (RMS over the model's points): the QP's metric."""
-    E = group.exp(h * np.eye(group.dim))
+def rotation_directions(group: LieGroup) -> np.ndarray:
+    """(n, 3) twist coordinates of the three rotation generators [[hat(e_i), 0], [0, 0]] (every group here
+    contains the rotations): the directions in which the crop budget may bend a path."""
+    E = np.zeros((3, 4, 4))
+    for i, (a, b) in enumerate(((2, 1), (0, 2), (1, 0))):
+        E[i, a, b], E[i, b, a] = 1.0, -1.0
+    return group.vee(E).T
+
+
+def rotation_scales(model: FrameModel, h: float = 1e-4) -> np.ndarray:
+    """Pixels moved per radian of rotation about each camera axis (RMS over the model's points):
+    the budget QP's metric, so its objective is image motion."""
+    from ..lie import get_group
+    so = get_group("se3")
+    E = so.exp(h * np.hstack([np.zeros((3, 3)), np.eye(3)]))
     x = model.points
-    y = np.einsum("bij,mj->bmi", E[:, :3, :3], x) + E[:, None, :3, 3]
+    y = np.einsum("bij,mj->bmi", E[:, :3, :3], x)
     K2 = model.K[:2, :2]
     uv = np.einsum("ij,bmj->bmi", K2, y[..., :2] / y[..., 2:])
     uv0 = (x[:, :2] / x[:, 2:]) @ K2.T
-    d = np.sqrt(np.mean(np.sum((uv - uv0[None]) ** 2, axis=-1), axis=-1)) / h
-    return np.maximum(d, 1e-6 * max(float(d.max()), 1.0))
+    return np.sqrt(np.mean(np.sum((uv - uv0[None]) ** 2, axis=-1), axis=-1)) / h
 
 
 @dataclass
@@ -217,59 +215,96 @@ class BudgetReport:
 
     constrained: int = 0  # frames that got constraints
     rounds: int = 0
-    worst_margin_px: float = float("inf")  # smallest margin left after the last round (px; < 0: over budget)
+    worst_margin_px: float = float("inf")  # smallest margin to the border at the planned zoom (px; < 0: border)
 
 
 def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction, meshes: SegmentMeshes,
-              params: BudgetParams, limits: np.ndarray, h: float = 1e-6) -> tuple[np.ndarray, BudgetReport]:
-    """The smoothed path (N, n) minimising J_s with every frame's margins >= 0 (docs/method.md (11)).
+              params: BudgetParams, zoom_system: SegmentSystem, committed_w: np.ndarray,
+              h: float = 1e-6) -> tuple[np.ndarray, np.ndarray, BudgetReport]:
+    """The smoothed path (N, n) and its crop scales w = 1/zoom (N,), planned together (docs/method.md (10)-(11)).
 
-    ``p0`` is the unconstrained minimiser of J_s (:mod:`.smoother`); ``correction(frames, P)``
-    maps chart coordinates P (F, B, n) of those frames to corrections (F, B, 4, 4);
-    ``meshes`` holds the frames' mesh models; ``limits`` (N,) the zoom each frame may need
-    (:meth:`BudgetParams.frame_limits`). J_s is measured in
-    the metric of :func:`component_scales` (pixels), the margins linearised by finite
-    differences at the current path, the quadratic program solved in its dual (non-negative
-    least squares over the constraints that can become active).
+    When the unconstrained path ``p0`` keeps every frame border-free at Z it is returned unchanged
+    and only the zoom track is planned (a budget far away reproduces the unconstrained path).
+    Otherwise:
+
+    Minimises J_s (:mod:`.smoother`, whose unconstrained minimiser is ``p0``) plus the crop cost
+    c h^2 [sum_t z_w,t (1 - w_t)^2 + mu sum_t (w_{t+1} - 2 w_t + w_{t-1})^2] (``zoom_system``: that
+    quadratic form, continuing the ``committed_w`` of the frames released before; h = half the
+    short side, so both costs are in pixels^2) subject to, for every frame with a model and every
+    outer mesh edge, t_e(g_s(t)) - delta / h >= w_t (border-free at zoom 1/w_t, delta the margin),
+    and w_t >= 1/Z. ``correction(frames, P)`` maps chart coordinates P (F, B, n) to corrections
+    (F, B, 4, 4). The budget bends the path's orientation only (p = p0 + R r, R =
+    :func:`rotation_directions`): moving the virtual camera would buy border-free frames with
+    parallax, or with a magnified view. Sequential quadratic programming: margins linearised by
+    finite differences at the current path (the linearisations of earlier rounds are kept, which
+    stops the rounds cycling between them), each QP solved in its dual by non-negative least squares.
     """
+    from scipy.optimize import nnls  # imported when first needed: it costs every service's start ~0.4 s
+
     N, n = p0.shape
     rep = BudgetReport()
+    w0 = zoom_system.unconstrained(np.ones((N, 1)), np.asarray(committed_w, dtype=np.float64).reshape(-1, 1))[:, 0]
     has = np.flatnonzero(meshes.frames >= 0)
     if has.size == 0:
-        return p0, rep
+        return p0, np.maximum(w0, 1.0 / params.max_zoom), rep
     idx = meshes.frames[has]
     half = np.array([meshes.half(f) for f in idx])
-    s2 = component_scales(group, meshes.models[idx[-1]]) ** 2
-    probes = np.vstack([np.zeros(n), h * np.eye(n)])
-    lim = np.asarray(limits, dtype=np.float64)[has]
-    near = np.zeros((has.size, 2 * (meshes.shape[0] + meshes.shape[1] - 2)), bool)
+    Rd = rotation_directions(group)  # (n, 3)
+    m = Rd.shape[1]
+    Minv = np.linalg.inv(np.diag(rotation_scales(meshes.models[idx[-1]]) ** 2))  # metric on r, per frame
+    cw = params.crop_weight * float(np.mean(half)) ** 2
+    probes = np.vstack([np.zeros(n), h * Rd.T])  # (m+1, n)
+    n_edges = 2 * (meshes.shape[0] + meshes.shape[1] - 2)
+    near = np.zeros((has.size, n_edges), bool)
+    slack = params.margin_px / half  # (F,) the margin in t units
 
-    p = p0
-    for rnd in range(params.max_rounds):
-        P = p[has][:, None, :]
-        cur = meshes.margins(idx, correction(has, P), lim, params.margin_px)[:, 0] * half[:, None]
+    def solve_h(C: np.ndarray) -> np.ndarray:
+        """H^-1 C^T for rows C over [r (N m), w (N)]: A (x) metric for r, cw * zoom form for w."""
+        Cr, Cw = C[:, :N * m], C[:, N * m:]
+        Hr = np.einsum("tkc,kj->tjc", system.solve(Cr.T.reshape(N, -1)).reshape(N, m, -1), Minv).reshape(N * m, -1)
+        return np.vstack([Hr, zoom_system.solve(Cw.T) / cw])
+
+    # A path that keeps every frame border-free at Z is kept as it is (a budget far away reproduces the
+    # unconstrained path exactly) and only its zoom track is planned: r stays 0, no Jacobians needed.
+    g0 = meshes.margins(idx, correction(has, p0[has][:, None, :]), 1.0, 0.0)[:, 0] + 1.0 - slack[:, None]
+    free = bool(np.all(g0 >= 1.0 / params.max_zoom))
+    # w_t >= 1/Z on every frame: the zoom limit
+    C0 = np.hstack([np.zeros((N, N * m)), np.eye(N)])
+    rows_c, rows_d = [C0], [np.full(N, 1.0 / params.max_zoom)]
+    r = np.zeros((N, m))
+    w = w0.copy()
+    for rnd in range(params.max_rounds + 1):
+        P = (p0 + r @ Rd.T)[has][:, None, :]
+        g = meshes.margins(idx, correction(has, P), 1.0, 0.0)[:, 0] + 1.0 - slack[:, None]  # t_e - delta/h
+        cur = (g - w[has, None]) * half[:, None]  # px between the crop at zoom 1/w and the border
         rep.worst_margin_px = float(cur.min()) + params.margin_px
-        if rnd > 0 and cur.min() >= -1e-3:
+        if (rnd > 0 and cur.min() >= -1e-3) or rnd == params.max_rounds:
             break
         near |= cur < params.near_px
         rows = np.flatnonzero(near.any(axis=1))
-        if rows.size == 0:
-            break
-        mk = meshes.margins(idx[rows], correction(has[rows], p[has[rows]][:, None, :] + probes[None]),
-                            lim[rows], params.margin_px)  # (R, n+1, E)
-        J = (mk[:, 1:] - mk[:, :1]).transpose(0, 2, 1) / h  # (R, E, n)
+        if free:  # the path is fixed: w_t <= t_e exactly, no linearisation
+            J = np.zeros((rows.size, n_edges, m))
+        else:
+            Pn = (p0 + r @ Rd.T)[has[rows]][:, None, :] + probes[None]
+            mk = meshes.margins(idx[rows], correction(has[rows], Pn), 1.0, 0.0)  # (R, m+1, E)
+            J = (mk[:, 1:] - mk[:, :1]).transpose(0, 2, 1) / h  # (R, E, m): d t_e / d r
         fr, ed = np.nonzero(near[rows])
-        C = np.zeros((fr.size, N, n))
-        C[np.arange(fr.size), has[rows][fr]] = J[fr, ed]
-        C = C.reshape(fr.size, N * n)
-        d = np.einsum("ck,ck->c", J[fr, ed], p[has[rows][fr]]) - mk[fr, 0, ed]  # J (p_t - p_bar) + m >= 0
-        HinvCt = (system.solve(C.T.reshape(N, -1)).reshape(N, n, -1) / s2[None, :, None]).reshape(N * n, -1)
-        M = C @ HinvCt
-        q = d - C @ p0.ravel()
-        M[np.diag_indices_from(M)] += 1e-10 * max(float(np.trace(M)) / len(M), 1e-30)
-        L = np.linalg.cholesky(M)
-        y, _ = nnls(L.T, np.linalg.solve(L, q), maxiter=50 * len(q))
-        p = (p0.ravel() + HinvCt @ y).reshape(N, n)
+        t_of = has[rows][fr]
+        C = np.zeros((fr.size, N * m + N))
+        for k in range(m):
+            C[np.arange(fr.size), t_of * m + k] = J[fr, ed, k]
+        C[np.arange(fr.size), N * m + t_of] = -1.0
+        rows_c.append(C)  # J (r - r_bar) + g(r_bar) - w >= 0
+        rows_d.append(np.einsum("ck,ck->c", J[fr, ed], r[t_of]) - g[rows][fr, ed])
+        Cc, d = np.concatenate(rows_c), np.concatenate(rows_d)
+        HinvCt = solve_h(Cc)
+        Mm = Cc @ HinvCt
+        Mm[np.diag_indices_from(Mm)] += 1e-10 * max(float(np.trace(Mm)) / len(Mm), 1e-30)
+        L = np.linalg.cholesky(Mm)
+        v0 = np.concatenate([np.zeros(N * m), w0])
+        y, _ = nnls(L.T, np.linalg.solve(L, d - Cc @ v0), maxiter=50 * len(d))
+        v = v0 + HinvCt @ y
+        r, w = v[:N * m].reshape(N, m), v[N * m:]
         rep.rounds = rnd + 1
     rep.constrained = int(np.count_nonzero(near.any(axis=1)))
-    return p, rep
+    return p0 + r @ Rd.T, w, rep

@@ -34,7 +34,6 @@ from .constraints import EndConstraints
 from .keyframes import KeyframeDetector, KeyframeParams
 from .optimal import PathParams, solve_segment
 from .smoother import SegmentSystem, chart_path, segment_system
-from .zoom import plan_zooms
 
 
 PATH_MODES = ("smooth", "ep")
@@ -50,7 +49,7 @@ class PlannerParams:
     lookahead: int = 20  # smooth: of each keyframe interval's frames, the last this many are planned but
     # released only with the next segment (re-planned with more frames after them); < the interval
     budget: BudgetParams = field(default_factory=BudgetParams)  # smooth: the crop budget
-    zoom_smoothness: float = 10.0  # smooth with a budget: mu of the zoom track, docs/method.md (14)
+    zoom_smoothness: float = 1000.0  # smooth with a budget: mu of the zoom track, docs/method.md (11): gain 0.5 at 0.85 Hz
     zoom_hold: float = 1e-3  # smooth with a budget: pull towards zoom 1 of the look-ahead frames' zooms (1 = as released)
     end: str = "smoothed"  # ep: end-constraint mode: identity | smoothed
     alpha: float = 0.1  # ep, smoothed ends: keyframe-pose filter gains
@@ -130,14 +129,13 @@ class PathPlanner:
         self._committed: list[np.ndarray] = [np.eye(4)]  # smooth mode: last <= 3 stabilized poses, oldest first
         self._systems: dict[tuple[int, int], SegmentSystem] = {}
         self._zooms: list[float] = [1.0]  # smooth mode with a budget: last <= 3 planned zooms
-        self._planned: list[float] = []  # the last window's zooms for the frames it kept (look-ahead)
         self._real: list[np.ndarray] = [np.eye(4)]  # smooth mode: real camera poses up to the open segment's start
 
     def start(self, seq: int) -> list[Correction]:
         """First frame of the stream. ``ep``: a keyframe with no correction, released at once.
         ``smooth``: the first frame of the first window, corrected and released with it (nothing now)."""
         self._begin(seq, restart=True)
-        self._zooms, self._planned = [], []
+        self._zooms = []
         if self.params.mode == "smooth":
             self._committed, self._real = [], []  # no past: the first window places its first frame too
             self._seqs, self._path, self._models = [seq], [self._pose.copy()], [None]
@@ -227,9 +225,12 @@ class PathPlanner:
             def correction(frames: np.ndarray, P: np.ndarray) -> np.ndarray:
                 return Xinv_base[frames][:, None] @ g.exp(P)
 
-            limits = p.budget.frame_limits(N, self._zooms[-1] if self._zooms else p.budget.max_zoom, self._planned)
-            q, rep = constrain(g, system, q, correction, meshes, p.budget, limits)
-            zooms = self._plan_zooms(meshes, correction(np.arange(N), q[:, None])[:, 0], limits)
+            hold = np.ones(N)  # the look-ahead frames' zooms are provisional: not pulled towards 1
+            hold[N - p.lookahead:] = p.zoom_hold
+            zoom_system = segment_system(N, len(self._zooms), p.zoom_smoothness, closeness=hold)
+            q, w, rep = constrain(g, system, q, correction, meshes, p.budget, zoom_system,
+                                  1.0 / np.asarray(self._zooms))
+            zooms = [float(z) for z in np.clip(1.0 / np.maximum(w, 1e-9), 1.0, p.budget.max_zoom)]
         # Released: the segment up to its closing keyframe; the look-ahead frames after it are
         # planned again with the next segment (none at the end of the stream or a break).
         R = N - p.lookahead if closed_by == "interval" else N
@@ -246,7 +247,6 @@ class PathPlanner:
                                          rep.worst_margin_px))
         if zooms[0] is not None:
             self._zooms = (self._zooms + zooms[:R])[-3:]
-            self._planned = zooms[R:]
         out = [Correction(s, corrections[i], seg, i == R - 1, zoom=zooms[i]) for i, s in enumerate(self._seqs[:R])]
         self._committed = (self._committed + list(path))[-3:]
         self._real = (self._real + list(X[:R]))[-(int(3 * p.velocity_sigma) + 2):]
@@ -268,22 +268,6 @@ class PathPlanner:
             w = np.exp(-0.5 * ((idx - t) / p.velocity_sigma) ** 2)
             out[i] = w @ vel / w.sum()
         return out
-
-    def _plan_zooms(self, meshes: SegmentMeshes, corrections: np.ndarray, limits: np.ndarray) -> list[float | None]:
-        """The segment's zoom track (docs/method.md (14)) from the zooms its corrections need on the models,
-        with the budget's margin (the renderer's mesh may differ from the model's by that much)."""
-        p = self.params
-        has = np.flatnonzero(meshes.frames >= 0)
-        required = np.ones(len(corrections))
-        if has.size:
-            idx = meshes.frames[has]
-            m = meshes.margins(idx, corrections[has][:, None], p.budget.max_zoom, 0.0)[:, 0]
-            margin = p.budget.margin_px / np.array([meshes.half(f) for f in idx])
-            t = m.min(axis=1) + 1.0 / p.budget.max_zoom - margin
-            required[has] = np.where(t > 0, 1.0 / np.maximum(t, 1e-9), np.inf)
-        z = plan_zooms(np.minimum(required, limits), np.asarray(self._zooms), p.zoom_smoothness, p.budget.max_zoom,
-                       p.lookahead, p.zoom_hold)
-        return [float(v) for v in z]
 
     def _close_ep(self, closed_by: str) -> list[Correction]:
         seg = len(self.segments)

@@ -188,7 +188,7 @@ def segment_zooms(meshes: Sequence[MeshWarp], params: FramingParams | None = Non
 
     ``auto`` needs the stream's ``smoother`` (one per stream, it carries the last
     zoom across segments); a failed mesh (``ok`` False) is the identity and needs zoom 1.
-    ``planned``: zooms planned with the path (docs/method.md (14)); ``auto`` follows them
+    ``planned``: zooms planned with the path (docs/method.md (11)); ``auto`` follows them
     when every frame has one (:meth:`ZoomSmoother.follow`).
     """
     p = params or FramingParams()
