@@ -25,7 +25,7 @@ from ..stabilizer import StabilizerParams
 # (frames) a frame has before its correction is released (docs/method.md 4.3). A shorter window
 # sees less of the future, so it smooths less (measured: docs/method.md 4.3).
 LATENCY_PRESETS = {"normal": (KeyframeParams.interval, PlannerParams.lookahead, PlannerParams.smoothness),
-                   "low": (15, 12, 3000.0)}
+                   "low": (15, 10, 3000.0)}
 
 
 def add_stabilizer_args(p: argparse.ArgumentParser) -> None:

@@ -46,7 +46,7 @@ class PlannerParams:
     smoothness: float = 1e4  # smooth: lam of docs/method.md (8); gain 0.5 at 0.47 Hz at 30 fps
     velocity_weight: float = 100.0  # smooth: weight of the low-passed camera velocity as the path's velocity target
     velocity_sigma: float = 20.0  # smooth: frames; Gaussian low-pass of that velocity (window ends at the keyframe)
-    lookahead: int = 20  # smooth: of each keyframe interval's frames, the last this many are planned but
+    lookahead: int = 15  # smooth: of each keyframe interval's frames, the last this many are planned but
     # released only with the next segment (re-planned with more frames after them); < the interval
     budget: BudgetParams = field(default_factory=BudgetParams)  # smooth: the crop budget
     zoom_smoothness: float = 1000.0  # smooth with a budget: mu of the zoom track, docs/method.md (11): gain 0.5 at 0.85 Hz
