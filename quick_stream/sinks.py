@@ -91,11 +91,12 @@ class BackgroundSink:
                     self.sink.write(*item)
                 except BaseException as e:  # noqa: BLE001 - reported on close
                     self._error = e
+            self._q.task_done()
 
     @property
     def frames(self) -> int:
         """Frames accepted for the file (written, or queued: none is dropped); the worker may be
-        behind, so the file's own count would under-report (render's "end of stream" log did)."""
+        behind until :meth:`drain` returns."""
         return self._accepted
 
     @property
@@ -107,6 +108,15 @@ class BackgroundSink:
             raise self._error
         self._q.put((seq, image))
         self._accepted += 1
+
+    def drain(self) -> None:
+        """Wait until every accepted frame has reached the sink (a PNG is on disk; an MP4 frame is
+        in the encoder, finished on close), so what is reported written is readable. Raises the
+        worker's error, if any."""
+        if self._thread.is_alive():
+            self._q.join()
+        if self._error is not None:
+            raise self._error
 
     def close(self) -> None:
         if self._thread.is_alive():

@@ -181,6 +181,7 @@ def run(args, conf: zenoh.Config) -> int:
                     log.warning("end of stream with %d incomplete releases", n)
                 render_ready(force=True)
                 publish(stage.flush(), None)
+                sink.drain()  # the frames reported written below are on disk when the end is announced
                 pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream: %d frames written, %d flagged, %d orphans, %d missing",
                          sink.frames, flagged, stage.orphans, stage.missing)
