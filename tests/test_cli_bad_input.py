@@ -20,7 +20,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -360,7 +359,6 @@ def test_bad_input_is_refused_by_name(case: Case, d: Path, no_work: None, monkey
                                       capsys: pytest.CaptureFixture, caplog: pytest.LogCaptureFixture) -> None:
     for name, value in case.env.items():
         monkeypatch.setenv(ENV + name, fill(value, d))
-    t0 = time.monotonic()
     code = run_in_process(case.entry, shlex.split(fill(case.argv, d)))
     captured = capsys.readouterr()
     text = captured.out + captured.err + caplog.text
@@ -368,7 +366,6 @@ def test_bad_input_is_refused_by_name(case: Case, d: Path, no_work: None, monkey
     assert "Traceback" not in text, text
     for name in case.names:
         assert fill(name, d) in text, f"{name!r} not named in:\n{text}"
-    assert time.monotonic() - t0 < 5.0, "a refusal should be immediate"
 
 
 # ---------------------------------------------------------------- good values still pass
@@ -475,7 +472,6 @@ def test_processes_refuse_bad_input_quickly(d: Path, tmp_path: Path) -> None:
         (["quick_stream", "up", "--source", "bogus:x", "--out", str(tmp_path / "up")], {}, ["--source", "'bogus'"]),
         (["quick_stream", "router", "-l", "tcp/nohost"], {}, ["--listen", "'tcp/nohost'"]),
     ]
-    t0 = time.monotonic()
     with processes() as launch:
         procs = [(launch(args, env), names) for args, env, names in rows]
         for p, names in procs:
@@ -483,7 +479,6 @@ def test_processes_refuse_bad_input_quickly(d: Path, tmp_path: Path) -> None:
             assert code == 2 and "Traceback" not in out, f"{shlex.join(p.args)}: exit {code}\n{out}"
             for name in names:
                 assert name in out, f"{shlex.join(p.args)}: {name!r} not named in:\n{out}"
-    assert time.monotonic() - t0 < 30.0
     assert not (tmp_path / "up").exists(), "up started something before refusing its source"
 
 

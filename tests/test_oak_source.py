@@ -9,7 +9,6 @@ from __future__ import annotations
 import datetime
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -68,14 +67,16 @@ def test_scripted_faults_cost_single_frames_and_the_stream_goes_on():
 
 def test_reconnection_gives_up_after_bounded_retries():
     class Dead(FakeOakBackend):
+        attempts = 0
+
         def open(self):
+            Dead.attempts += 1
             raise DeviceGone("X_LINK_DEVICE_NOT_FOUND")
 
     src = OakSource(Dead(W, H), W, H, retries=2, retry_delay_s=0.01)
-    t0 = time.monotonic()
     with pytest.raises(NoDevice, match="could not open after 3 attempts"):
         next(iter(src))
-    assert time.monotonic() - t0 < 2
+    assert Dead.attempts == 3  # the first try and 2 retries, then it gives up
 
 
 def test_pairing_by_sequence_then_time_and_giving_up_on_lost_partners():

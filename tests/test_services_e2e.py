@@ -111,11 +111,10 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
     assert st["services"]["flow"]["restarts"] == 1
     assert any(e["service"] == "flow" and "restarted" in e["event"] for e in st["events"])
     assert "exit codes" not in text  # every service stopped cleanly on SIGTERM
-    # recovery: the longest silence of the flow channel around the kill is under 2 s
+    # recovery: flow publishes again after the kill (how soon: `quick-stream bench faults`)
     times = np.array(_flow_log_times(out / "recording.mcap"))
     after = times[times > killed_at]
     assert after.size > 0, "no flow after the kill"
-    assert (after[0] - killed_at) / 1e9 < 2.0
     # every frame came out, none flagged: the restarted flow took over after the last flow out,
     # from the frames' history (the capture's publisher cache)
     assert "taking over from the frames' history" in (out / "logs" / "flow.log").read_text()
