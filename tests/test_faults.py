@@ -35,7 +35,10 @@ def test_sigkill_mid_stream(tmp_path, case):
     assert r["lost_accepted_before_kill"] == 0, r
     if "recorder" in victims:
         assert [f["repaired"] for f in r["recordings"]] == [True] + [False] * repeat, r
-        assert r["not_recorded"] < 200 * repeat, r  # the hole while it restarted (~1 s of messages)
+        # the hole is the recorder's downtime: nothing a recorder was recording around (inside the
+        # seq range it holds of that stage) is missing (the hole's size, messages per second of
+        # downtime, is a benchmark number)
+        assert r["lost_while_recording"] == 0, r
     else:
         assert len(r["recordings"]) == 1, r
         # a message in flight when its publisher is killed can reach some peers (the monitor) and

@@ -209,11 +209,17 @@ def _recordings(out: Path) -> tuple[set[bytes], set[tuple[str, str, int]], list[
             msgs = list(read_messages(fixed))
         note["messages"] = len(msgs)
         note["first_log_time"] = min((t for _, t, _ in msgs), default=0) / 1e9
+        span: dict[str, list[int]] = {}  # stage -> [first, last] seq this file recorded
         for topic, _, d in msgs:
             if topic.startswith("quick/"):
                 digests.add(hashlib.blake2b(d, digest_size=16).digest())
                 if (env := peek(d)) is not None:  # the envelope is enough: (type, seq)
-                    ids.add((topic.rsplit("/", 1)[-1], *env))
+                    stage = topic.rsplit("/", 1)[-1]
+                    ids.add((stage, *env))
+                    if env[0] not in ("stats", "end"):
+                        lo, hi = span.setdefault(stage, [env[1], env[1]])
+                        span[stage] = [min(lo, env[1]), max(hi, env[1])]
+        note["seq_span"] = span
         files.append(note)
     return digests, ids, files
 
@@ -251,6 +257,10 @@ def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: S
     no_copy = [m for m in missing if (m.stage, m.type, m.seq) not in ids]
     rec_kills = [k for k in kills if "recorder" in victims]
     early = [m for m in missing if any(m.t < k - accept_s for k in rec_kills)]
+    # and the ones inside the seq range a recording holds of their stage: published while a
+    # recorder was recording, not lost to a recorder's downtime (order only, no clock)
+    late = [m for m in missing if any(f["seq_span"].get(m.stage, [0, -1])[0] < m.seq < f["seq_span"][m.stage][1]
+                                      for f in files if m.stage in f["seq_span"])]
     # how long before a recorder kill the oldest message it lost had arrived (the loss window)
     window = max((k - m.t for k in rec_kills for m in missing if k - 5.0 < m.t < k), default=0.0)
     services = st.get("services", {})
@@ -270,7 +280,8 @@ def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: S
             "not_recorded_examples": [{"stage": m.stage, "type": m.type, "seq": m.seq,
                                        "s_from_kill": round(min((m.t - k for k in kills), key=abs, default=0.0), 3),
                                        "copy_recorded": (m.stage, m.type, m.seq) in ids} for m in missing[:5]],
-            "lost_accepted_before_kill": len(early), "loss_window_s": round(window, 3)}
+            "lost_accepted_before_kill": len(early), "lost_while_recording": len(late),
+            "loss_window_s": round(window, 3)}
 
 
 def format_report(r: dict) -> str:
