@@ -36,6 +36,8 @@ from .motion_pipeline import StageTimer
 from .path.budget import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
+from .render.fill import FillSource, covered_zoom, fill_border, ordered_sources, raise_for
+from .render.mapping import render_covered
 from .render.warp import WarpInput, prepare_warp
 from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
 
@@ -198,6 +200,9 @@ class RenderStage:
         self.missing = 0
         self.orphans = 0
         self.bad: list[dict] = []
+        self._past: list[FillSource] = []  # the last fill_frames rendered frames the border fill can read
+        self.filled = 0  # frames whose border was filled from neighbours
+        self.fill_raised = 0  # frames zoomed in beyond their plan because fill left a border
 
     @property
     def buffered(self) -> int:
@@ -248,12 +253,58 @@ class RenderStage:
         plans += self._plan(corrections)
         if len(plans) > len(corrections):
             plans.sort(key=lambda x: x[0].seq)
+        ahead = [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K) for c, f, _, _ in plans
+                 if c.camera is not None] if self.framing.fill_frames else []
+        if ahead and self.framing.mode == "auto":
+            plans = self._cover(plans, ahead)
         for c, f, mesh, z in plans:
             t0 = time.perf_counter()
-            sf = StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
-                                 f.color if self.keep_inputs else None)
+            image, z = self._render(c, f, mesh, z, ahead)
+            sf = StabilizedFrame(c.seq, f.timestamp_ns, image, c, z, mesh, f.color if self.keep_inputs else None)
             self.timer.add("render", (time.perf_counter() - t0) * 1e3)
             yield sf
+
+    def _sources(self, c: Correction, ahead: list[FillSource]) -> list[FillSource]:
+        if c.camera is None:
+            return []
+        return ordered_sources(c.seq, c.chain, self._past + ahead, self.framing.fill_frames)
+
+    def _cover(self, plans: list, ahead: list[FillSource]) -> list:
+        """Zooms raised, smoothly, where the border fill will not cover what the mesh leaves at the
+        planned zoom (docs/method.md 5.4): estimated before rendering, on every 4th pixel."""
+        t0 = time.perf_counter()
+        need = [covered_zoom(mesh, f.depth, f.intrinsics.K, z, None if c.camera is None else c.camera @ c.matrix,
+                             self._sources(c, ahead)) for c, f, mesh, z in plans]
+        zooms = self.zoom.cover([z for *_, z in plans], need)
+        self.timer.add("framing", (time.perf_counter() - t0) * 1e3 / max(len(plans), 1))
+        return [(c, f, mesh, float(z)) for (c, f, mesh, _), z in zip(plans, zooms)]
+
+    def _render(self, c: Correction, f: RGBDFrame, mesh: MeshWarp, zoom: float,
+                ahead: list[FillSource]) -> tuple[np.ndarray, float]:
+        """One frame at ``zoom``, its border filled from its neighbours (the batch's frames ``ahead``
+        and the last frames rendered before it) when the correction carries a camera pose;
+        what fill leaves uncovered is zoomed away (docs/method.md 5.4). Returns (image, zoom)."""
+        reach = self.framing.fill_frames
+        if not reach:
+            return render(f.color, mesh, zoom), zoom
+        sources = self._sources(c, ahead)
+        virtual = c.camera @ c.matrix if c.camera is not None else None
+        planned, filled = zoom, False
+        for _ in range(3):
+            image, uncovered, depth = render_covered(f.color, f.depth, mesh, zoom)
+            if depth is None:
+                break
+            if sources:
+                uncovered = fill_border(image, uncovered, depth, f.intrinsics.K, zoom, virtual, sources)
+                filled = True
+            if not uncovered.any() or self.framing.mode != "auto" or zoom >= self.framing.fill_zoom_max:
+                break
+            zoom = min(raise_for(uncovered, zoom) * (1.0 + 1e-6), self.framing.fill_zoom_max)
+        self.filled += filled
+        self.fill_raised += zoom > planned
+        if c.camera is not None:
+            self._past = (self._past + [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K)])[-reach:]
+        return image, zoom
 
     def has_frames(self, seqs: list[int]) -> bool:
         return all(s in self._frames for s in seqs)
@@ -281,7 +332,14 @@ class RenderStage:
         if not items:
             return []
         t1 = time.perf_counter()
-        zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom, [c.zoom for c, _, _ in items])
+        planned = [c.zoom for c, _, _ in items]
+        if self.framing.fill_frames and self.framing.mode == "auto" and None not in planned:
+            # the plan counted on the border fill (docs/method.md 5.4): rendering zooms further only
+            # where fill leaves a border, not where the frame's own mesh does
+            zooms = np.clip(np.asarray(planned, dtype=np.float64), 1.0, None)
+            self.zoom.last = float(zooms[-1])
+        else:
+            zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom, planned)
         t2 = time.perf_counter()
         n = len(items)
         for _ in range(n):  # per-frame samples (the batch's average)

@@ -73,7 +73,8 @@ def run(args, conf: zenoh.Config) -> int:
         errors = {"decode_errors": 0, "refused_frames": 0, "internal_errors": 0, "taken_over": 0}
         flagged = 0
         ended_streams = 0
-        done = {"dropped": 0, "missing": 0, "orphans": 0, "bad": 0}  # counts of streams already ended
+        done = {"dropped": 0, "missing": 0, "orphans": 0, "bad": 0,  # counts of streams already ended
+                "filled": 0, "fill_raised": 0}
         lat_proc, lat_total = Percentiles(), Percentiles()
 
         def stats():
@@ -82,6 +83,7 @@ def run(args, conf: zenoh.Config) -> int:
                     "orphans": done["orphans"] + stage.orphans, "bad_frames": done["bad"] + len(stage.bad),
                     "flagged": flagged, "pending_releases": len(releases.ready), "ended": ended_streams,
                     "abandoned_releases": releases.abandoned, "resized_frames": sink.resized,
+                    "filled": done["filled"] + stage.filled, "fill_raised": done["fill_raised"] + stage.fill_raised,
                     **meter.take("render"), **lat_proc.take("lat_proc_ms"), **lat_total.take("lat_total_ms")}
 
         def publish(out: Iterable[StabilizedFrame], ready_seq: int | None) -> None:
@@ -191,7 +193,7 @@ def run(args, conf: zenoh.Config) -> int:
                 ended_streams += 1
                 rt.publish_stats(stats())
                 for k, v in (("dropped", stage.dropped), ("missing", stage.missing), ("orphans", stage.orphans),
-                             ("bad", len(stage.bad))):
+                             ("bad", len(stage.bad)), ("filled", stage.filled), ("fill_raised", stage.fill_raised)):
                     done[k] += v
                 stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)  # a new stream may follow
                 continue

@@ -116,7 +116,7 @@ def budget_run(max_zoom, seed=4, crop_weight=1.0):
     rng = np.random.default_rng(seed)
     motions = shaky_motions(rng, 60, 1.2)
     models = [scene_model(rng) for _ in motions]
-    params = PlannerParams(budget=BudgetParams(max_zoom=max_zoom, crop_weight=crop_weight))
+    params = PlannerParams(budget=BudgetParams(max_zoom=max_zoom, crop_weight=crop_weight, fill=0.0))
     pl, released = run(motions, params, models)
     corr = {c.seq: c for b in released for c in b}
     worst = []
@@ -148,7 +148,7 @@ def test_zoom_track_is_smooth_border_free_and_within_the_budget():
     rng = np.random.default_rng(5)
     motions = shaky_motions(rng, 90, 0.8)
     models = [scene_model(rng) for _ in motions]
-    pl, released = run(motions, PlannerParams(budget=BudgetParams(max_zoom=1.12)), models)
+    pl, released = run(motions, PlannerParams(budget=BudgetParams(max_zoom=1.12, fill=0.0)), models)
     corr = {c.seq: c for b in released for c in b}
     z = np.array([corr[s].zoom for s in range(91)])
     assert np.all(z >= 1.0) and np.all(z <= 1.12 + 1e-9) and z.max() > 1.03  # the shake needs zoom, within Z
@@ -171,8 +171,8 @@ def test_renderer_needs_no_more_zoom_than_planned_on_real_frames(shared_data):
     from quick_stream.sources.tum import TumSource
     from quick_stream.stabilizer import Stabilizer, StabilizerParams
     Z = 1.04  # tight for this clip: the budget constrains most frames
-    st = Stabilizer(StabilizerParams(planner=PlannerParams(budget=BudgetParams(max_zoom=Z)),
-                                     framing=FramingParams(mode="auto", max_zoom=Z)))
+    st = Stabilizer(StabilizerParams(planner=PlannerParams(budget=BudgetParams(max_zoom=Z, fill=0.0)),
+                                     framing=FramingParams(mode="auto", max_zoom=Z, fill_frames=0)))
     out = []
     for fr in TumSource(shared_data / "7scenes_redkitchen", count=90):
         out += st.push(fr)

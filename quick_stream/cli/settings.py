@@ -59,6 +59,12 @@ def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--smoothness", type=float, default=None,
                    help="smooth path: weight of the path's acceleration against its distance from the camera, "
                         "lambda of docs/method.md (8) (default from --latency)")
+    g.add_argument("--fill-frames", type=int, default=FramingParams.fill_frames,
+                   help="border fill: output pixels a frame leaves uncovered are taken from up to this many "
+                        f"neighbouring frames on each side (0 = no fill; default {FramingParams.fill_frames})")
+    g.add_argument("--fill-band", type=float, default=BudgetParams.fill,
+                   help="border fill: share of half the short side the smooth path may leave uncovered for the "
+                        f"fill (0 = the crop alone removes every border; default {BudgetParams.fill:g})")
     g.add_argument("--framing", choices=("black", "crop", "auto"), default="auto")
     g.add_argument("--crop-zoom", type=float, default=FramingParams.crop_zoom,
                    help=f"zoom for --framing crop, >= 1 (default {FramingParams.crop_zoom:g})")
@@ -107,19 +113,21 @@ def stabilizer_params(args: argparse.Namespace) -> StabilizerParams:
     params = StabilizerParams(
         motion=MotionParams(group=args.group, estimator=args.estimator),
         planner=PlannerParams(group=args.group, mode=args.path, smoothness=smoothness,
-                              budget=BudgetParams(max_zoom=args.max_zoom), end=args.end,
+                              budget=BudgetParams(max_zoom=args.max_zoom,
+                                                  fill=args.fill_band if args.fill_frames > 0 else 0.0,
+                                                  fill_reach=max(args.fill_frames, 0)), end=args.end,
                               lowpass_sigma=args.lowpass_sigma, lookahead=lookahead,
                               path=PathParams(weights=weights),
                               keyframes=KeyframeParams(interval=interval, min_interval=max(1, min(10, interval - 1)))),
-        framing=FramingParams(mode=args.framing, crop_zoom=args.crop_zoom,
+        framing=FramingParams(mode=args.framing, crop_zoom=args.crop_zoom, fill_frames=args.fill_frames,
                               max_zoom=args.max_zoom if args.max_zoom > 0 else FramingParams.max_zoom),
     )
     _flag_error("--keyframe-interval", params.planner.keyframes.validate)
     _flag_error("--lookahead/--smoothness", params.planner.validate)
-    _flag_error("--max-zoom", params.planner.budget.validate)
+    _flag_error("--max-zoom/--fill-band", params.planner.budget.validate)
     _flag_error("--lowpass-sigma", lambda: _check_lowpass(args.lowpass_sigma))
     _flag_error("--path-weights", lambda: params.planner.path.weight_vector(GROUPS[args.group].dim))
-    _flag_error("--crop-zoom", params.framing.validate)
+    _flag_error("--crop-zoom/--fill-frames", params.framing.validate)
     return params
 
 

@@ -37,6 +37,9 @@ class BudgetParams:
     max_rounds: int = 4  # SQP rounds: re-linearise the margins at the new path
     crop_weight: float = 1.0  # price of one pixel of crop (per frame, squared) against one pixel of path
     # deviation in the smoother's cost: docs/method.md (11)
+    fill: float = 0.08  # share of half the short side the mesh may leave uncovered inside the crop: the
+    # renderer fills it from neighbouring frames (docs/method.md 5.4); 0 when the renderer does not fill
+    fill_reach: int = 8  # frames on each side the renderer's fill reads (the zoom track plans with them)
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -50,9 +53,10 @@ class BudgetParams:
         if not (np.isfinite(self.max_zoom) and (self.max_zoom == 0 or self.max_zoom >= 1.0)):
             raise ValueError(f"max zoom must be 0 (no budget) or >= 1, got {self.max_zoom}")
         if not (self.margin_px >= 0 and self.near_px > self.margin_px and self.model_points >= 8
-                and self.max_rounds >= 1 and self.crop_weight >= 0):
+                and self.max_rounds >= 1 and self.crop_weight >= 0 and 0 <= self.fill < 0.5
+                and self.fill_reach >= 0):
             raise ValueError("budget needs margin_px >= 0, near_px > margin_px, model_points >= 8, max_rounds >= 1, "
-                             "crop_weight >= 0")
+                             "crop_weight >= 0, 0 <= fill < 0.5, fill_reach >= 0")
 
 
 @dataclass
@@ -75,6 +79,14 @@ class FrameModel:
         keep = np.linspace(0, n - 1, min(n, max_points)).round().astype(np.intp) if n > max_points else slice(None)
         return cls(int(width), int(height), intrinsics.K, np.asarray(pixels, np.float64)[keep],
                    np.asarray(points, np.float64)[keep])
+
+    @property
+    def median_depth(self) -> float:
+        """Median depth of the model's points (m): the border fill's plane (docs/method.md (10b)); cached."""
+        d = self.__dict__.get("_median_depth")
+        if d is None:
+            d = self.__dict__["_median_depth"] = float(np.median(self.points[:, 2]))
+        return d
 
     def design(self, warp: WarpParams) -> tuple[np.ndarray, np.ndarray]:
         """(B^T / M (n, M), the data term's block of the normal matrix (2n, 2n), plus alpha S for the
@@ -216,6 +228,7 @@ class BudgetReport:
     constrained: int = 0  # frames that got constraints
     rounds: int = 0
     worst_margin_px: float = float("inf")  # smallest margin to the border at the planned zoom (px; < 0: border)
+    upper: np.ndarray | None = None  # (N,) largest w = 1/zoom each frame's own mesh allows (fill band included)
 
 
 def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction, meshes: SegmentMeshes,
@@ -233,7 +246,8 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
     short side, so both costs are in pixels^2) subject to, for every frame with a model and every
     outer mesh edge, t_e(g_s(t)) - delta / h >= w_t (border-free at zoom 1/w_t, delta the margin),
     and w_t >= 1/Z. ``correction(frames, P)`` maps chart coordinates P (F, B, n) to corrections
-    (F, B, 4, 4). The budget bends the path's orientation only (p = p0 + R r, R =
+    (F, B, 4, 4). With a border fill (``params.fill`` > 0) the margin allows the band the renderer
+    fills from neighbouring frames (docs/method.md 5.4). The budget bends the path's orientation only (p = p0 + R r, R =
     :func:`rotation_directions`): moving the virtual camera would buy border-free frames with
     parallax, or with a magnified view. Sequential quadratic programming: margins linearised by
     finite differences at the current path (the linearisations of earlier rounds are kept, which
@@ -256,7 +270,11 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
     probes = np.vstack([np.zeros(n), h * Rd.T])  # (m+1, n)
     n_edges = 2 * (meshes.shape[0] + meshes.shape[1] - 2)
     near = np.zeros((has.size, n_edges), bool)
-    slack = params.margin_px / half  # (F,) the margin in t units
+    slack = params.margin_px / half - params.fill  # (F,) the margin, less the band fill covers, in t units
+
+    def edges(sel: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """t_e - delta/h (+ the fill band) of frames ``has[sel]`` at chart points P (F, B, n): (F, B, E)."""
+        return meshes.margins(idx[sel], correction(has[sel], P), 1.0, 0.0) + 1.0 - slack[sel][:, None, None]
 
     def solve_h(C: np.ndarray) -> np.ndarray:
         """H^-1 C^T for rows C over [r (N m), w (N)]: A (x) metric for r, cw * zoom form for w."""
@@ -266,7 +284,8 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
 
     # A path that keeps every frame border-free at Z is kept as it is (a budget far away reproduces the
     # unconstrained path exactly) and only its zoom track is planned: r stays 0, no Jacobians needed.
-    g0 = meshes.margins(idx, correction(has, p0[has][:, None, :]), 1.0, 0.0)[:, 0] + 1.0 - slack[:, None]
+    every = np.arange(has.size)
+    g0 = edges(every, p0[has][:, None, :])[:, 0]
     free = bool(np.all(g0 >= 1.0 / params.max_zoom))
     # w_t >= 1/Z on every frame: the zoom limit
     C0 = np.hstack([np.zeros((N, N * m)), np.eye(N)])
@@ -274,8 +293,8 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
     r = np.zeros((N, m))
     w = w0.copy()
     for rnd in range(params.max_rounds + 1):
-        P = (p0 + r @ Rd.T)[has][:, None, :]
-        g = meshes.margins(idx, correction(has, P), 1.0, 0.0)[:, 0] + 1.0 - slack[:, None]  # t_e - delta/h
+        # t_e - delta/h at the current path (a free path is never bent: its margins stay g0)
+        g = g0 if free else edges(every, (p0 + r @ Rd.T)[has][:, None, :])[:, 0]
         cur = (g - w[has, None]) * half[:, None]  # px between the crop at zoom 1/w and the border
         rep.worst_margin_px = float(cur.min()) + params.margin_px
         if (rnd > 0 and cur.min() >= -1e-3) or rnd == params.max_rounds:
@@ -286,7 +305,7 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
             J = np.zeros((rows.size, n_edges, m))
         else:
             Pn = (p0 + r @ Rd.T)[has[rows]][:, None, :] + probes[None]
-            mk = meshes.margins(idx[rows], correction(has[rows], Pn), 1.0, 0.0)  # (R, m+1, E)
+            mk = edges(rows, Pn)  # (R, m+1, E)
             J = (mk[:, 1:] - mk[:, :1]).transpose(0, 2, 1) / h  # (R, E, m): d t_e / d r
         fr, ed = np.nonzero(near[rows])
         t_of = has[rows][fr]
@@ -307,4 +326,6 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
         r, w = v[:N * m].reshape(N, m), v[N * m:]
         rep.rounds = rnd + 1
     rep.constrained = int(np.count_nonzero(near.any(axis=1)))
+    rep.upper = np.full(N, np.inf)
+    rep.upper[has] = g.min(axis=1)
     return p0 + r @ Rd.T, w, rep

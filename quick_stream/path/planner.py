@@ -31,6 +31,7 @@ from ..motion import MotionEstimate
 from ..render.warp import WarpParams
 from .budget import BudgetParams, BudgetReport, FrameModel, SegmentMeshes, constrain
 from .constraints import EndConstraints
+from .coverage import bounded_zoom_track, fill_need
 from .keyframes import KeyframeDetector, KeyframeParams
 from .optimal import PathParams, solve_segment
 from .smoother import SegmentSystem, chart_path, segment_system
@@ -81,6 +82,8 @@ class Correction:
     valid: bool = True
     reason: str = ""
     zoom: float | None = None  # framing zoom planned with the path (smooth mode with a budget), else None
+    camera: np.ndarray | None = None  # g_c: the real camera's pose in the planner's chain (renderer's border fill)
+    chain: int = -1  # the chain ``camera`` is in: poses of one chain compose (a path restart opens a new one)
 
     @property
     def point_transform(self) -> np.ndarray:
@@ -117,6 +120,7 @@ class PathPlanner:
         self.ends = EndConstraints(self.group, p.end, p.alpha, p.beta)
         self.segments: list[SegmentInfo] = []
         self._pose = np.eye(4)  # g_c at the newest frame
+        self._chain = -1  # counts path restarts: camera poses compose within one chain only
         self._start: int | None = None  # seq of the open segment's first keyframe
         self._C0 = np.eye(4)
         self._seqs: list[int] = []  # frames after the start, in order
@@ -141,7 +145,7 @@ class PathPlanner:
             self._seqs, self._path, self._models = [seq], [self._pose.copy()], [None]
             self._zbar, self._motions = [np.zeros(self.group.dim)], [np.eye(4)]
             return []
-        return [Correction(seq, np.eye(4), len(self.segments), True)]
+        return [Correction(seq, np.eye(4), len(self.segments), True, camera=self._pose.copy(), chain=self._chain)]
 
     def _held_zoom(self) -> float | None:
         """The zoom of a frame the path does not correct: the track holds still (None without a planned track)."""
@@ -155,6 +159,7 @@ class PathPlanner:
         self._seqs, self._zbar, self._motions, self._path, self._models = [], [], [], [], []
         self.detector.reset()
         if restart:
+            self._chain += 1
             self._C0 = np.eye(4)
             self.ends.reset(self._pose)
             self._history = []
@@ -173,7 +178,8 @@ class PathPlanner:
             self._begin(motion.seq_next, restart=True)
             out.append(Correction(motion.seq_next, np.eye(4), len(self.segments), True, False,
                                   f"motion {motion.seq}->{motion.seq_next} invalid ({motion.reason}): "
-                                  "path restarted, frame not corrected", zoom=self._held_zoom()))
+                                  "path restarted, frame not corrected", zoom=self._held_zoom(),
+                                  camera=self._pose.copy(), chain=self._chain))
             return out
         zb = motion.zeta_bar if motion.zeta_bar is not None else self.group.log(self.group.inverse(motion.matrix))
         self._seqs.append(motion.seq_next)
@@ -206,8 +212,11 @@ class PathPlanner:
         seg = len(self.segments)
         g, p = self.group, self.params
         t0 = time.perf_counter()
+        # Released: the segment up to its closing keyframe; the look-ahead frames after it are
+        # planned again with the next segment (none at the end of the stream or a break).
         X = np.asarray(self._path)
         N = len(X)
+        R = N - p.lookahead if closed_by == "interval" else N
         base = self._committed[-1] if self._committed else X[0]
         x = chart_path(g, base, X)
         committed = chart_path(g, base, np.asarray(self._committed)) if self._committed else np.zeros((0, g.dim))
@@ -226,14 +235,13 @@ class PathPlanner:
                 return Xinv_base[frames][:, None] @ g.exp(P)
 
             hold = np.ones(N)  # the look-ahead frames' zooms are provisional: not pulled towards 1
-            hold[N - p.lookahead:] = p.zoom_hold
+            hold[R:] = p.zoom_hold
             zoom_system = segment_system(N, len(self._zooms), p.zoom_smoothness, closeness=hold)
             q, w, rep = constrain(g, system, q, correction, meshes, p.budget, zoom_system,
                                   1.0 / np.asarray(self._zooms))
+            if p.budget.fill > 0 and p.budget.fill_reach > 0:
+                w = self._fill_zoom(meshes, correction, X, base @ g.exp(q), q, w, rep.upper, zoom_system)
             zooms = [float(z) for z in np.clip(1.0 / np.maximum(w, 1e-9), 1.0, p.budget.max_zoom)]
-        # Released: the segment up to its closing keyframe; the look-ahead frames after it are
-        # planned again with the next segment (none at the end of the stream or a break).
-        R = N - p.lookahead if closed_by == "interval" else N
         # The EP problem (docs/method.md (4)-(6)) with the smoothed path's own velocities as
         # targets and its keyframe pose as end-constraint: its solution is that path.
         Q = g.exp(q[:R])
@@ -247,13 +255,34 @@ class PathPlanner:
                                          rep.worst_margin_px))
         if zooms[0] is not None:
             self._zooms = (self._zooms + zooms[:R])[-3:]
-        out = [Correction(s, corrections[i], seg, i == R - 1, zoom=zooms[i]) for i, s in enumerate(self._seqs[:R])]
+        out = [Correction(s, corrections[i], seg, i == R - 1, zoom=zooms[i], camera=X[i], chain=self._chain)
+               for i, s in enumerate(self._seqs[:R])]
         self._committed = (self._committed + list(path))[-3:]
         self._real = (self._real + list(X[:R]))[-(int(3 * p.velocity_sigma) + 2):]
         kept = (self._seqs[R:], self._zbar[R:], self._motions[R:], self._path[R:], self._models[R:])
         self._begin(self._seqs[R - 1], restart=False)
         self._seqs, self._zbar, self._motions, self._path, self._models = (list(k) for k in kept)
         return out
+
+    def _fill_zoom(self, meshes: SegmentMeshes, correction, X: np.ndarray, virtual: np.ndarray, q: np.ndarray,
+                   w: np.ndarray, upper: np.ndarray, zoom_system: SegmentSystem) -> np.ndarray:
+        """The zoom track ``w`` re-planned where the border fill will not cover what the budget's fill
+        band leaves (docs/method.md (10b)): neighbours within the fill's reach, the committed past included."""
+        b = self.params.budget
+        has = np.flatnonzero(meshes.frames >= 0)
+        if has.size == 0:
+            return w
+        past = np.asarray(self._real[-b.fill_reach:]).reshape(-1, 4, 4)
+        cams = np.concatenate([past, X])
+        virt = np.concatenate([past, virtual])  # the past's virtual poses are never read
+        lo = 1.0 / np.clip(w[has], 1e-9, 1.0)
+        need = fill_need(meshes, has, correction(has, q[has][:, None, :])[:, 0], cams, virt, lo, b.max_zoom,
+                         b.fill_reach)
+        if np.all(need <= lo * (1 + 1e-9)):
+            return w
+        bound = upper.copy()
+        bound[has] = np.minimum(bound[has], 1.0 / need)
+        return bounded_zoom_track(zoom_system, 1.0 / np.asarray(self._zooms), bound, 1.0 / b.max_zoom)
 
     def _velocity_targets(self, base: np.ndarray) -> np.ndarray:
         """Low-passed velocity of the real path, in the segment's chart, for the steps into its frames."""
@@ -281,11 +310,13 @@ class PathPlanner:
         self.segments.append(info)
         last = len(self._seqs) - 1
         if sol.converged:
-            out = [Correction(s, sol.corrections[i + 1], seg, i == last) for i, s in enumerate(self._seqs)]
+            out = [Correction(s, sol.corrections[i + 1], seg, i == last, camera=X, chain=self._chain)
+                   for i, (s, X) in enumerate(zip(self._seqs, self._path))]
             next_C0 = sol.corrections[-1]
         elif sol.fallback:  # not optimal, but smooth and on the end-constraints: used (docs/method.md 4.1)
             why = f"segment {seg} stabilized by the fallback path: {sol.reason}"
-            out = [Correction(s, sol.corrections[i + 1], seg, i == last, True, why) for i, s in enumerate(self._seqs)]
+            out = [Correction(s, sol.corrections[i + 1], seg, i == last, True, why, camera=X, chain=self._chain)
+                   for i, (s, X) in enumerate(zip(self._seqs, self._path))]
             next_C0 = sol.corrections[-1]
         else:
             why = f"segment {seg} not stabilized: {sol.reason}"

@@ -48,6 +48,9 @@ class FramingParams:
     max_zoom: float = 1.6  # auto: never zoom more (a frame needing more keeps some black border)
     fall_per_frame: float = 0.004  # auto: largest zoom decrease per frame (0.2 takes 50 frames)
     rise_per_frame: float = 0.01  # auto: largest anticipated zoom increase per frame within a segment
+    fill_frames: int = 8  # border fill (docs/method.md 5.4): neighbours searched on each side; 0 = no fill
+    fill_zoom_max: float = 1.6  # border fill: what fill leaves uncovered is zoomed away, up to this zoom
+    fill_lift_rate: float = 0.002  # border fill: largest change per frame of that extra zoom (rises start early)
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -62,6 +65,12 @@ class FramingParams:
             raise ValueError(f"framing max_zoom must be >= 1, got {self.max_zoom}")
         if not (self.fall_per_frame > 0 and self.rise_per_frame > 0):
             raise ValueError("framing fall_per_frame and rise_per_frame must be > 0")
+        if not (isinstance(self.fill_frames, int) and self.fill_frames >= 0):
+            raise ValueError(f"framing fill_frames must be an integer >= 0, got {self.fill_frames!r}")
+        if not (np.isfinite(self.fill_zoom_max) and self.fill_zoom_max >= 1.0):
+            raise ValueError(f"framing fill_zoom_max must be >= 1, got {self.fill_zoom_max}")
+        if not self.fill_lift_rate > 0:
+            raise ValueError(f"framing fill_lift_rate must be > 0, got {self.fill_lift_rate}")
 
 
 def outline(dst: np.ndarray) -> np.ndarray:
@@ -145,7 +154,8 @@ class ZoomSmoother:
         self.params = params or FramingParams()
         self.params.validate()
         self.last = last
-        self.raised = 0  # planned zooms raised to what the rendered mesh needed
+        self.raised = 0  # planned zooms raised to what the rendered mesh (or the border fill) needed
+        self.lift = 0.0  # cover: the last frame's raise above its planned zoom
 
     def follow(self, planned: Sequence[float], required: Sequence[float]) -> np.ndarray:
         """Zooms planned with the path, each raised to its frame's ``required`` zoom if the plan
@@ -159,6 +169,29 @@ class ZoomSmoother:
         if len(z):
             self.last = float(z[-1])
         return z
+
+    def cover(self, planned: Sequence[float], required: Sequence[float]) -> np.ndarray:
+        """Zooms planned with the path, raised where a frame ``required`` more (docs/method.md 5.4):
+        the raise (zoom above the plan) changes by at most ``fill_lift_rate`` per frame, rising
+        early within the segment and falling slowly, continuing from the last segment's; zooms
+        capped at ``fill_zoom_max``."""
+        p = self.params
+        z = np.asarray(planned, dtype=np.float64).ravel()
+        req = np.clip(np.nan_to_num(np.asarray(required, dtype=np.float64).ravel(), nan=np.inf), 1.0,
+                      max(p.fill_zoom_max, float(z.max(initial=1.0))))
+        lift = np.maximum(req - z, 0.0)
+        for i in range(len(lift) - 2, -1, -1):
+            lift[i] = max(lift[i], lift[i + 1] - p.fill_lift_rate)
+        prev = self.lift
+        for i in range(len(lift)):
+            lift[i] = max(lift[i], prev - p.fill_lift_rate)
+            prev = lift[i]
+        self.lift = prev
+        self.raised += int(np.count_nonzero(lift > 1e-9))
+        out = z + lift
+        if len(out):
+            self.last = float(out[-1])
+        return out
 
     def smooth(self, required: Sequence[float]) -> np.ndarray:
         """Zooms for one segment's ``required`` zooms (inf/NaN = no border-free zoom: max_zoom)."""
@@ -180,6 +213,7 @@ class ZoomSmoother:
     def reset(self) -> None:
         """Forget the last zoom (start of a new stream)."""
         self.last = None
+        self.lift = 0.0
 
 
 def segment_zooms(meshes: Sequence[MeshWarp], params: FramingParams | None = None,

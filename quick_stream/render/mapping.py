@@ -334,6 +334,33 @@ def render(image: np.ndarray, mesh: MeshWarp, framing_scale: float = 1.0, border
     return _remap(image, inv_map, border, interpolation, out, ws)
 
 
+def render_covered(image: np.ndarray, depth: np.ndarray, mesh: MeshWarp, framing_scale: float = 1.0,
+                   step: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`render` plus what the border fill needs (docs/method.md 5.4): the output pixels with no
+    source (bool (H, W)) and, when there are any, ``depth`` rendered the same way (nearest; 0 where
+    uncovered)."""
+    if image.shape[:2] != (mesh.height, mesh.width):
+        raise ValueError(f"image is {image.shape[1]}x{image.shape[0]} but the mesh is for "
+                         f"{mesh.width}x{mesh.height}")
+    inv_map, ws = _full_map(mesh, framing_scale, step)
+    uncovered = ~valid_mask(inv_map, mesh.width, mesh.height)
+    d = _remap(depth, inv_map, 0, cv2.INTER_NEAREST, None, None) if uncovered.any() else None
+    return _remap(image, inv_map, 0, cv2.INTER_LINEAR, None, ws), uncovered, d
+
+
+def sample_map(mesh: MeshWarp, framing_scale: float = 1.0, step: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse map at every ``step``-th output pixel: (output positions (gh, gw, 2), input
+    positions (gh, gw, 2)), the samples inside the output only (what the renderer upsamples,
+    without its padding)."""
+    gx, gy = mesh.grid
+    ws = _map_workspace(mesh.width, mesh.height, int(step), gx * gy)
+    low = _lowres_map(mesh, framing_scale, ws)
+    q = ws.P[:2].T.reshape(low.shape)
+    cols = (q[0, :, 0] >= 0) & (q[0, :, 0] <= mesh.width - 1)
+    rows = (q[:, 0, 1] >= 0) & (q[:, 0, 1] <= mesh.height - 1)
+    return q[rows][:, cols].astype(np.float64), low[rows][:, cols].astype(np.float64)
+
+
 def valid_mask(inv_map: np.ndarray, width: int, height: int) -> np.ndarray:
     """Boolean (H, W): output pixels whose source position lies in [0, W-1] x [0, H-1]."""
     x = inv_map[..., 0]

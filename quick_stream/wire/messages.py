@@ -260,13 +260,17 @@ def encode_correction(c: Correction, stream: str, zoom: float | None = None,
                         field="batch", stream=stream, seq=c.seq)
     f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
          "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom),
-         "batch": None if batch is None else [int(x) for x in batch]}
+         "batch": None if batch is None else [int(x) for x in batch],
+         "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain)}
     return pack(f, "correction", stream, c.seq)
 
 
 def _decode_correction(r: Reader) -> Decoded:
+    camera = r.floats("camera", 16, optional=True)
+    chain = r.int("chain", optional=True)
     c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
-                   r.bool("valid"), r.str("reason"), r.float("zoom", positive=True, optional=True))
+                   r.bool("valid"), r.str("reason"), r.float("zoom", positive=True, optional=True),
+                   None if camera is None else camera.reshape(4, 4), -1 if chain is None else chain)
     batch = r.get("batch", optional=True)
     if batch is not None:
         if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
