@@ -60,13 +60,19 @@ def ordered_sources(seq: int, chain: int, sources: Iterable[FillSource], reach: 
     return sorted(near.values(), key=lambda s: (abs(s.seq - seq), s.seq))
 
 
+FEATHER_PX = 4  # the fill fades into the frame's own pixels over this many pixels
+
+
 def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: np.ndarray, K: np.ndarray, zoom: float,
-                virtual: np.ndarray, sources: list[FillSource]) -> np.ndarray:
+                virtual: np.ndarray, sources: list[FillSource], feather: int = FEATHER_PX) -> np.ndarray:
     """Fill ``out``'s ``uncovered`` pixels from ``sources`` (in the order given), (14); returns what is left.
 
     ``out`` (H, W, 3) is changed in place. ``depth`` (H, W): the output's own depth (0 = none), from
     which each uncovered pixel takes its nearest; ``virtual`` = g_c(t) g_s(t), the virtual
     camera's pose in the sources' chain; ``K`` the frame's intrinsics (the virtual camera's too).
+    The seam is hidden twice: each source's pixels are offset by its mean colour difference to the
+    frame over the covered pixels within ``feather`` px of the hole (exposure), and the fill fades
+    into those pixels over that distance.
     """
     left = uncovered.copy()
     if not left.any() or not sources:
@@ -75,12 +81,15 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: np.ndarray, K: np
     if full is None:
         return left
     h, w = left.shape
-    ys, xs = np.nonzero(left)
-    d = full[ys, xs]
+    dist = cv2.distanceTransform((~uncovered).astype(np.uint8), cv2.DIST_L2, 3) if feather > 0 else None
+    near = (dist > 0) & (dist <= feather) if feather > 0 else np.zeros_like(left)
+    ys, xs = np.nonzero(uncovered | near)
     q = zoom_matrix(w, h, zoom) @ np.vstack([xs, ys, np.ones(xs.size)])
-    rays = np.linalg.solve(K, q) * d  # virtual-camera points (3, n)
+    rays = np.linalg.solve(K, q) * full[ys, xs]  # virtual-camera points (3, n)
+    vals = np.zeros((xs.size, out.shape[2]), np.float32)
+    which = np.full(xs.size, -1)
     todo = np.arange(xs.size)
-    for src in sources:
+    for i, src in enumerate(sources):
         T = np.linalg.solve(src.camera, virtual)
         P = T[:3, :3] @ rays[:, todo] + T[:3, 3:4]
         z = P[2]
@@ -92,13 +101,23 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: np.ndarray, K: np
         if not ok.any():
             continue
         got = todo[ok]
-        vals = cv2.remap(src.image, u[ok].astype(np.float32)[None], v[ok].astype(np.float32)[None],
-                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
-        out[ys[got], xs[got]] = vals
-        left[ys[got], xs[got]] = False
+        vals[got] = cv2.remap(src.image, u[ok].astype(np.float32)[None], v[ok].astype(np.float32)[None],
+                              cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0]
+        which[got] = i
         todo = todo[~ok]
         if todo.size == 0:
             break
+    hole = uncovered[ys, xs]
+    own = out[ys, xs].astype(np.float32)
+    for i in np.unique(which[which >= 0]):
+        mine = which == i
+        ring = mine & ~hole
+        if np.count_nonzero(ring) >= 16:  # exposure: the source's mean colour difference to the frame
+            vals[mine] += np.mean(own[ring] - vals[ring], axis=0)
+    alpha = np.where(hole, 1.0, 1.0 - dist[ys, xs] / (feather + 1.0) if feather > 0 else 0.0)
+    alpha = np.where(which >= 0, alpha, 0.0)[:, None]
+    out[ys, xs] = np.clip(alpha * vals + (1.0 - alpha) * own + 0.5, 0, 255).astype(out.dtype)
+    left[ys[hole & (which >= 0)], xs[hole & (which >= 0)]] = False
     return left
 
 
