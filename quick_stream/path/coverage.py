@@ -20,17 +20,6 @@ from .budget import SegmentMeshes
 from .smoother import SegmentSystem
 
 
-def inside(poly: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Points ``pts`` (F, P, 2) inside the closed polygons ``poly`` (F, M, 2) (even-odd rule): (F, P) bool."""
-    a = poly[:, :, None, :]
-    b = np.roll(poly, -1, axis=1)[:, :, None, :]
-    y = pts[:, None, :, 1]
-    cross = (a[..., 1] > y) != (b[..., 1] > y)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xi = a[..., 0] + (y - a[..., 1]) * (b[..., 0] - a[..., 0]) / (b[..., 1] - a[..., 1])
-    return (np.count_nonzero(cross & (pts[:, None, :, 0] < xi), axis=1) % 2) == 1
-
-
 def rim(per_edge: int = 16) -> np.ndarray:
     """Points on the boundary of the square max(|x|, |y|) = 1, corners included: (4 n, 2)."""
     t = np.linspace(-1.0, 1.0, per_edge, endpoint=False)
@@ -39,17 +28,38 @@ def rim(per_edge: int = 16) -> np.ndarray:
                            np.column_stack([-t, one]), np.column_stack([-one, -t])])
 
 
+def exit_distance(poly: np.ndarray, centre: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """How far along each ray from ``centre`` (..., 2) in direction ``rays`` (..., P, 2) the polygons
+    ``poly`` (..., M, 2) reach before their first edge, in units of the ray vector: (..., P);
+    0 for a polygon that does not contain the centre (conservative: it is not counted)."""
+    a = poly[..., None, :, :] - centre[..., None, None, :]  # (..., 1, M, 2) edge starts, centred
+    e = np.roll(poly, -1, axis=-2)[..., None, :, :] - poly[..., None, :, :]
+    v = rays[..., :, None, :]  # (..., P, 1, 2)
+    det = v[..., 1] * e[..., 0] - v[..., 0] * e[..., 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (a[..., 1] * e[..., 0] - a[..., 0] * e[..., 1]) / det
+        mu = (v[..., 0] * a[..., 1] - v[..., 1] * a[..., 0]) / det
+    hit = (np.abs(det) > 1e-12) & (mu >= 0) & (mu <= 1) & (lam > 0)
+    out = np.min(np.where(hit, lam, np.inf), axis=-1)
+    # the centre is inside a polygon an odd number of edges crosses in one direction
+    crossings = np.count_nonzero(hit, axis=-1)
+    return np.where((crossings % 2 == 1) & np.isfinite(out), out, 0.0)
+
+
 def fill_need(meshes: SegmentMeshes, frames: np.ndarray, corrections: np.ndarray, cameras: np.ndarray,
-              virtual: np.ndarray, zoom_lo: np.ndarray, zoom_hi: float, reach: int, steps: int = 7) -> np.ndarray:
+              virtual: np.ndarray, zoom_lo: np.ndarray, zoom_hi: float, reach: int) -> np.ndarray:
     """Per frame in ``frames`` (F,) (window indices with a model), the smallest zoom in
     [``zoom_lo``, ``zoom_hi``] at which the crop is covered by the frame's own mesh under its
     correction (F, 4, 4) or seen by a frame within ``reach``: (F,), ``zoom_hi`` when none is.
 
     ``cameras`` (S, 4, 4) real camera poses of the window's frames preceded by committed past
     ones, ``virtual`` (S, 4, 4) the virtual camera's at the same indices (only the window's are
-    used), window frame j at index ``S - N + j``. Depth of a missing pixel: the median of the
-    frame model's points (a plane). The crop's boundary is tested (the uncovered region touches
-    the frame's border), bisecting the zoom ``steps`` times.
+    used), window frame j at index ``S - N + j``. Each neighbour sees, at the median depth d of
+    the frame model's points (a plane), the quadrilateral its image rectangle maps to under
+    H = K (d R + t e_3^T) K^-1 inverted ((R, t) the virtual camera in the neighbour's); along
+    each ray from the centre through the crop's boundary the frame is covered as far as the
+    farthest of those regions, or its own mesh, reaches, counting only regions that contain the
+    centre. The crop's boundary at zoom z lies at 1/z of the way to the frame's border.
     """
     idx = meshes.frames[frames]
     F, S, N = len(frames), len(cameras), len(meshes.frames)
@@ -57,43 +67,31 @@ def fill_need(meshes: SegmentMeshes, frames: np.ndarray, corrections: np.ndarray
     if F == 0:
         return lo
     poly = outline(meshes.vertices(idx, np.linalg.inv(corrections)[:, None])[:, 0])  # (F, M, 2)
-    half = (meshes.size[idx] - 1.0) / 2.0  # (F, 2): centre and half-size
+    half = (meshes.size[idx] - 1.0) / 2.0  # (F, 2): the centre, and the half-size
     K = meshes.K[idx]
     depth = np.array([m.median_depth for m in meshes.models])[idx]
     k = S - N + np.asarray(frames)
     offs = np.concatenate([np.arange(-reach, 0), np.arange(1, reach + 1)])
     src = k[:, None] + offs[None]  # (F, R) neighbour indices
     ok_src = (src >= 0) & (src < S)
-    src = np.clip(src, 0, S - 1)
-    T = np.linalg.solve(cameras[src], virtual[k][:, None])  # (F, R, 4, 4): virtual t -> real camera s
-    Kinv = np.linalg.inv(K)
-    square = rim()
-
-    def covered(z: np.ndarray) -> np.ndarray:
-        pts = half[:, None, :] * (1.0 + square[None] / z[:, None, None])  # (F, P, 2) crop boundary
-        own = inside(poly, pts)
-        rays = (Kinv @ np.concatenate([pts, np.ones(pts.shape[:2] + (1,))], axis=2).transpose(0, 2, 1)) \
-            * depth[:, None, None]  # (F, 3, P)
-        X = T[..., :3, :3] @ rays[:, None] + T[..., :3, 3:4]  # (F, R, 3, P)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = K[:, None, 0, 0, None] * X[:, :, 0] / X[:, :, 2] + K[:, None, 0, 2, None]
-            v = K[:, None, 1, 1, None] * X[:, :, 1] / X[:, :, 2] + K[:, None, 1, 2, None]
-        w, h = 2.0 * half[:, None, None, 0], 2.0 * half[:, None, None, 1]
-        seen = (X[:, :, 2] > 0) & (u >= 0) & (u <= w) & (v >= 0) & (v <= h) & ok_src[..., None]
-        return np.all(own | seen.any(axis=1), axis=1)
-
-    done = covered(lo)
-    hi = np.full(F, max(float(zoom_hi), float(lo.max())))
-    todo = ~done
-    if todo.any():
-        a, b = lo.copy(), hi.copy()
-        for _ in range(steps):
-            mid = 0.5 * (a + b)
-            c = covered(mid)
-            b = np.where(todo & c, mid, b)
-            a = np.where(todo & ~c, mid, a)
-        lo = np.where(todo, b, lo)
-    return lo
+    T = np.linalg.solve(cameras[np.clip(src, 0, S - 1)], virtual[k][:, None])  # (F, R, 4, 4): virtual -> neighbour
+    A = depth[:, None, None, None] * T[..., :3, :3]
+    A[..., :, 2] += T[..., :3, 3]  # d R + t e_3^T
+    H = K[:, None] @ A @ np.linalg.inv(K)[:, None]  # virtual pixel -> neighbour pixel
+    w, h = 2.0 * half[:, 0], 2.0 * half[:, 1]
+    corners = np.stack([np.stack([np.zeros(F), np.zeros(F)], -1), np.stack([w, np.zeros(F)], -1),
+                        np.stack([w, h], -1), np.stack([np.zeros(F), h], -1)], axis=1)  # (F, 4, 2)
+    back = np.linalg.inv(H) @ np.concatenate([corners, np.ones((F, 4, 1))], axis=-1).transpose(0, 2, 1)[:, None]
+    front = np.all(back[..., 2, :] > 0, axis=-1) & ok_src  # (F, R): the whole rectangle in front
+    quads = (back[..., :2, :] / np.where(back[..., 2:, :] > 0, back[..., 2:, :], 1.0)).transpose(0, 1, 3, 2)
+    rays = rim(8)[None] * half[:, None, :]  # (F, P, 2): centre -> crop boundary at zoom 1
+    reach_own = exit_distance(poly, half, rays)  # (F, P)
+    reach_src = exit_distance(quads, np.broadcast_to(half[:, None], quads.shape[:2] + (2,)),
+                              np.broadcast_to(rays[:, None], (F, quads.shape[1]) + rays.shape[1:]))
+    reach_src = np.where(front[..., None], reach_src, 0.0)
+    far = np.maximum(reach_own, reach_src.max(axis=1))  # (F, P) covered out to this share of the way
+    need = 1.0 / np.maximum(far.min(axis=1), 1e-9)
+    return np.clip(np.maximum(lo, need), None, max(float(zoom_hi), float(lo.max())))
 
 
 def bounded_zoom_track(zoom_system: SegmentSystem, committed_w: np.ndarray, upper: np.ndarray,

@@ -270,6 +270,7 @@ class PathPlanner:
         band leaves (docs/method.md (10b)): neighbours within the fill's reach, the committed past included."""
         b = self.params.budget
         has = np.flatnonzero(meshes.frames >= 0)
+        has = has[upper[has] - b.fill < w[has]]  # frames whose own mesh does not cover the planned crop
         if has.size == 0:
             return w
         past = np.asarray(self._real[-b.fill_reach:]).reshape(-1, 4, 4)

@@ -10,8 +10,8 @@ known exactly:
     X_v = d(q) K^-1 Z^-1 q,      X_s = g_c(s)^-1 g_c(t) g_s(t) X_v,      q_s = pi(K_s X_s)     (14)
 
 with q the zoomed output pixel, Z the zoom about the centre (:func:`.mapping.zoom_matrix`),
-d(q) the depth of the frame's own nearest covered output pixel (the surface continued past
-the edge) and g_s(t) the correction (virtual camera relative to the real one). Neighbours are
+d(q) the depth of the frame's own nearest covered output pixel, looked up on every 4th pixel
+(the surface continued past the edge) and g_s(t) the correction (virtual camera relative to the real one). Neighbours are
 tried nearest first (the smallest camera motion, so the least parallax error from d), past
 and future alike, and only within one pose chain (a path restart breaks the chain). What no
 neighbour saw stays uncovered; the caller then zooms in (:func:`raise_for`).
@@ -61,6 +61,7 @@ def ordered_sources(seq: int, chain: int, sources: Iterable[FillSource], reach: 
 
 
 FEATHER_PX = 4  # the fill fades into the frame's own pixels over this many pixels
+DEPTH_STEP = 4  # a hole's depth is its nearest known depth on every DEPTH_STEP-th pixel
 
 
 def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: np.ndarray, K: np.ndarray, zoom: float,
@@ -77,15 +78,18 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: np.ndarray, K: np
     left = uncovered.copy()
     if not left.any() or not sources:
         return left
-    full = nearest_depth(depth)
-    if full is None:
+    coarse = nearest_depth(depth[::DEPTH_STEP, ::DEPTH_STEP])  # the hole's depth: nearest on a coarse grid
+    if coarse is None:
         return left
     h, w = left.shape
     dist = cv2.distanceTransform((~uncovered).astype(np.uint8), cv2.DIST_L2, 3) if feather > 0 else None
     near = (dist > 0) & (dist <= feather) if feather > 0 else np.zeros_like(left)
     ys, xs = np.nonzero(uncovered | near)
+    d = depth[ys, xs].astype(np.float64)
+    d = np.where(d > 0, d, coarse[np.minimum(ys // DEPTH_STEP, coarse.shape[0] - 1),
+                                  np.minimum(xs // DEPTH_STEP, coarse.shape[1] - 1)])
     q = zoom_matrix(w, h, zoom) @ np.vstack([xs, ys, np.ones(xs.size)])
-    rays = np.linalg.solve(K, q) * full[ys, xs]  # virtual-camera points (3, n)
+    rays = np.linalg.solve(K, q) * d  # virtual-camera points (3, n)
     vals = np.zeros((xs.size, out.shape[2]), np.float32)
     which = np.full(xs.size, -1)
     todo = np.arange(xs.size)
