@@ -11,8 +11,8 @@ known exactly:
 
 with q the zoomed output pixel, Z the zoom about the centre (:func:`.mapping.zoom_matrix`),
 d(q) the depth of the frame's own nearest covered output pixel, looked up on every 4th pixel
-(the surface continued past the edge) and g_s(t) the correction (virtual camera relative to the real one). Neighbours are
-tried nearest first (the smallest camera motion, so the least parallax error from d), past
+(the surface continued past the edge) and g_s(t) the correction (virtual camera relative to
+the real one). Neighbours are tried nearest first (the smallest camera motion, so the least parallax error from d), past
 and future alike, and only within one pose chain (a path restart breaks the chain). What no
 neighbour saw stays uncovered; the caller then zooms in (:func:`raise_for`).
 """
