@@ -41,6 +41,7 @@ from quick_stream.recording import SplitRecorder, fresh_path
 from quick_stream.meters import RateMeter
 from quick_stream.runtime import ServiceRuntime, lower_priority, service_main, service_parser
 from quick_stream.wire import WireError
+from quick_stream.wire.codec import peek
 
 log = logging.getLogger("recorder")
 
@@ -128,6 +129,8 @@ def run(args, conf: zenoh.Config) -> int:
                 logged["bytes"] += len(payload)
                 wrote(len(payload))
                 meter.add((time.perf_counter() - t0) * 1e3)
+            if (env := peek(payload)) is not None and env[0] == "end":
+                log.info("recorded the end of %s", key_expr)  # what a stage's last message was, for operators
 
         def view_one(key_expr: str, payload: bytes, t_ns: int) -> None:
             """The Foxglove channels derived from one message (same log time as its wire bytes)."""

@@ -50,8 +50,10 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
         while time.monotonic() < deadline:
             time.sleep(0.5)
             sup.poll()
-            if all(p.exists() and "end of stream" in p.read_text() for p in logs.values()):
-                break
+            rec_log = tmp_path / "logs" / "recorder.log"
+            if (all(p.exists() and "end of stream" in p.read_text() for p in logs.values()) and rec_log.exists()
+                    and all(f"recorded the end of quick/@v1/{cam}/stabilized" in rec_log.read_text() for cam in SPECS)):
+                break  # every render finished and the recording holds each stream's end
         else:
             raise AssertionError({p.name: p.read_text()[-600:] for p in (tmp_path / "logs").glob("*.log")})
     finally:

@@ -269,6 +269,8 @@ class PathPlanner:
         """The zoom track ``w`` re-planned where the border fill will not cover what the budget's fill
         band leaves (docs/method.md (10b)): neighbours within the fill's reach, the committed past included."""
         b = self.params.budget
+        if upper is None:  # no frame model in the window: nothing to plan with
+            return w
         has = np.flatnonzero(meshes.frames >= 0)
         has = has[upper[has] - b.fill < w[has]]  # frames whose own mesh does not cover the planned crop
         if has.size == 0:
