@@ -57,7 +57,7 @@ class Inbox:
     def __init__(self, capacity: int, cond: threading.Condition,
                  on_arrival: Callable[[str, bytes, int], None] | None = None,
                  on_gap: Callable[[Gap], None] | None = None) -> None:
-        self.capacity = self.base_capacity = capacity
+        self.capacity = self.base_capacity = self.catch_up = capacity
         self.on_arrival = on_arrival
         self.on_gap = on_gap
         self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
@@ -66,6 +66,7 @@ class Inbox:
         self.dropped = 0
         self.skipped = 0
         self.skip_through: int | None = None  # data messages with a seq <= this are not queued (taken over)
+        self._newest: int | None = None  # taking over: the newest data seq queued so far
         self.arrivals = ArrivalLedger()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -79,9 +80,15 @@ class Inbox:
             # A service taking over skips what its predecessor already handled; a history
             # replay of many of those must not push the ones it needs out of the queue.
             env = peek(data)
-            if env is not None and env[0] != "end" and env[1] <= self.skip_through:
-                self.skipped += 1
-                return
+            if env is not None and env[0] != "end":
+                if env[1] <= self.skip_through:
+                    self.skipped += 1
+                    return
+                if self._newest is not None and env[1] < self._newest:
+                    # older than what already came: the history replay, delivered after live messages
+                    # (and after the queue first drained); it is owed, so hold it as during catch-up
+                    self.capacity = max(self.capacity, self.catch_up)
+                self._newest = env[1] if self._newest is None else max(self._newest, env[1])
         with self._cond:
             if len(self._q) >= self.capacity:
                 self._q.popleft()
@@ -167,7 +174,7 @@ class ServiceRuntime:
         of its stage (:mod:`quick_stream.arrivals`)."""
         box = Inbox(capacity, self._cond, on_arrival, on_gap)
         box.skip_through = skip_through
-        box.capacity = max(capacity, catch_up)
+        box.capacity = box.catch_up = max(capacity, catch_up)
         if history:
             # a publisher this session does not know yet (its declaration arrives after ours) is queried
             # once seen

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 from quick_stream.runtime import Inbox
 from quick_stream.wire import encode_end
-from quick_stream.wire.codec import pack
+from quick_stream.wire.codec import pack, peek
 from quick_stream.wire.messages import EndOfStream
 
 
@@ -27,6 +27,23 @@ def test_a_history_replay_neither_crowds_out_nor_drops_what_a_taking_over_servic
     for seq in range(130, 140):
         box._on_sample(sample(seq))
     assert box.dropped == 5 and len(box) == 5
+
+
+def test_a_history_replay_arriving_after_live_messages_is_still_held():
+    """The replay of the publishers' caches can arrive after the first live messages, when the queue
+    has already drained once and fallen back to its live bound: it must not be dropped then."""
+    box = Inbox(5, threading.Condition())
+    box.skip_through = 65
+    box.capacity = box.catch_up = 150
+    for seq in (120, 121):  # live frames first
+        box._on_sample(sample(seq))
+    while box.pop() is not None:
+        pass
+    assert box.capacity == 5  # drained: back to the live bound
+    for seq in range(0, 120):  # then the history: 66..119 are owed
+        box._on_sample(sample(seq))
+    assert box.dropped == 0 and len(box) == 54 and box.skipped == 66
+    assert peek(box.pop()[1]) == ("frame", 66)  # the oldest owed frame comes first
 
 
 def test_end_markers_are_never_skipped():
