@@ -60,6 +60,18 @@ def ordered_sources(seq: int, chain: int, sources: Iterable[FillSource], reach: 
     return sorted(near.values(), key=lambda s: (abs(s.seq - seq), s.seq))
 
 
+def project(src: FillSource, virtual: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v, inside) in ``src`` of virtual-camera points (3, n), (14): pixel coordinates and
+    whether each lands in front of the source camera and inside its image."""
+    T = np.linalg.solve(src.camera, virtual)
+    P = T[:3, :3] @ points + T[:3, 3:4]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = src.K[0, 0] * P[0] / P[2] + src.K[0, 2]
+        v = src.K[1, 1] * P[1] / P[2] + src.K[1, 2]
+    sh, sw = src.image.shape[:2]
+    return u, v, (P[2] > 0) & (u >= 0) & (u <= sw - 1) & (v >= 0) & (v <= sh - 1)
+
+
 FEATHER_PX = 4  # the fill fades into the frame's own pixels over this many pixels
 DEPTH_STEP = 4  # a hole's depth is its nearest known depth on every DEPTH_STEP-th pixel
 
@@ -94,14 +106,7 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: np.ndarray, K: np
     which = np.full(xs.size, -1)
     todo = np.arange(xs.size)
     for i, src in enumerate(sources):
-        T = np.linalg.solve(src.camera, virtual)
-        P = T[:3, :3] @ rays[:, todo] + T[:3, 3:4]
-        z = P[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = src.K[0, 0] * P[0] / z + src.K[0, 2]
-            v = src.K[1, 1] * P[1] / z + src.K[1, 2]
-        sh, sw = src.image.shape[:2]
-        ok = (z > 0) & (u >= 0) & (u <= sw - 1) & (v >= 0) & (v <= sh - 1)
+        u, v, ok = project(src, virtual, rays[:, todo])
         if not ok.any():
             continue
         got = todo[ok]
@@ -136,13 +141,7 @@ def _reached(points: np.ndarray, virtual: np.ndarray, sources: list[FillSource])
     """Which virtual-camera points (3, n) some source sees inside its image: (n,) bool."""
     seen = np.zeros(points.shape[1], bool)
     for src in sources:
-        T = np.linalg.solve(src.camera, virtual)
-        P = T[:3, :3] @ points + T[:3, 3:4]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = src.K[0, 0] * P[0] / P[2] + src.K[0, 2]
-            v = src.K[1, 1] * P[1] / P[2] + src.K[1, 2]
-        sh, sw = src.image.shape[:2]
-        seen |= (P[2] > 0) & (u >= 0) & (u <= sw - 1) & (v >= 0) & (v <= sh - 1)
+        seen |= project(src, virtual, points)[2]
     return seen
 
 
