@@ -281,6 +281,29 @@ class ServiceRuntime:
                 best = seq
         return answered, under_way, best
 
+    def lagging(self, stage: str, seq: int, timeout_s: float) -> set[str]:
+        """Wait until every service that has received ``stage`` of this stream reports ``seq`` or a
+        newer one (its inbox's arrivals, :meth:`serve_cursor`), or ``timeout_s`` passes; returns the
+        services still behind (empty: delivered). A publisher asks before it ends the stream and
+        closes, so what it put last is not left in flight."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            behind: set[str] = set()
+            replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
+                                       consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
+            for reply in replies:
+                try:
+                    values = decode(reply.ok.payload.to_bytes()).obj.values
+                    service = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                except (WireError, AttributeError, zenoh.ZError):
+                    continue
+                got = values.get(stage)
+                if isinstance(got, int) and not isinstance(got, bool) and got < seq:
+                    behind.add(service)
+            if not behind or time.monotonic() > deadline or self.stop.is_set():
+                return behind
+            self.stop.wait(0.05)
+
     # --- liveliness --------------------------------------------------------------------------------
 
     def alive(self, stream: str | None = None) -> set[str]:

@@ -58,6 +58,9 @@ def build_parser():
     p.add_argument("--wait-for", type=at.service_names, default="", metavar="S1,S2",
                    help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
     p.add_argument("--wait-timeout", type=at.nonneg_float, default=30.0, help="seconds to wait for them (default 30)")
+    p.add_argument("--end-wait", type=at.nonneg_float, default=10.0,
+                   help="at the end, seconds to wait until every consumer has received the last frame before "
+                        "sending the end marker (default 10)")
     return p
 
 
@@ -151,6 +154,11 @@ def run(args, conf: zenoh.Config) -> int:
         except Exception as e:  # noqa: BLE001 - a source that fails for good ends the stream, said loudly
             log.error("source %s failed: %s", args.source, e)
             reason = f"source failed: {e}"
+        if st.sent:  # the last frames reach every consumer before the end marker, and before the session closes
+            behind = rt.lagging("frame", st.last_seq, args.end_wait)
+            if behind:
+                log.warning("ending the stream although %s have not received frame %d after %.0f s",
+                            ", ".join(sorted(behind)), st.last_seq, args.end_wait)
         rt.session.put(keys.key(args.stream, "frame"), encode_end(EndOfStream(st.last_seq, reason), args.stream),
                        congestion_control=zenoh.CongestionControl.BLOCK)
         rt.publish_stats({**st.values(), "state": "ended"})
