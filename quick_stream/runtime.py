@@ -289,6 +289,7 @@ class ServiceRuntime:
         deadline = time.monotonic() + timeout_s
         while True:
             behind: set[str] = set()
+            answered: set[str] = set()
             replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
                                        consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
             for reply in replies:
@@ -297,9 +298,12 @@ class ServiceRuntime:
                     service = str(reply.ok.key_expr).rsplit("/", 1)[-1]
                 except (WireError, AttributeError, zenoh.ZError):
                     continue
+                answered.add(service)
                 got = values.get(stage)
                 if isinstance(got, int) and not isinstance(got, bool) and got < seq:
                     behind.add(service)
+            # a busy service may not answer in time: one that is alive and silent is not known to be done
+            behind |= self.alive() - answered - {self.service}
             if not behind or time.monotonic() > deadline or self.stop.is_set():
                 return behind
             self.stop.wait(0.05)
