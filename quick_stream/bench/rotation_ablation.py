@@ -12,7 +12,7 @@ without ``--reference``) for:
   H between input and output vertices, is the rotation K^-1 H^-1 K of a rotation-only
   correction, projected onto SO(3)): the difference to ``as shipped`` is the warp's. Framing
   zooms about the image centre, which rotates nothing, so it cannot leave rotation;
-* single changes to the default: no LK refinement of the flow, no look-ahead, no crop budget,
+* single changes to the default: no LK refinement of the flow, no look-ahead, no border fill, no crop budget,
   the EP path of the previous default, and the paper's own path.
 
 ``quick-stream bench rotation`` prints one table per clip.
@@ -39,6 +39,7 @@ DEFAULT_CLIPS = ("7:0-149", "11:100-249")
 SINGLE_CHANGES = {
     "no LK refinement": [],  # set on the flow parameters below
     "no look-ahead": ["--lookahead", "0"],
+    "no border fill": ["--fill-frames", "0"],
     "no crop budget": ["--max-zoom", "0"],
     "EP path (previous default)": ["--path", "ep", "--max-zoom", "0"],
     "paper path": ["--path", "ep", "--end", "identity", "--lowpass-sigma", "0", "--max-zoom", "0"],
