@@ -5,7 +5,10 @@ own (a peer, so it keeps seeing the services when the router dies): every messag
 stream with its arrival time (the ground truth of what was published), and the services'
 liveliness tokens (when a process went away and when its successor was ready). Once
 ``kill_after`` frames went out, the victims get SIGKILL (all at once: ``router+flow``), and
-again ``repeat - 1`` times, each ``interval_s`` after the previous successor was ready.
+again ``repeat - 1`` times, each ``interval_s`` after the previous successor was ready. The
+stream is as long as the case needs: once every successor is back and publishing, stabilized
+frames flow again and at least ``frames`` frames went out, the driver stops the capture
+(SIGTERM: it sends its end marker), so a slow restart on a loaded machine never outlasts it.
 
 Per kill it reports the restart (kill -> the successor's liveliness token) and the resume
 (kill -> the first message the successor published: frames for capture, flows, motions,
@@ -39,6 +42,7 @@ from ..wire import WireError
 from ..wire.codec import peek, unpack
 
 OUTPUT = {"capture": "frame", "flow": "flow", "motion": "motion", "render": "stabilized"}
+STREAM_CAP = 100_000  # the synthetic source's length: the driver ends the stream (run_case)
 CASES = ("flow", "motion", "render", "capture", "recorder", "router", "flow*3", "render*3", "router+flow")
 
 
@@ -133,7 +137,6 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
     from ..cli.up_cmd import free_port
 
     victims, repeat = parse_case(case)
-    frames += int((repeat - 1) * (interval_s + 1.0) * fps)  # room for every kill before the stream ends
     w, h = size.split("x")
     port = free_port()
     if out.exists():
@@ -141,7 +144,7 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
     out.mkdir(parents=True)
     status = out / "logs" / "status.json"
     cmd = [sys.executable, "-m", "quick_stream", "up", "--quiet", "--out", str(out), "--port", str(port),
-           "--fps", str(fps), "--source", f"synthetic:frames={frames},width={w},height={h}"]
+           "--fps", str(fps), "--source", f"synthetic:frames={STREAM_CAP},width={w},height={h}"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     mon = StreamMonitor("cam0")
     session = None
@@ -166,7 +169,21 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
             for pid in pids:
                 os.kill(pid, signal.SIGKILL)
             if i + 1 < repeat:
-                _wait_status(status, lambda s: all(s["services"][v]["restarts"] >= i + 1 for v in victims), 20)
+                _wait_status(status, lambda s: all(s["services"][v]["restarts"] >= i + 1 for v in victims), 60)
+        # The stream ends when the driver says so, not at a fixed frame count (a loaded machine
+        # restarts slowly): once every successor is up and publishing, the stabilized output flows
+        # again after that and at least ``frames`` frames went out, the capture is stopped (SIGTERM:
+        # it sends its end marker) and `up` finishes the stream.
+        back = kills[-1]
+        for v in victims:
+            if v not in ("router",):
+                _wait_until(lambda: mon.ready_after(v, kills[-1]) is not None, timeout_s)
+                back = max(back, mon.ready_after(v, kills[-1]))
+            if v in OUTPUT:
+                _wait_until(lambda: mon.first(OUTPUT[v], back) is not None, timeout_s)
+        _wait_until(lambda: mon.first("stabilized", back) is not None, timeout_s)
+        st = _wait_status(status, lambda s: s["services"]["capture"]["stats"].get("sent", 0) > frames, timeout_s, proc)
+        os.kill(st["services"]["capture"]["pid"], signal.SIGTERM)
         text, _ = proc.communicate(timeout=timeout_s)
         time.sleep(0.2)
         for s in subs:

@@ -71,7 +71,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     fl = b.add_parser("faults", help="SIGKILL services of a running `up` mid-stream: restart, resume, losses")
     fl.add_argument("--cases", default="all", help="comma-separated: a service (flow), repeated (render*3), "
                     "together (router+flow); default all (every service, flow*3, render*3, router+flow)")
-    fl.add_argument("--frames", type=int, default=240, help="synthetic frames per case (default 240)")
+    fl.add_argument("--frames", type=int, default=240, help="frames each case sends at least; the stream ends once "
+                    "every successor is back (default 240)")
     fl.add_argument("--fps", type=float, default=30.0)
     fl.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
     fl.add_argument("--kill-after", type=int, default=60, help="frames sent before the first kill (default 60)")

@@ -140,8 +140,13 @@ def raise_for(left: np.ndarray, zoom: float) -> float:
 def _reached(points: np.ndarray, virtual: np.ndarray, sources: list[FillSource]) -> np.ndarray:
     """Which virtual-camera points (3, n) some source sees inside its image: (n,) bool."""
     seen = np.zeros(points.shape[1], bool)
+    todo = np.arange(points.shape[1])
     for src in sources:
-        seen |= project(src, virtual, points)[2]
+        ok = project(src, virtual, points[:, todo])[2]
+        seen[todo[ok]] = True
+        todo = todo[~ok]
+        if todo.size == 0:
+            break
     return seen
 
 
