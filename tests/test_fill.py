@@ -123,3 +123,27 @@ def test_corrections_carry_the_camera_pose_and_its_chain_on_the_wire():
     back = decode(encode_correction(c, "cam0")).obj
     np.testing.assert_array_equal(back.camera, c.camera)
     assert back.chain == c.chain == 1
+
+
+def test_convex_exit_distance_agrees_with_the_general_one():
+    """The planner's fast ray/quad test (docs/method.md (10b)) against the general polygon one, on
+    perspective images of a rectangle of both orientations, with the centre inside and outside."""
+    from quick_stream.path.coverage import convex_exit_distance, exit_distance, rim
+
+    rng = np.random.default_rng(3)
+    corners = np.array([[0, 0, 1], [640, 0, 1], [640, 480, 1], [0, 480, 1]], float).T
+    rays = rim(8) * np.array([320.0, 240.0])  # (P, 2)
+    outside = inside = 0
+    for flip in (False, True):
+        H = np.eye(3) + rng.normal(0, [[0.2, 0.2, 60], [0.2, 0.2, 60], [3e-4, 3e-4, 0.05]], (40, 3, 3))
+        q = H @ corners
+        q = q[np.all(q[:, 2] > 0, axis=1)]  # wholly in front: convex images
+        quads = (q[:, :2] / q[:, 2:]).transpose(0, 2, 1)
+        quads = quads[:, ::-1] if flip else quads
+        centre = np.broadcast_to([320.0, 240.0], (len(quads), 2))
+        fast = convex_exit_distance(quads, centre, rays[None])
+        general = exit_distance(quads, centre, np.broadcast_to(rays, (len(quads),) + rays.shape))
+        np.testing.assert_allclose(fast, general, rtol=1e-9, atol=1e-9)
+        outside += int(np.sum(np.all(general == 0, axis=1)))
+        inside += int(np.sum(np.all(general > 0, axis=1)))
+    assert outside > 0 and inside > 0  # both cases were exercised

@@ -151,6 +151,7 @@ class SegmentMeshes:
             self.K[f] = m.K
             self.size[f] = (m.width, m.height)
         self.models = uniq
+        self._seen: dict[tuple[int, bytes], np.ndarray] = {}  # single-transform vertices by (model, transform)
 
     def vertices(self, idx: np.ndarray, point_transforms: np.ndarray) -> np.ndarray:
         """Output vertices (F, P, gy+1, gx+1, 2) of models ``idx`` (F,) under point transforms (F, P, 4, 4).
@@ -159,6 +160,15 @@ class SegmentMeshes:
         on the model's points, similarity term against the input grid or, by default, the
         grid moved by each correction's rotation."""
         T = np.asarray(point_transforms, dtype=np.float64)
+        keys = [(int(f), t.tobytes()) for f, t in zip(idx, T)] if T.shape[1] == 1 else None
+        if keys is not None and all(k in self._seen for k in keys):  # the budget's final check, asked again
+            return np.stack([self._seen[k] for k in keys])
+        V = self._vertices(idx, T)
+        if keys is not None:
+            self._seen.update(zip(keys, V))
+        return V
+
+    def _vertices(self, idx: np.ndarray, T: np.ndarray) -> np.ndarray:
         y = np.einsum("fpij,fjm->fpim", T[..., :3, :3], self.points[idx], optimize=True)  # (F, P, 3, M)
         y += T[..., :3, 3, None]
         iz = 1.0 / np.maximum(y[:, :, 2], 1e-6)
@@ -187,9 +197,12 @@ class SegmentMeshes:
         V = self.vertices(idx, np.linalg.inv(corrections))
         t = np.empty(V.shape[:2] + (2 * (self.shape[0] + self.shape[1] - 2),))
         sizes = self.size[idx]
-        for w, h in np.unique(sizes, axis=0):  # frames of one size share the normalisation
-            sel = np.flatnonzero(np.all(sizes == (w, h), axis=1))
-            t[sel] = edge_extents(V[sel], int(w), int(h))
+        if np.all(sizes == sizes[0]):  # the usual case: one frame size
+            t[:] = edge_extents(V, int(sizes[0, 0]), int(sizes[0, 1]))
+        else:
+            for w, h in np.unique(sizes, axis=0):  # frames of one size share the normalisation
+                sel = np.flatnonzero(np.all(sizes == (w, h), axis=1))
+                t[sel] = edge_extents(V[sel], int(w), int(h))
         half = 0.5 * (sizes.min(axis=1) - 1.0)
         return t - (1.0 / zmax + margin_px / half)[:, None, None]
 
@@ -253,7 +266,7 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
     finite differences at the current path (the linearisations of earlier rounds are kept, which
     stops the rounds cycling between them), each QP solved in its dual by non-negative least squares.
     """
-    from scipy.optimize import nnls  # imported when first needed: it costs every service's start ~0.4 s
+    from scipy.optimize import nnls  # not at module level: only the motion stage needs it (PathPlanner loads it)
 
     N, n = p0.shape
     rep = BudgetReport()
@@ -265,7 +278,6 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
     half = np.array([meshes.half(f) for f in idx])
     Rd = rotation_directions(group)  # (n, 3)
     m = Rd.shape[1]
-    Minv = np.linalg.inv(np.diag(rotation_scales(meshes.models[idx[-1]]) ** 2))  # metric on r, per frame
     cw = params.crop_weight * float(np.mean(half)) ** 2
     probes = np.vstack([np.zeros(n), h * Rd.T])  # (m+1, n)
     n_edges = 2 * (meshes.shape[0] + meshes.shape[1] - 2)
@@ -287,6 +299,8 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
     every = np.arange(has.size)
     g0 = edges(every, p0[has][:, None, :])[:, 0]
     free = bool(np.all(g0 >= 1.0 / params.max_zoom))
+    # the metric on r, per frame (a free path's constraints never involve r: any metric gives r = 0)
+    Minv = np.eye(m) if free else np.linalg.inv(np.diag(rotation_scales(meshes.models[idx[-1]]) ** 2))
     # w_t >= 1/Z on every frame: the zoom limit
     C0 = np.hstack([np.zeros((N, N * m)), np.eye(N)])
     rows_c, rows_d = [C0], [np.full(N, 1.0 / params.max_zoom)]

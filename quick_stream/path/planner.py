@@ -134,6 +134,10 @@ class PathPlanner:
         self._systems: dict[tuple[int, int], SegmentSystem] = {}
         self._zooms: list[float] = [1.0]  # smooth mode with a budget: last <= 3 planned zooms
         self._real: list[np.ndarray] = [np.eye(4)]  # smooth mode: real camera poses up to the open segment's start
+        if p.mode == "smooth" and p.budget.enabled:
+            # The budget's QP solver (scipy.optimize, ~0.2 s to import) is loaded here, before the
+            # stream, not inside the first segment's close, where it would delay the first release.
+            import scipy.optimize  # noqa: F401
 
     def start(self, seq: int) -> list[Correction]:
         """First frame of the stream. ``ep``: a keyframe with no correction, released at once.
