@@ -161,7 +161,7 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
             else:  # the next kill once every successor has been up for interval_s
                 for v in victims:
                     if v != "router":
-                        _wait_until(lambda: mon.ready_after(v, kills[-1]) is not None, 20)
+                        _wait_until(lambda v=v: mon.ready_after(v, kills[-1]) is not None, 20)
                 time.sleep(interval_s)
                 st = _status(status)
             pids = [st["services"][v]["pid"] for v in victims]
@@ -169,7 +169,7 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
             for pid in pids:
                 os.kill(pid, signal.SIGKILL)
             if i + 1 < repeat:
-                _wait_status(status, lambda s: all(s["services"][v]["restarts"] >= i + 1 for v in victims), 60)
+                _wait_status(status, lambda s, i=i: all(s["services"][v]["restarts"] >= i + 1 for v in victims), 60)
         # The stream ends when the driver says so, not at a fixed frame count (a loaded machine
         # restarts slowly): once every successor is up and publishing, the stabilized output flows
         # again after that and at least ``frames`` frames went out, the capture is stopped (SIGTERM:
@@ -177,10 +177,10 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
         back = kills[-1]
         for v in victims:
             if v not in ("router",):
-                _wait_until(lambda: mon.ready_after(v, kills[-1]) is not None, timeout_s)
+                _wait_until(lambda v=v: mon.ready_after(v, kills[-1]) is not None, timeout_s)
                 back = max(back, mon.ready_after(v, kills[-1]))
             if v in OUTPUT:
-                _wait_until(lambda: mon.first(OUTPUT[v], back) is not None, timeout_s)
+                _wait_until(lambda v=v, back=back: mon.first(OUTPUT[v], back) is not None, timeout_s)
         _wait_until(lambda: mon.first("stabilized", back) is not None, timeout_s)
         st = _wait_status(status, lambda s: s["services"]["capture"]["stats"].get("sent", 0) > frames, timeout_s, proc)
         os.kill(st["services"]["capture"]["pid"], signal.SIGTERM)
