@@ -41,7 +41,11 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
                    help="endpoint to listen on (repeatable)")
     g.add_argument("-c", "--config", metavar="FILE", help="zenoh JSON5 configuration file")
-    g.add_argument("--no-multicast-scouting", action="store_true", help="disable multicast scouting")
+    g.add_argument("--no-multicast-scouting", action="store_true",
+                   help="disable multicast scouting (the default here: see --multicast-scouting)")
+    g.add_argument("--multicast-scouting", action="store_true",
+                   help="discover peers and routers by UDP multicast (off unless asked for, or set by the -c file: "
+                   "separate deployments on one network would otherwise join)")
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
                    help="set a configuration key to a JSON5 value (repeatable)")
     g.add_argument("--tls-dir", default=None, metavar="DIR",
@@ -149,6 +153,17 @@ def load_config(path: str, where: str) -> zenoh.Config:
     return conf
 
 
+def _sets_multicast(path: str) -> bool:
+    """Whether a zenoh configuration file configures multicast scouting itself (JSON5 comments ignored)."""
+    try:
+        text = Path(path).read_text(errors="replace")
+    except OSError:
+        return False
+    text = re.sub(r"/\*.*?\*/", "", text, flags=re.S)
+    text = re.sub(r"(?m)^\s*//.*$", "", text)
+    return re.search(r"\bmulticast\b", text) is not None
+
+
 def _setting(flag_value: Any, environ: Mapping[str, str], name: str, flag: str) -> tuple[Any, str]:
     """(value, what set it): the flag's value if given, else the environment variable's."""
     if flag_value:
@@ -204,7 +219,13 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
         put("connect/retry", json.dumps(RECONNECT), "--connect")
     # publishers with a history cache (a restarted service takes over, runtime.py) need timestamps
     put("timestamping/enabled", "true", "timestamping")
-    if args.no_multicast_scouting:
+    # Multicast scouting is off unless asked for (zenoh's default is on: two deployments on one host
+    # or network would find each other and mix their streams); a -c file that sets it keeps its choice.
+    if getattr(args, "multicast_scouting", False):
+        if args.no_multicast_scouting:
+            raise ValueError("--multicast-scouting and --no-multicast-scouting contradict each other")
+        put("scouting/multicast/enabled", "true", "--multicast-scouting")
+    elif args.no_multicast_scouting or not (config and _sets_multicast(config)):
         put("scouting/multicast/enabled", "false", "--no-multicast-scouting")
     tls_dir, dir_from = _setting(getattr(args, "tls_dir", None), env, "TLS_DIR", "--tls-dir")
     tls_name, name_from = _setting(getattr(args, "tls_name", None), env, "TLS_NAME", "--tls-name")

@@ -114,3 +114,24 @@ def test_tls_flags_use_the_certificates_and_name_what_is_missing(tmp_path):
     tls = json.loads(c.get_json("transport/link/tls"))
     assert tls["connect_certificate"].endswith("flow.pem") and tls["enable_mtls"] is True
     assert tls["root_ca_certificate"].endswith("ca.pem")
+
+
+def test_multicast_scouting_is_off_unless_asked_for(tmp_path):
+    """Two deployments on one network must not find each other: every entry point's config has
+    multicast scouting off unless a flag, a --cfg or the -c file turns it on."""
+    def multicast(argv: list[str]) -> bool:
+        return json.loads(config_from_args(_args(argv), {}).get_json("scouting/multicast/enabled"))
+
+    assert multicast([]) is False
+    assert multicast(["-m", "router", "-l", "tcp/127.0.0.1:0"]) is False
+    assert multicast(["--no-multicast-scouting"]) is False
+    assert multicast(["--multicast-scouting"]) is True
+    assert multicast(["--cfg", "scouting/multicast/enabled:true"]) is True
+    on = tmp_path / "on.json5"
+    on.write_text('{ mode: "peer", scouting: { multicast: { enabled: true } } }')
+    plain = tmp_path / "plain.json5"
+    plain.write_text('{ mode: "peer" /* multicast left to the default */ }')
+    assert multicast(["-c", str(on)]) is True
+    assert multicast(["-c", str(plain)]) is False
+    with pytest.raises(ValueError, match="contradict"):
+        config_from_args(_args(["--multicast-scouting", "--no-multicast-scouting"]), {})
