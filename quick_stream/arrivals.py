@@ -9,12 +9,17 @@ account of everything it records, so no loss is silent (docs/reliability.md).
 
 A seq that arrives late (after a higher one) fills its gap again. The missing seqs of a
 stage are remembered up to ``window`` behind its newest; older ones are final.
+
+Only messages that pass :func:`quick_stream.wire.check` are accounted (every field valid, the
+envelope's stream and type those of the key it came on): one malformed message with a huge seq
+must not move a stage's newest seq, which restarted services resume from (the stream cursor).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .wire.codec import peek
+from . import keys
+from .wire import WireError, check
 
 
 @dataclass
@@ -47,15 +52,32 @@ class ArrivalLedger:
         self._ended: dict[str, int] = {}  # unreceived of stages whose stream ended, per stage
         self.late = 0  # arrived after a higher seq (filled a gap)
         self.duplicates = 0  # arrived again (a restarted publisher republishing, a replay)
+        self.invalid = 0  # failed the check: not accounted
+        self.last_error: str | None = None  # why the newest invalid one failed
+
+    def checked(self, key_expr: str, payload: bytes) -> tuple[str, int] | None:
+        """(type, seq) of a message that passes :func:`~quick_stream.wire.check` on its key; None
+        (counted in ``invalid``, the reason in ``last_error``) for one that does not."""
+        try:
+            stream, stage = keys.parse(key_expr)
+            d = check(payload, stream, stage)
+        except (ValueError, WireError) as e:
+            self.invalid += 1
+            self.last_error = f"{key_expr}: {e}"
+            return None
+        return d.type, d.seq
 
     def add(self, key_expr: str, payload: bytes) -> Gap | None:
-        """Account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any.
-        Stats and health (numbered on their own) and unreadable envelopes are not counted; an
-        ``end`` closes the stage's stream (a new one may start again from 0)."""
-        env = peek(payload)
-        if env is None or env[0] in ("stats", "health"):
+        """Check and account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any."""
+        env = self.checked(key_expr, payload)
+        return None if env is None else self.account(key_expr, *env)
+
+    def account(self, key_expr: str, mtype: str, seq: int) -> Gap | None:
+        """Account a checked message (:meth:`checked`); the gap it reveals, if any. Stats and health
+        (numbered on their own) are not counted; an ``end`` closes the stage's stream (a new one may
+        start again from 0)."""
+        if mtype in ("stats", "health"):
             return None
-        mtype, seq = env
         where = tuple(key_expr.rsplit("/", 2)[-2:])
         st = self._stages.setdefault(where, _Stage())  # type: ignore[arg-type]
         if mtype == "end":  # its seq is the stream's last frame, not the stage's last (a flow is

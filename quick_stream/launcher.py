@@ -24,7 +24,7 @@ from typing import Any
 import zenoh
 
 from . import keys
-from .wire import WireError, decode
+from .wire import WireError, check
 
 log = logging.getLogger(__name__)
 
@@ -147,12 +147,14 @@ class StatusBoard:
         self._sub = session.declare_subscriber(keys.all_streams("stats"), self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
         try:
-            m = decode(sample.payload.to_bytes())
-        except WireError:
+            stream, stage = keys.parse(key)
+            m = check(sample.payload.to_bytes(), stream, stage)  # a stats message of the key's stream
+        except (ValueError, WireError) as e:  # WireError is a ValueError too
             self.errors += 1
-            return
-        if m.type != "stats":
+            if self.errors <= 10 or self.errors % 1000 == 0:  # one line per bad message, not a flood
+                log.warning("bad message on %s (%d so far): %s", key, self.errors, e)
             return
         with self._lock:
             self.latest[(m.stream, m.obj.service)] = dict(m.obj.values)

@@ -41,7 +41,6 @@ import zenoh.ext
 from . import keys
 from .arrivals import ArrivalLedger, Gap
 from .wire import Decoded, Stats, WireError, decode, encode_stats
-from .wire.codec import peek
 
 log = logging.getLogger(__name__)
 
@@ -72,14 +71,16 @@ class Inbox:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, data = str(sample.key_expr), sample.payload.to_bytes()
         item = (key, data, time.time_ns())
-        if (gap := self.arrivals.add(key, data)) is not None and self.on_gap is not None:
+        # Checked before any bookkeeping reads it (a malformed message's seq must not move the
+        # ledger, the cursor or the skips); queued all the same: its consumer logs why it is refused.
+        env = self.arrivals.checked(key, data)
+        if env is not None and (gap := self.arrivals.account(key, *env)) is not None and self.on_gap is not None:
             self.on_gap(gap)
         if self.on_arrival is not None:
             self.on_arrival(*item)
         if self.skip_through is not None:
             # A service taking over skips what its predecessor already handled; a history
             # replay of many of those must not push the ones it needs out of the queue.
-            env = peek(data)
             if env is not None and env[0] != "end":
                 if env[1] <= self.skip_through:
                     self.skipped += 1
@@ -342,6 +343,7 @@ class ServiceRuntime:
         vals = dict(values)
         for i, b in enumerate(self._inboxes):
             vals[f"inbox{i}_dropped"] = b.dropped
+            vals[f"inbox{i}_invalid"] = b.arrivals.invalid  # failed the check on arrival (not accounted)
             vals[f"inbox{i}_queued"] = len(b)
             if b.skip_through is not None:
                 vals[f"inbox{i}_skipped"] = b.skipped
@@ -366,17 +368,27 @@ class ServiceRuntime:
             if item is None:
                 self.wait(0.2)
                 continue
-            try:
-                msg = decode(item[1])
-            except WireError as e:
-                errors["decode_errors"] += 1
-                log.error("%s message on %s rejected: %s", expect, item[0], e)
-                continue
-            if msg.type not in (expect, "end"):
-                errors["decode_errors"] += 1
-                log.error("unexpected %s message on %s", msg.type, item[0])
-                continue
-            yield msg
+            msg = self.decode(item[0], item[1], (expect, "end"), errors)
+            if msg is not None:
+                yield msg
+
+    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], errors: dict[str, int]) -> Decoded | None:
+        """The message decoded, if it is one of the ``expect`` types and of this service's stream;
+        otherwise None, logged (naming the key, field and problem) and counted in ``errors["decode_errors"]``."""
+        try:
+            msg = decode(data)
+            if msg.stream != self.stream:
+                raise WireError(f"message of stream {msg.stream!r} on the key of stream {self.stream!r}",
+                                stream=msg.stream, seq=msg.seq, field="stream", type=msg.type)
+        except WireError as e:
+            errors["decode_errors"] += 1
+            log.error("%s message on %s rejected: %s", "/".join(expect), key_expr, e)
+            return None
+        if msg.type not in expect:
+            errors["decode_errors"] += 1
+            log.error("unexpected %s message on %s", msg.type, key_expr)
+            return None
+        return msg
 
     def contained(self, what: str, errors: dict[str, int]) -> "_Contained":
         """Context for processing one message: an unexpected exception (a bug or an input no check

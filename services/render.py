@@ -28,7 +28,7 @@ from quick_stream.meters import Percentiles, RateMeter
 from quick_stream.runtime import ServiceRuntime, service_main, service_parser
 from quick_stream.sinks import BackgroundSink, VideoSink
 from quick_stream.stages import ReleaseGroups, RenderStage, StabilizedFrame
-from quick_stream.wire import StabilizedImage, WireError, decode, encode_end, encode_stabilized
+from quick_stream.wire import StabilizedImage, encode_end, encode_stabilized
 
 log = logging.getLogger("render")
 
@@ -108,19 +108,10 @@ def run(args, conf: zenoh.Config) -> int:
                 meter.add((time.perf_counter() - t0) * 1e3)
                 rt.maybe_stats(stats)
 
-        def take_frame(data: bytes) -> None:
+        def take_frame(key_expr: str, data: bytes) -> None:
             nonlocal newest
-            try:
-                msg = decode(data)  # now, not in the burst when the segment's corrections come
-            except WireError as e:
-                errors["decode_errors"] += 1
-                log.error("frame message rejected: %s", e)
-                return
-            if msg.type == "end":
-                return
-            if msg.type != "frame":
-                errors["decode_errors"] += 1
-                log.error("unexpected %s message on frame", msg.type)
+            msg = rt.decode(key_expr, data, ("frame", "end"), errors)  # now, not in the burst of a segment's corrections
+            if msg is None or msg.type == "end":
                 return
             if resume_after is not None and msg.seq <= resume_after:  # rendered before the restart
                 errors["taken_over"] += 1
@@ -140,7 +131,7 @@ def run(args, conf: zenoh.Config) -> int:
             """Take what arrived (while a batch renders, frames keep coming: hold or drop them now)."""
             while (item := frames_in.pop()) is not None:
                 with rt.contained("frame message", errors):
-                    take_frame(item[1])
+                    take_frame(item[0], item[1])
 
         def render_ready(force: bool) -> None:
             while releases.ready:
@@ -164,12 +155,7 @@ def run(args, conf: zenoh.Config) -> int:
             item = corr_in.pop()
             if item is not None:
                 got = True
-                try:
-                    msg = decode(item[1])
-                except WireError as e:
-                    errors["decode_errors"] += 1
-                    log.error("correction message rejected: %s", e)
-                    msg = None
+                msg = rt.decode(item[0], item[1], ("correction", "end"), errors)
                 if msg is not None and msg.type == "correction":
                     if resume_after is None or msg.seq > resume_after:
                         releases.add(msg.obj, msg.extra.get("batch"))

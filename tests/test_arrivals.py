@@ -1,14 +1,32 @@
 """The recorder's account of seqs that never arrived (quick_stream/arrivals.py)."""
 from __future__ import annotations
 
+import numpy as np
+import pytest
+
 from quick_stream.arrivals import ArrivalLedger
+from quick_stream.sources.synthetic import SyntheticSource
+from quick_stream.wire import EndOfStream, StabilizedImage, Stats, encode_end, encode_frame, encode_stabilized, encode_stats
 from quick_stream.wire.codec import pack
 
 KEY = "quick/@v1/cam0/stabilized"
+_FRAME = next(iter(SyntheticSource(width=64, height=48, frames=1)))
+_IMAGE = np.zeros((48, 64, 3), np.uint8)
 
 
-def msg(seq: int, type: str = "stabilized") -> bytes:
-    return pack({}, type, "cam0", seq)
+def msg(seq: int, type: str = "stabilized", stream: str = "cam0") -> bytes:
+    """A valid message of ``type`` (the ledger accounts only those)."""
+    if type == "stabilized":
+        return encode_stabilized(StabilizedImage(seq, 0, _IMAGE, 1.0, []), stream)
+    if type == "frame":
+        return encode_frame(_FRAME.with_(seq=seq), stream)
+    if type == "stats":
+        return encode_stats(Stats("render", {}), stream, seq)
+    if type == "end":
+        return encode_end(EndOfStream(seq, "test"), stream)
+    if type == "flow":  # an envelope is enough for the accounting itself
+        return pack({}, "flow", stream, seq)
+    raise ValueError(type)
 
 
 def test_a_skipped_run_is_one_gap_counted_per_seq():
@@ -31,7 +49,7 @@ def test_stages_and_streams_are_separate_and_stats_are_not_counted():
     led = ArrivalLedger()
     for s in (0, 2):
         led.add("quick/@v1/cam0/frame", msg(s, "frame"))
-        led.add("quick/@v1/cam1/frame", msg(s * 2, "frame"))
+        led.add("quick/@v1/cam1/frame", msg(s * 2, "frame", stream="cam1"))
         led.add("quick/@v1/cam0/stats", msg(s * 5, "stats"))
     assert led.unreceived() == {"frame": 1 + 3}
 
@@ -60,6 +78,20 @@ def test_an_end_past_the_stages_last_seq_is_not_a_loss():
     frame stream's end marker, seq 299 (the soak's false "flow 18150 never arrived")."""
     led = ArrivalLedger()
     for s in range(299):
-        led.add("quick/@v1/cam0/flow", msg(s, "flow"))
+        led.account("quick/@v1/cam0/flow", "flow", s)
     assert led.add("quick/@v1/cam0/flow", msg(299, "end")) is None
     assert led.unreceived() == {}
+
+
+@pytest.mark.parametrize("bad", [
+    pack({}, "stabilized", "cam0", 10**12),  # a valid envelope, no image: the poison of a far-future seq
+    msg(10**12, "stabilized", stream="cam9"),  # another stream's message on cam0's key
+    msg(10**12, "frame"),  # a frame on the stabilized key
+    msg(10**12).replace(b"\xa1v\x01", b"\xa1v\x02"),  # format version 2
+])
+def test_a_message_that_fails_the_check_moves_nothing(bad):
+    led = ArrivalLedger()
+    led.add(KEY, msg(7))
+    assert led.add(KEY, bad) is None
+    assert led.newest() == {("cam0", "stabilized"): 7} and led.invalid == 1 and led.last_error
+    assert led.add(KEY, msg(8)) is None and led.unreceived() == {}  # the stream goes on, no gap

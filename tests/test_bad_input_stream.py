@@ -62,7 +62,7 @@ def bad_stream() -> tuple[list[bytes], dict[int, str]]:
                                 "cam0", color="raw", depth="zstd")
     k = frames[60].intrinsics
     zoomed = Intrinsics(k.fx * 1.05, k.fy * 1.05, k.cx, k.cy, k.width, k.height)
-    defects = {10: "garbage", 14: "truncated", 18: "version", 22: "dtype", 26: "shape", 30: "nan",
+    defects = {10: "garbage", 12: "poison", 14: "truncated", 16: "other stream", 18: "version", 22: "dtype", 26: "shape", 30: "nan",
                34: "wrong type", 35: "zero depth", 39: "black", 41: "saturated", 45: "duplicate",
                47: "out of order", 52: "missing", 53: "missing", 55: "timestamp jump",
                60: "intrinsics change", 65: "size change", 78: "oversized"}
@@ -78,6 +78,10 @@ def bad_stream() -> tuple[list[bytes], dict[int, str]]:
             msg = enc[i]
         if d == "garbage":
             msg = b"\xc1\xff not msgpack at all"
+        elif d == "poison":  # a valid envelope with a far-future seq and nothing else, then the real frame 12
+            out.append(msgpack.packb({"v": 1, "type": "frame", "stream": "cam0", "seq": 10**12}))
+        elif d == "other stream":  # camera cam9's frame 16 on cam0's key, then cam0's frame 16
+            out.append(edit(msg, set_("stream", "cam9")))
         elif d == "truncated":
             msg = msg[: len(msg) // 2]
         elif d == "version":
@@ -146,8 +150,11 @@ def run(tmp_path_factory) -> tuple[Path, dict, dict, dict[str, str]]:
 def test_every_defect_is_counted_in_the_services_stats(run):
     _, stats, _, _ = run
     f, r, m = stats["flow"], stats["render"], stats["motion"]
-    # garbage, truncated, version, dtype, shape, NaN, oversized, a motion on the frame key
-    assert f["decode_errors"] == 8 and r["decode_errors"] == 8
+    # garbage, the far-future poison, truncated, another stream's frame, version, dtype, shape, NaN,
+    # oversized, a motion on the frame key
+    assert f["decode_errors"] == 10 and r["decode_errors"] == 10
+    # none of them reached the arrival ledgers (the restart cursors): failed the check on arrival
+    assert f["inbox0_invalid"] == 10 and r["inbox0_invalid"] == 10
     assert f["invalid_frames"] == 1  # all-zero depth
     assert f["duplicate_frames"] == 1 and f["out_of_order_frames"] == 1
     assert r["refused_frames"] == 2  # the duplicate and the late frame are not rendered twice
@@ -159,11 +166,12 @@ def test_every_defect_is_counted_in_the_services_stats(run):
     assert f["internal_errors"] == r["internal_errors"] == m["internal_errors"] == 0
     assert m["invalid_motions"] >= 6 and r["flagged"] >= 6
     assert r["resized_frames"] == N - 65  # the smaller frames letterboxed into the MP4's size
-    # the recorder's account of what never reached it: frames 10 (no readable envelope), 52 and
-    # 53 (never sent), and every frame the chain could not stabilize; 47 came late, 44 and 34 twice
+    # the recorder's account of what never reached it usable: frames 10, 14, 18, 22, 26, 30 (failed
+    # the check), 52 and 53 (never sent), and every frame the chain could not stabilize; 47 came
+    # late, 44 twice; the poison did not move the ledger (no gap up to 10^12)
     rec = stats["recorder"]
-    assert rec["unreceived_frame"] == 3 and rec["unreceived_stabilized"] == 9, rec
-    assert rec["late"] >= 1 and rec["duplicates"] >= 2, rec
+    assert rec["unreceived_frame"] == 8 and rec["unreceived_stabilized"] == 9, rec
+    assert rec["late"] >= 1 and rec["duplicates"] >= 1 and rec["inbox0_invalid"] == 10, rec
 
 
 def test_each_problem_is_logged_naming_what_was_wrong(run):
@@ -172,6 +180,8 @@ def test_each_problem_is_logged_naming_what_was_wrong(run):
     for text in ("not valid msgpack", "truncated message", "unsupported format version: expected 1, found 2",
                  "field 'depth.dtype'", "but intrinsics say 321x240", "field 'intrinsics.fx'",
                  f"exceeds max_bytes={DEFAULT_MAX_BYTES}", "[type 'motion', stream 'cam0', seq 34",
+                 "missing field [type 'frame', stream 'cam0', seq 1000000000000, field 'intrinsics']",
+                 "message of stream 'cam9' on the key of stream 'cam0'",
                  "frame 35", "depth has no valid pixel", "frame 44 (synthetic) is not after frame 44 (duplicate)",
                  "frame 47 (synthetic) is not after frame 48 (out of order)",
                  "capture time jumps by +5.033 s from frame 54 to 55",

@@ -3,13 +3,17 @@ import threading
 from types import SimpleNamespace
 
 from quick_stream.runtime import Inbox
-from quick_stream.wire import encode_end
+from quick_stream.sources.synthetic import SyntheticSource
+from quick_stream.wire import encode_end, encode_frame
 from quick_stream.wire.codec import pack, peek
 from quick_stream.wire.messages import EndOfStream
 
+FRAME = next(iter(SyntheticSource(width=64, height=48, frames=1)))
 
-def sample(seq: int, mtype: str = "frame"):
-    data = encode_end(EndOfStream(seq, "done"), "cam0") if mtype == "end" else pack({}, mtype, "cam0", seq)
+
+def sample(seq: int, mtype: str = "frame", data: bytes | None = None):
+    if data is None:
+        data = encode_end(EndOfStream(seq, "done"), "cam0") if mtype == "end" else encode_frame(FRAME.with_(seq=seq), "cam0")
     return SimpleNamespace(key_expr="quick/@v1/cam0/frame", payload=SimpleNamespace(to_bytes=lambda: data))
 
 
@@ -51,3 +55,33 @@ def test_end_markers_are_never_skipped():
     box.skip_through = 10
     box._on_sample(sample(3, "end"))
     assert len(box) == 1 and box.skipped == 0
+
+
+def test_a_message_that_fails_the_check_is_queued_but_never_skipped_or_accounted():
+    """A malformed frame with a far-future seq: its consumer still gets it (to log why it is refused),
+    but the skips and the arrival ledger (the restart cursor) never read its seq."""
+    box = Inbox(5, threading.Condition())
+    box.skip_through = 10
+    box._on_sample(sample(11))
+    box._on_sample(sample(0, data=pack({}, "frame", "cam0", 10**12)))
+    box._on_sample(sample(3))  # owed? no: <= skip_through, skipped
+    box._on_sample(sample(12))
+    assert len(box) == 3 and box.skipped == 1 and box.arrivals.invalid == 1
+    assert box.arrivals.newest() == {("cam0", "frame"): 12} and box.arrivals.unreceived() == {}
+
+
+def test_the_status_board_counts_bad_stats_messages_and_keeps_only_good_ones():
+    from quick_stream.launcher import StatusBoard
+    from quick_stream.wire import Stats, encode_stats
+
+    subs = []
+    board = StatusBoard(SimpleNamespace(declare_subscriber=lambda key, cb: subs.append(cb) or SimpleNamespace()))
+
+    def put(key: str, data: bytes) -> None:
+        subs[0](SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: data)))
+
+    put("quick/@v1/cam0/stats", encode_stats(Stats("flow", {"frames": 7}), "cam0", 0))
+    put("quick/@v1/cam0/stats", b"\xc1 garbage")
+    put("quick/@v1/cam0/stats", encode_stats(Stats("flow", {"frames": 10**12}), "cam9", 1))  # another stream's
+    put("quick/@v1/cam0/stats", encode_frame(FRAME, "cam0"))  # not a stats message
+    assert board.errors == 3 and board.snapshot() == {("cam0", "flow"): {"frames": 7}}

@@ -132,7 +132,8 @@ def status_lines(board: StatusBoard, sup: Supervisor, stream: str, t0: float) ->
 
 def write_status(path: Path, board: StatusBoard, sup: Supervisor, stream: str, reason: str | None) -> None:
     """Machine-readable live status (``<out>/logs/status.json``): pids, states, restarts, latest stats."""
-    doc = {"time": time.time(), "stream": stream, "stopped": reason, "events": sup.events, "services": {
+    doc = {"time": time.time(), "stream": stream, "stopped": reason, "events": sup.events,
+           "bad_stats_messages": board.errors, "services": {
         n: {"pid": sup.pid(n), "running": sup.running(n), "restarts": c.restarts, "finished": c.finished,
             "stats": board.get(stream, n)} for n, c in sup.children.items()}}
     tmp = path.with_suffix(".tmp")

@@ -19,6 +19,7 @@ from .messages import (
     EndOfStream,
     StabilizedImage,
     Stats,
+    check,
     decode,
     encode,
     encode_correction,
@@ -32,6 +33,6 @@ from .messages import (
 
 __all__ = [
     "DEFAULT_MAX_BYTES", "FORMAT_VERSION", "MESSAGE_TYPES", "Decoded", "EndOfStream", "StabilizedImage", "Stats",
-    "WireError", "decode", "dequantize_depth", "encode", "encode_correction", "encode_end", "encode_flow",
+    "WireError", "check", "decode", "dequantize_depth", "encode", "encode_correction", "encode_end", "encode_flow",
     "encode_frame", "encode_motion", "encode_stabilized", "encode_stats", "quantize_depth",
 ]

@@ -149,6 +149,7 @@ class Reader:
     seq: int | None = None
     prefix: str = ""
     type: str | None = None
+    pixels: bool = True  # False: check every field, but leave images and depth maps undecoded (:func:`check`)
 
     def error(self, name: str, problem: str) -> WireError:
         return WireError(problem, stream=self.stream, seq=self.seq, field=self.prefix + name, type=self.type)
@@ -312,6 +313,8 @@ def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str]:
         raise m.error("data", "not a JPEG image (no SOF header)")
     if size != (shape[1], shape[0]):
         raise m.error("data", f"JPEG is {size[0]}x{size[1]} but shape says {shape[1]}x{shape[0]}")
+    if not r.pixels:
+        return np.broadcast_to(np.uint8(0), shape), enc
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     except cv2.error as e:
@@ -384,6 +387,8 @@ def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
     if enc == "raw":
         q = r.array(name, "<u2", 2, max_elems=MAX_IMAGE_SIDE**2)
         _check_side(m, q.shape)
+        if not r.pixels:
+            return np.broadcast_to(np.float32(0), q.shape), enc, scale
         return dequantize_depth(q, scale), enc, scale
     if enc != "zstd":
         raise m.error("enc", f"unknown depth encoding {enc!r} (expected 'raw' or 'zstd')")
@@ -399,6 +404,8 @@ def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
         if params.content_size != want:
             raise m.error("data", f"zstd content size {params.content_size} does not match "
                                   f"dtype <u2 x shape {shape} = {want} bytes")
+        if not r.pixels:
+            return np.broadcast_to(np.float32(0), shape), enc, scale
         raw = zstandard.ZstdDecompressor(max_window_size=_ZSTD_MAX_WINDOW).decompress(data, max_output_size=want)
     except zstandard.ZstdError as e:
         raise m.error("data", f"zstd decompression failed: {e}") from None
