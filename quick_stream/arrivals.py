@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from . import keys
+from .continuity import JumpGuard
 from .wire import WireError, check
 
 
@@ -27,6 +28,7 @@ class _Stage:
     newest: int = -1
     missing: set[int] = field(default_factory=set)
     unreceived: int = 0  # seqs skipped and not (yet) filled: the stage's count
+    jumps: JumpGuard = field(default_factory=JumpGuard)  # a far-future seq moves nothing until confirmed
 
 
 @dataclass
@@ -53,6 +55,7 @@ class ArrivalLedger:
         self.late = 0  # arrived after a higher seq (filled a gap)
         self.duplicates = 0  # arrived again (a restarted publisher republishing, a replay)
         self.invalid = 0  # failed the check: not accounted
+        self.jumps = 0  # far ahead of the stage's newest and not (yet) confirmed by a run: not accounted
         self.last_error: str | None = None  # why the newest invalid one failed
 
     def checked(self, key_expr: str, payload: bytes) -> tuple[str, int] | None:
@@ -88,6 +91,9 @@ class ArrivalLedger:
             return None
         if st.newest < 0:  # the first message of this stage we see: nothing before it is ours to miss
             st.newest = seq
+            return None
+        if seq > st.newest and not st.jumps.admit(st.newest, seq):
+            self.jumps += 1  # one far-future seq (a glitch, a stray publisher) is not the stage's newest
             return None
         if seq > st.newest:
             gap = None

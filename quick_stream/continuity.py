@@ -14,6 +14,10 @@ stage asks :class:`ContinuityCheck` about every frame against the previous good 
   the flow stage emits an empty flow naming the reason, so the motion is invalid, the
   path restarts at that frame and the frames are flagged (design note section 5: the
   fallback when no motion can be measured).
+* **jumps**: a seq more than ``max_jump`` frames ahead of the previous good frame is refused
+  unless ``confirm`` such frames in a row, each following the last, confirm a new numbering
+  (then it is a break): one message with a far-future seq (a glitch, a stray publisher) must
+  not make every later frame look out of order and halt the stream (:class:`JumpGuard`).
 * **notes**: repaired depth (non-finite values set invalid) and changed intrinsics
   (flow lifts each frame with its own, so it still bridges) are reported, not fatal.
 
@@ -27,7 +31,7 @@ from dataclasses import dataclass, field
 from .frame import FrameError, RGBDFrame
 
 COUNTERS = ("invalid_frames", "repaired_frames", "duplicate_frames", "out_of_order_frames", "missing_frames",
-            "seq_gaps", "timestamp_jumps", "size_changes", "intrinsics_changes", "breaks")
+            "seq_gaps", "seq_jumps", "timestamp_jumps", "size_changes", "intrinsics_changes", "breaks")
 
 
 class FrameRefused(ValueError):
@@ -40,10 +44,14 @@ class ContinuityParams:
 
     max_missing: int = 4  # frames missing between two frames that flow still bridges
     max_gap_s: float = 0.5  # capture time between two frames that flow still bridges
+    max_jump: int = 300  # a seq further ahead than this (10 s at 30 fps) needs confirming (JumpGuard)
+    confirm: int = 5  # consecutive frames of a new numbering that confirm a jump
 
     def validate(self) -> None:
         if self.max_missing < 0:
             raise ValueError(f"max_missing must be >= 0, got {self.max_missing}")
+        if self.max_jump <= self.max_missing or self.confirm < 2:
+            raise ValueError(f"max_jump must be > max_missing and confirm >= 2, got {self.max_jump}, {self.confirm}")
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise ValueError(f"max_gap_s must be a finite number > 0, got {self.max_gap_s}")
 
@@ -56,6 +64,36 @@ class Verdict:
     notes: list[str] = field(default_factory=list)
 
 
+class JumpGuard:
+    """Admits a seq far ahead of the newest accepted one only once a new numbering is confirmed.
+
+    ``admit(newest, seq)``: True for a seq at most ``max_jump`` ahead of ``newest`` (or behind it:
+    the caller's own rule), and for the ``confirm``-th of consecutive far-ahead seqs that each follow
+    the previous one by 1..``step`` (a camera or capture that really renumbered); False for the
+    others, so one message with a far-future seq is refused instead of becoming the newest and
+    making every later one look out of order. An admitted ordinary seq ends a run.
+    """
+
+    def __init__(self, max_jump: int = 300, confirm: int = 5, step: int = 5) -> None:
+        self.max_jump, self.confirm, self.step = max_jump, confirm, step
+        self._run: list[int] = []
+        self.refused = 0
+
+    def admit(self, newest: int | None, seq: int) -> bool:
+        if newest is None or seq - newest <= self.max_jump:
+            self._run.clear()
+            return True
+        if self._run and 0 < seq - self._run[-1] <= self.step:
+            self._run.append(seq)
+        else:
+            self._run = [seq]
+        if len(self._run) >= self.confirm:
+            self._run.clear()
+            return True
+        self.refused += 1
+        return False
+
+
 class ContinuityCheck:
     """Checks each frame against the previous good one and counts what it finds (one per stream)."""
 
@@ -63,6 +101,7 @@ class ContinuityCheck:
         self.params = params or ContinuityParams()
         self.params.validate()
         self.counts = dict.fromkeys(COUNTERS, 0)
+        self.jumps = JumpGuard(self.params.max_jump, self.params.confirm, self.params.max_missing + 1)
 
     def inspect(self, prev: RGBDFrame | None, frame: RGBDFrame) -> Verdict:
         """Verdict on ``frame`` following ``prev`` (None: the first frame); raises :class:`FrameRefused`."""
@@ -72,6 +111,11 @@ class ContinuityCheck:
             c[kind] += 1
             raise FrameRefused(f"{frame.label} is not after frame {prev.seq} "
                                f"({'duplicate' if frame.seq == prev.seq else 'out of order'})")
+        if not self.jumps.admit(None if prev is None else prev.seq, frame.seq):
+            c["seq_jumps"] += 1
+            raise FrameRefused(f"{frame.label} is {frame.seq - prev.seq} frames ahead of frame {prev.seq} "
+                               f"(more than {self.params.max_jump}): refused unless {self.params.confirm} "
+                               "frames in a row continue the new numbering")
         n_notes = len(frame.notes)
         try:
             frame.validate()

@@ -29,7 +29,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .continuity import ContinuityCheck, ContinuityParams
+from .continuity import ContinuityCheck, ContinuityParams, JumpGuard
 from .frame import RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .motion_pipeline import StageTimer
@@ -203,15 +203,23 @@ class RenderStage:
         self._past: list[FillSource] = []  # the last fill_frames rendered frames the border fill can read
         self.filled = 0  # frames whose border was filled from neighbours
         self.fill_raised = 0  # frames zoomed in beyond their plan because fill left a border
+        self.jumps = JumpGuard()  # the flow stage's defaults: what it refuses gets no correction
+        self._newest: int | None = None  # the newest frame taken
 
     @property
     def buffered(self) -> int:
         return len(self._frames)
 
     def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader) -> None:
-        """Buffer a frame (or its loader) until its correction arrives."""
+        """Buffer a frame (or its loader) until its correction arrives. Refused (ValueError): one not
+        after the newest buffered, and one far ahead of the newest taken that no run of frames
+        confirms (:class:`~quick_stream.continuity.JumpGuard`, as the flow stage does)."""
         if self._frames and seq <= next(reversed(self._frames)):
             raise ValueError(f"frame {seq} is not after the newest buffered frame (out of order or duplicate)")
+        if not self.jumps.admit(self._newest, seq):
+            raise ValueError(f"frame {seq} is {seq - self._newest} frames ahead of frame {self._newest} "
+                             f"(more than {self.jumps.max_jump}): refused unless frames in a row continue from it")
+        self._newest = seq
         self._frames[seq] = frame
         if isinstance(frame, RGBDFrame):
             self._prepared[seq] = prepare_warp(frame, self.warp)

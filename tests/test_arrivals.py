@@ -95,3 +95,13 @@ def test_a_message_that_fails_the_check_moves_nothing(bad):
     assert led.add(KEY, bad) is None
     assert led.newest() == {("cam0", "stabilized"): 7} and led.invalid == 1 and led.last_error
     assert led.add(KEY, msg(8)) is None and led.unreceived() == {}  # the stream goes on, no gap
+
+
+def test_a_far_future_seq_moves_nothing_until_a_run_confirms_a_new_numbering():
+    led = ArrivalLedger()
+    for s in (0, 1, 10**12, 2, 3):  # one valid message from the far future: not the stage's newest
+        led.add(KEY, msg(s))
+    assert led.newest() == {("cam0", "stabilized"): 3} and led.unreceived() == {} and led.jumps == 1
+    for s in range(5000, 5005):  # a publisher that really renumbered: taken on the 5th in a row
+        led.add(KEY, msg(s))
+    assert led.newest() == {("cam0", "stabilized"): 5004} and led.jumps == 1 + 4

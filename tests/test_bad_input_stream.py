@@ -62,7 +62,7 @@ def bad_stream() -> tuple[list[bytes], dict[int, str]]:
                                 "cam0", color="raw", depth="zstd")
     k = frames[60].intrinsics
     zoomed = Intrinsics(k.fx * 1.05, k.fy * 1.05, k.cx, k.cy, k.width, k.height)
-    defects = {10: "garbage", 12: "poison", 14: "truncated", 16: "other stream", 18: "version", 22: "dtype", 26: "shape", 30: "nan",
+    defects = {10: "garbage", 12: "poison", 14: "truncated", 16: "other stream", 20: "far future", 18: "version", 22: "dtype", 26: "shape", 30: "nan",
                34: "wrong type", 35: "zero depth", 39: "black", 41: "saturated", 45: "duplicate",
                47: "out of order", 52: "missing", 53: "missing", 55: "timestamp jump",
                60: "intrinsics change", 65: "size change", 78: "oversized"}
@@ -82,6 +82,8 @@ def bad_stream() -> tuple[list[bytes], dict[int, str]]:
             out.append(msgpack.packb({"v": 1, "type": "frame", "stream": "cam0", "seq": 10**12}))
         elif d == "other stream":  # camera cam9's frame 16 on cam0's key, then cam0's frame 16
             out.append(edit(msg, set_("stream", "cam9")))
+        elif d == "far future":  # a valid frame numbered 10^12, then the real frame 20
+            out.append(frame(i, seq=10**12))
         elif d == "truncated":
             msg = msg[: len(msg) // 2]
         elif d == "version":
@@ -157,7 +159,8 @@ def test_every_defect_is_counted_in_the_services_stats(run):
     assert f["inbox0_invalid"] == 10 and r["inbox0_invalid"] == 10
     assert f["invalid_frames"] == 1  # all-zero depth
     assert f["duplicate_frames"] == 1 and f["out_of_order_frames"] == 1
-    assert r["refused_frames"] == 2  # the duplicate and the late frame are not rendered twice
+    assert r["refused_frames"] == 3  # the far-future frame; the duplicate and the late frame are not rendered twice
+    assert f["seq_jumps"] == 1  # frame 10^12 refused: the stream went on from 19 (it used to halt for good)
     # frames the flow chain never got: the 6 undecodable ones, the zero-depth one, 47 (late), 52, 53
     assert f["missing_frames"] == 10
     assert f["timestamp_jumps"] == 1 and f["size_changes"] == 1
@@ -182,6 +185,7 @@ def test_each_problem_is_logged_naming_what_was_wrong(run):
                  f"exceeds max_bytes={DEFAULT_MAX_BYTES}", "[type 'motion', stream 'cam0', seq 34",
                  "missing field [type 'frame', stream 'cam0', seq 1000000000000, field 'intrinsics']",
                  "message of stream 'cam9' on the key of stream 'cam0'",
+                 "frame 1000000000000 (synthetic) is 999999999981 frames ahead of frame 19",
                  "frame 35", "depth has no valid pixel", "frame 44 (synthetic) is not after frame 44 (duplicate)",
                  "frame 47 (synthetic) is not after frame 48 (out of order)",
                  "capture time jumps by +5.033 s from frame 54 to 55",

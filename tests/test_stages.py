@@ -122,3 +122,42 @@ def test_release_groups_hand_over_releases_whose_sender_died():
     g.add(c(20), (5, 0, 2))
     g.add(c(21), (5, 0, 2))  # an index already there: a new release under a reused number
     assert g.abandoned == 2
+
+
+def test_render_refuses_one_far_future_frame_and_follows_a_confirmed_renumbering():
+    from quick_stream.stages import RenderStage
+    from quick_stream.sources.synthetic import SyntheticSource
+
+    fr = next(iter(SyntheticSource(width=64, height=48, frames=1)))
+    st = RenderStage()
+    st.add_frame(0, fr)
+    with pytest.raises(ValueError, match="frames ahead of frame 0"):
+        st.add_frame(10**12, fr)
+    st.add_frame(1, fr)  # the stream goes on
+    for s in range(9000, 9004):
+        with pytest.raises(ValueError, match="ahead"):
+            st.add_frame(s, fr)
+    st.add_frame(9004, fr)  # the fifth in a row: a new numbering
+    assert st.buffered == 3
+
+
+def test_flow_refuses_one_far_future_frame_and_breaks_at_a_confirmed_renumbering():
+    """One frame from the far future used to become the previous frame, so every later one was
+    refused as out of order and the stream halted for good."""
+    from quick_stream.continuity import FrameRefused
+    from quick_stream.sources.synthetic import SyntheticSource
+
+    frames = list(SyntheticSource(width=64, height=48, frames=12))
+    st = FlowStage()
+    st.push(frames[0])
+    with pytest.raises(FrameRefused, match="frames ahead of frame 0"):
+        st.push(frames[1].with_(seq=10**12))
+    f = st.push(frames[1])  # the stream goes on from frame 0
+    assert (f.seq, f.seq_next, f.problem) == (0, 1, "")
+    renumbered = [frames[2 + i].with_(seq=7000 + i) for i in range(5)]
+    for fr in renumbered[:4]:
+        with pytest.raises(FrameRefused, match="ahead"):
+            st.push(fr)
+    f = st.push(renumbered[4])  # the fifth in a row: a discontinuity, the path restarts there
+    assert (f.seq, f.seq_next) == (1, 7004) and "missing" in f.problem
+    assert st.check.counts["seq_jumps"] == 5
