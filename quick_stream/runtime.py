@@ -41,6 +41,7 @@ import zenoh.ext
 from . import keys
 from .arrivals import ArrivalLedger, Gap
 from .wire import Decoded, Stats, WireError, decode, encode_stats
+from .wire.codec import set_max_image_side
 
 log = logging.getLogger(__name__)
 
@@ -443,8 +444,14 @@ def service_parser(service: str, description: str | None) -> argparse.ArgumentPa
     p.add_argument("--stream", type=stream_id, default="cam0",
                    help="stream (camera) id, 1-64 of [A-Za-z0-9_-]; one per camera (default cam0)")
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.add_argument("--max-frame-side", type=int, default=int(os.environ.get(MAX_SIDE_ENV, 4096)), metavar="PX",
+                   help=f"largest image width or height accepted, checked from the header before decoding "
+                   f"(default 4096, or ${MAX_SIDE_ENV})")
     add_zenoh_args(p)
     return p
+
+
+MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"
 
 
 TRIM_EVERY = 10  # stats periods (about 10 s)
@@ -512,6 +519,8 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
         return code
     cv2.setNumThreads(1)
     try:
+        if hasattr(args, "max_frame_side"):
+            set_max_image_side(args.max_frame_side)
         conf = config_from_args(args)
         check_outputs(args)
         if check is not None:

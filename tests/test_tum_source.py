@@ -202,6 +202,11 @@ def _break(root: Path, case: str) -> str:
     if case == "depth wrong size":
         cv2.imwrite(str(root / "depth/001.png"), np.full((H - 1, W), 1000, np.uint16))
         return "001.png"
+    if case == "depth declares 20000x20000":  # a small file whose header asks for 1.6 GB: never decoded
+        png = bytearray((root / "depth/001.png").read_bytes())
+        png[16:24] = (20000).to_bytes(4, "big") * 2
+        (root / "depth/001.png").write_bytes(bytes(png))
+        return "001.png"
     if case == "depth wrong dtype":
         cv2.imwrite(str(root / "depth/001.png"), np.full((H, W), 100, np.uint8))
         return "001.png"
@@ -233,7 +238,7 @@ def _break(root: Path, case: str) -> str:
 
 BAD_CASES = [
     "missing colour", "unreadable colour", "missing depth", "unreadable depth",
-    "depth wrong size", "depth wrong dtype", "depth 3 channels", "depth all zero",
+    "depth wrong size", "depth declares 20000x20000", "depth wrong dtype", "depth 3 channels", "depth all zero",
     "float depth all non-finite", "colour wrong size", "timestamp out of order",
 ]
 
@@ -255,6 +260,8 @@ def test_bad_frame_is_yielded_and_iteration_continues(tmp_path, caplog, case):
     else:
         assert "rgb.txt:5" in bad.error and "out of order" in bad.error
     assert [f.seq for f in frames] == [0, 1, 2, 3]
+    if case == "depth declares 20000x20000":
+        assert "20000x20000 (from its header; not decoded)" in bad.error
     warned = [r for r in caplog.records if r.levelno == logging.WARNING and fname in r.getMessage()]
     assert warned
     assert isinstance(src.frame(1), BadFrame)  # random access agrees

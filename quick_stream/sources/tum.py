@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from ..frame import BadFrame, FrameError, Intrinsics, RGBDFrame
+from ..wire.codec import jpeg_size
 from .base import FrameOrGap, SourceError
 from .trajectory import TrajectoryError, poses_at, read_tum_trajectory
 
@@ -226,10 +227,10 @@ class TumSource:
         if depth_scale is not None:
             vals["depth_scale"] = depth_scale
         if ("width" not in vals or "height" not in vals) and all(k in vals for k in ("fx", "fy", "cx", "cy")):
-            img = cv2.imread(str(self.path / first_rgb), cv2.IMREAD_UNCHANGED)
-            if img is not None:  # image size is not calibration: take it from the data
-                vals.setdefault("width", img.shape[1])
-                vals.setdefault("height", img.shape[0])
+            size = image_header_size(self.path / first_rgb)  # image size is not calibration: from the data
+            if size is not None:
+                vals.setdefault("width", size[0])
+                vals.setdefault("height", size[1])
         missing = [k for k in (*_INTRINSIC_KEYS, "depth_scale") if k not in vals]
         if missing:
             raise SourceError(
@@ -323,9 +324,19 @@ class TumSource:
             log.warning("%s: frame %d: %s", self.name, seq, msg)
             return BadFrame(seq, ts_ns, origin, msg)
 
+    def _check_header(self, p: Path, what: str) -> None:
+        """Refuse an image whose header declares another size than the intrinsics' before decoding
+        it (a 760 KiB PNG can declare 20000x20000: 1.6 GB decoded)."""
+        size = image_header_size(p)
+        W, H = self.intrinsics.width, self.intrinsics.height
+        if size is not None and size != (W, H):
+            raise FrameError(f"{p}: {what} is {size[0]}x{size[1]} (from its header; not decoded), "
+                             f"intrinsics are for {W}x{H}")
+
     def _read_color(self, p: Path) -> np.ndarray:
         if not p.is_file():
             raise FrameError(f"{p}: colour image not found")
+        self._check_header(p, "colour image")
         img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise FrameError(f"{p}: cannot decode colour image")
@@ -348,6 +359,7 @@ class TumSource:
     def _read_depth(self, p: Path, color_shape: tuple[int, ...]) -> np.ndarray:
         if not p.is_file():
             raise FrameError(f"{p}: depth image not found")
+        self._check_header(p, "depth image")
         raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise FrameError(f"{p}: cannot decode depth image")
@@ -367,3 +379,19 @@ class TumSource:
             if not np.any(np.isfinite(depth) & (depth > 0)):
                 raise FrameError(f"{p}: depth has no valid pixel (all zero or invalid)")
         return depth
+
+
+def image_header_size(p: Path) -> tuple[int, int] | None:
+    """(width, height) a PNG or JPEG file declares in its header, without decoding it; None if
+    the file is neither (or unreadable: the decoder then says why)."""
+    try:
+        with open(p, "rb") as f:
+            head = f.read(24)
+            if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+                return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+            if head[:2] == b"\xff\xd8":
+                f.seek(0)
+                return jpeg_size(f.read(1 << 22))  # the SOF comes before the image data
+    except OSError:
+        return None
+    return None

@@ -23,7 +23,16 @@ FORMAT_VERSION = 1
 MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1.0, 1e6  # raw depth units per metre (mm = 1000, TUM = 5000)
 MESSAGE_TYPES = ("frame", "flow", "motion", "correction", "stabilized", "stats", "end")
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
-MAX_IMAGE_SIDE = 16384  # decoded images larger than this in either dimension are rejected
+MAX_IMAGE_SIDE = 4096  # images larger in either dimension are refused from their header, before decoding
+
+
+def set_max_image_side(side: int) -> None:
+    """Change the largest image side this process accepts (a service's ``--max-frame-side``): a
+    640x480 stream has no use for an 8192x8192 frame, whose decode alone costs ~200 MB."""
+    global MAX_IMAGE_SIDE
+    if not 16 <= int(side) <= 16384:
+        raise ValueError(f"max frame side must be in 16..16384, got {side}")
+    MAX_IMAGE_SIDE = int(side)
 MAX_LIST_LEN = 100_000  # msgpack arrays (lists); bulk data travels as bin, not lists
 MAX_MAP_LEN = 10_000
 MAX_STR_LEN = 1024 * 1024
