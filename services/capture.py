@@ -13,6 +13,7 @@ first frame until the named services are up, so a run loses nothing at start-up.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 import threading
 import time
@@ -132,7 +133,25 @@ def run(args, conf: zenoh.Config) -> int:
         log.error("%s", e)
         return 2
     depth_scale = float(getattr(source, "depth_scale", 1000.0))
+    if callable(getattr(source, "open", None)):  # a live device: there, or a clear error before the stream
+        stopping = threading.Event()
+        source.stop = stopping
+        prev = signal.signal(signal.SIGTERM, lambda *_: stopping.set())  # retries give up at once
+        try:
+            source.open()
+        except Exception as e:  # noqa: BLE001 - NoDevice, depthai's errors: the camera cannot be used
+            if stopping.is_set():
+                log.info("stopped while opening %s", args.source)
+                return 0
+            log.error("source %s cannot be opened: %s", args.source, e)
+            return 2  # a configuration problem: the supervisor does not restart it
+        finally:
+            signal.signal(signal.SIGTERM, prev)
+        if stopping.is_set():
+            return 0
     with ServiceRuntime("capture", args.stream, conf) as rt:
+        if hasattr(source, "stop"):
+            source.stop = rt.stop  # reconnection retries end when the service is asked to stop
         pub = rt.publisher("frame", lossless=True, cache=args.history)  # lost only where counted (inboxes)
         rt.ready()
         wait = [s for s in args.wait_for.split(",") if s]

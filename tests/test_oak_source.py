@@ -7,6 +7,7 @@ out of a host-only depthai pipeline (``ReplayVideo`` replaying an MP4, no device
 from __future__ import annotations
 
 import datetime
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -240,3 +241,43 @@ def test_real_backend_without_a_camera_says_no_device_found():
     r = subprocess.run([sys.executable, "-m", "services.capture", "--list-devices"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 1 and "no OAK device found" in r.stdout
+
+
+def test_up_refuses_a_camera_that_is_not_connected_before_starting_anything(tmp_path, monkeypatch):
+    from quick_stream.sources import check_source
+    from quick_stream.sources import oak_device
+
+    r = subprocess.run([sys.executable, "-m", "quick_stream", "up", "--quiet", "--out", str(tmp_path / "o"),
+                        "--source", "depthai"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "no OAK device found" in r.stderr, r.stdout + r.stderr
+    assert not (tmp_path / "o" / "logs").exists()  # no process was started
+    monkeypatch.setattr(oak_device, "list_devices", lambda: [{"id": "184430101153051300", "name": "oak-d"}])
+    check_source("depthai")  # one is connected: fine
+    with pytest.raises(SourceError, match="no OAK device '1944301011'; connected: 184430101153051300"):
+        check_source("depthai:1944301011")
+
+
+def test_a_capture_that_cannot_open_its_camera_fails_up_and_is_not_restarted(tmp_path):
+    spec = "depthai:fake0,fake=absent:0,retries=1"
+    r = subprocess.run([sys.executable, "-m", "quick_stream", "up", "--quiet", "--out", str(tmp_path), "--source", spec],
+                       capture_output=True, text=True, timeout=180)
+    assert r.returncode == 1 and "stopped: capture failed (see logs/capture.log)" in r.stdout, r.stdout + r.stderr
+    assert "capture exited 2 (configuration error), not restarted" in r.stdout and "restarted" not in \
+        r.stdout.replace("not restarted", "")
+    log = (tmp_path / "logs" / "capture.log").read_text()
+    assert "cannot be opened" in log and "no such device" in log
+
+
+def test_a_capture_retrying_its_camera_stops_at_once_on_sigterm():
+    spec = "depthai:fake0,fake=absent:0,retries=1000"  # would retry for more than an hour
+    p = subprocess.Popen([sys.executable, "-m", "services.capture", "--source", spec], stderr=subprocess.PIPE,
+                         text=True)
+    try:
+        for line in p.stderr:  # wait for the event itself: a second attempt has failed
+            if "open failed (attempt 2 of 1001)" in line:
+                break
+        p.send_signal(signal.SIGTERM)
+        rest = p.communicate(timeout=120)[1]  # a hang guard only: it stops within its next wait
+    finally:
+        p.kill()
+    assert p.returncode == 0 and "stopped while opening" in rest, rest

@@ -183,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
     tty = sys.stdout.isatty() and not args.quiet
     shown = 0
     reason = "?"
+    failed: list[str] = []
     try:
         while True:
             time.sleep(0.25)
@@ -198,8 +199,9 @@ def run(args: argparse.Namespace) -> int:
             if args.duration is not None and time.monotonic() - t0 >= args.duration:
                 reason = f"--duration {args.duration:g} s"
                 break
-            if sup.children["capture"].finished and sup.children["capture"].exits[-1][1] != 0:
-                reason = "capture failed (see logs/capture.log)"
+            failed = [n for n, c in sup.children.items() if c.finished and c.exits and c.exits[-1][1] != 0]
+            if failed:  # not restarted: a configuration error (exit 2: no camera, a bad flag) or too many crashes
+                reason = f"{failed[0]} failed (see logs/{failed[0]}.log)"
                 break
             if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
                 lines = status_lines(board, sup, args.stream, t0)
@@ -225,4 +227,4 @@ def run(args: argparse.Namespace) -> int:
         print(f"event: {e['service']} {e['event']}")
     files = [out / "stabilized.mp4"] + ([] if args.no_record else sorted(set(out.glob("recording*.mcap")) - before))
     print("wrote " + ", ".join(str(f) for f in files if f.exists()) + f" (logs in {out / 'logs'})")
-    return 0 if reason != "capture failed (see logs/capture.log)" else 1
+    return 1 if failed else 0

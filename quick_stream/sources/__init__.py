@@ -80,8 +80,8 @@ def open_source(spec: str, **overrides: object) -> Source:
 
 def check_source(spec: str) -> None:
     """SourceError (as :func:`open_source` raises it) if ``spec`` cannot be opened. A live camera
-    (``depthai`` without ``fake``) is not opened, only its options are checked: the process that
-    will use it must be the one to open it."""
+    (``depthai`` without ``fake``) is not opened (the process that will use it must be the one to
+    open it): its options are checked and the device must be listed as connected."""
     kind, _, rest = spec.partition(":")
     if kind.strip().lower() == "depthai":
         positional, options = _split_options(rest)
@@ -94,8 +94,27 @@ def check_source(spec: str) -> None:
                 oak_settings(options)
             except ValueError as e:
                 raise SourceError(f"source {spec!r}: {e}") from None
+            _check_oak_connected(spec, positional[0] if positional else "")
             return
     open_source(spec)
+
+
+def _check_oak_connected(spec: str, device: str) -> None:
+    """SourceError unless an OAK device (``device``, if named) is listed as connected (~1 s)."""
+    from .oak_device import list_devices
+
+    try:
+        found = list_devices()
+    except ImportError as e:
+        raise SourceError(f"source {spec!r}: {e}") from None
+    except Exception as e:  # noqa: BLE001 - depthai's own errors (USB access and the like)
+        raise SourceError(f"source {spec!r}: cannot list OAK devices: {type(e).__name__}: {e}") from None
+    if not found:
+        raise SourceError(f"source {spec!r}: no OAK device found (check the USB cable, the udev rule, or Docker's "
+                          "/dev/bus/usb mapping; `quick-stream capture --list-devices` lists what is connected)")
+    if device and device not in {d["id"] for d in found}:
+        raise SourceError(f"source {spec!r}: no OAK device {device!r}; connected: "
+                          + ", ".join(f"{d['id']} ({d['name']})" for d in found))
 
 
 __all__ = ["FrameOrGap", "SOURCE_KINDS", "Source", "SourceError", "check_source", "open_source"]

@@ -30,3 +30,7 @@ class Source(Protocol):
     def __len__(self) -> int: ...  # number of frames the source will yield (or will try to)
 
     def __iter__(self) -> Iterator[FrameOrGap]: ...
+
+    # Optional, for live devices: ``open()`` connects now (raising if there is no device) so a
+    # camera that is not there fails before the stream starts, and ``stop`` (a threading.Event)
+    # makes retries give up at once when the process is asked to stop.

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -204,6 +205,15 @@ class OakSource:
         self.retries, self.retry_delay_s, self.read_timeout_s = retries, retry_delay_s, read_timeout_s
         self.connections = 0
         self.reconnects: list[dict[str, Any]] = []
+        self.stop: threading.Event | None = None  # set (e.g. on SIGTERM): retrying gives up at once
+        self.backend_open = False  # opened by open(), not yet iterated
+
+    def open(self) -> None:
+        """Open the device now (retrying as configured), so a camera that is not there fails before
+        the stream starts (raises :class:`NoDevice`); iterating then uses this connection."""
+        if not self.backend_open:
+            self._connect()
+            self.backend_open = True
 
     def __len__(self) -> int:
         return self.frames if self.frames is not None else 1 << 62
@@ -221,13 +231,18 @@ class OakSource:
                 log.warning("depthai %s: open failed (attempt %d of %d): %s", self.backend.device_id,
                             attempt + 1, self.retries + 1, e)
                 if attempt < self.retries:
-                    time.sleep(delay)
+                    if self.stop is not None and self.stop.wait(delay):
+                        raise NoDevice(f"depthai {self.backend.device_id}: stopped while retrying ({e})") from None
+                    if self.stop is None:
+                        time.sleep(delay)
                     delay = min(delay * 2, 5.0)
         raise NoDevice(f"depthai {self.backend.device_id}: could not open after {self.retries + 1} attempts: {last}")
 
     def __iter__(self) -> Iterator[RGBDFrame | BadFrame]:
         seq, last_t = 0, 0
-        self._connect()
+        if not self.backend_open:
+            self._connect()
+        self.backend_open = False  # the next iteration connects again (this one closes it at its end)
         try:
             while self.frames is None or seq < self.frames:
                 try:

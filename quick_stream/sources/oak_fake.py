@@ -15,7 +15,8 @@ source spec (``fake=1``: none). Events:
 * ``late_depth``: the depth message arrives one read later than its colour;
 * ``intrinsics``: from this frame on the device crops, so fx, fy and cx, cy change;
 * ``disconnect``: the device drops before this frame; the next ``open`` fails once,
-  then the device comes back with its sequence numbers and clock restarted.
+  then the device comes back with its sequence numbers and clock restarted;
+* ``absent`` (frame 0): no device is ever found (every ``open`` fails).
 """
 from __future__ import annotations
 
@@ -26,10 +27,10 @@ from typing import Any
 import numpy as np
 
 from ..frame import quantize_depth
-from .oak import DeviceGone
+from .oak import DeviceGone, NoDevice
 from .synthetic import SyntheticSource
 
-EVENTS = ("drop_color", "drop_depth", "mismatch", "late_depth", "intrinsics", "disconnect")
+EVENTS = ("drop_color", "drop_depth", "mismatch", "late_depth", "intrinsics", "disconnect", "absent")
 
 
 class FakeTransformation:
@@ -112,6 +113,8 @@ class FakeOakBackend:
         return cls(script=parse_script(text), **kw)
 
     def open(self) -> None:
+        if "absent" in self.script.get(0, set()):
+            raise NoDevice(f"{self.device_id}: no such device (scripted: absent)")
         if self._fail_opens > 0:
             self._fail_opens -= 1
             raise DeviceGone(f"{self.device_id}: device not ready yet")
