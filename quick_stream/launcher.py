@@ -91,11 +91,11 @@ class Supervisor:
                     c.finished = True
                     self.events.append({"t": time.time(), "service": c.spec.name, "event": "finished"})
                     continue
-                if rc == 2:  # a usage or configuration error (a bad flag, no camera): a restart cannot mend it
+                if rc == 2:  # cannot go on (a bad flag, no camera, a full disk): a restart cannot mend it
                     c.finished = True
                     self.events.append({"t": time.time(), "service": c.spec.name,
-                                        "event": "exited 2 (configuration error), not restarted"})
-                    log.error("%s exited with 2 (configuration error, see its log); not restarting", c.spec.name)
+                                        "event": "exited 2 (cannot go on, see its log), not restarted"})
+                    log.error("%s exited with 2 (cannot go on, see its log); not restarting", c.spec.name)
                     continue
                 if not c.spec.restart or c.restarts >= self.max_restarts:
                     c.finished = True

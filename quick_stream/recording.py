@@ -197,6 +197,16 @@ class Recorder:
             finally:
                 self._file.close()
 
+    def abandon(self) -> None:
+        """Stop writing without a footer (the disk is full: writing one would fail too). The chunks
+        already on disk stay readable by :func:`recover`."""
+        if not self.closed:
+            self.closed = True
+            try:
+                self._file.close()
+            except OSError:
+                pass  # what was still buffered cannot be written either
+
     def __enter__(self) -> "Recorder":
         return self
 

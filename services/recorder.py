@@ -85,8 +85,18 @@ def run(args, conf: zenoh.Config) -> int:
                           flush_s=args.flush, compression=args.compression, chunk_size=4 << 20)
     with files, ServiceRuntime("recorder", args.stream, conf) as rt:
         meter = RateMeter()
-        errors = {"bad_keys": 0, "view_errors": 0, "internal_errors": 0}
+        errors = {"bad_keys": 0, "view_errors": 0, "internal_errors": 0, "unrecorded": 0}
         logged = {"bytes": 0}
+        failure: list[str] = []  # why the file cannot be written (a full disk, a file size limit)
+
+        def write_failed(e: OSError) -> None:  # under the lock
+            """The first failed write stops the recording, said once and clearly (docs/reliability.md)."""
+            if not failure:
+                failure.append(f"cannot write {files.rec.path}: {e.strerror or e}")
+                log.error("%s; recording stops here (what is on disk stays: `quick-stream recover %s` salvages "
+                          "it), and the recorder exits 2", failure[0], files.rec.path)
+                files.rec.abandon()
+                rt.stop.set()
         last_gap_log: dict[str, float] = {}
 
         def gap_seen(gap: Gap) -> None:  # zenoh's thread; one line per stage and second at most
@@ -107,7 +117,8 @@ def run(args, conf: zenoh.Config) -> int:
             with lock:
                 ledger = inbox.arrivals  # seqs of each stage that never arrived: no loss upstream is silent
                 unreceived = ledger.unreceived()
-                return {"state": "running", "messages": files.messages, "bytes": logged["bytes"],
+                return {"state": "error" if failure else "running", **({"error": failure[0]} if failure else {}),
+                        "messages": files.messages, "bytes": logged["bytes"],
                         "files": len(files.done) + 1, **errors, "unreceived": sum(unreceived.values()),
                         **{f"unreceived_{k}": v for k, v in unreceived.items()}, "late": ledger.late,
                         "duplicates": ledger.duplicates, **meter.take("log")}
@@ -124,10 +135,16 @@ def run(args, conf: zenoh.Config) -> int:
             t0 = time.perf_counter()
             with lock:
                 if files.rec.closed:
+                    errors["unrecorded"] += bool(failure)  # arrived after the recording failed
                     return
-                files.rec.write(key_expr, payload, log_time_ns=t_ns)
-                logged["bytes"] += len(payload)
-                wrote(len(payload))
+                try:
+                    files.rec.write(key_expr, payload, log_time_ns=t_ns)
+                    logged["bytes"] += len(payload)
+                    wrote(len(payload))
+                except OSError as e:
+                    errors["unrecorded"] += 1
+                    write_failed(e)
+                    return
                 meter.add((time.perf_counter() - t0) * 1e3)
             if (env := peek(payload)) is not None and env[0] == "end":
                 log.info("recorded the end of %s", key_expr)  # what a stage's last message was, for operators
@@ -143,7 +160,13 @@ def run(args, conf: zenoh.Config) -> int:
                 view = views[stream] = FoxgloveView(stream)
                 with lock:
                     streams.append(stream)
-                    foxglove.register_channels(files.rec, stream)
+                    if files.rec.closed:
+                        return
+                    try:
+                        foxglove.register_channels(files.rec, stream)
+                    except OSError as e:
+                        write_failed(e)
+                        return
             try:
                 converted = list(view.convert(stage, payload))
             except WireError as e:
@@ -151,15 +174,25 @@ def run(args, conf: zenoh.Config) -> int:
                 log.error("%s: no Foxglove view: %s", key_expr, e)
                 return
             with lock:
-                for topic, data in converted:
-                    files.rec.write(topic, data, log_time_ns=t_ns)
-                    wrote(len(data))
+                try:
+                    for topic, data in converted:
+                        if files.rec.closed:
+                            return
+                        files.rec.write(topic, data, log_time_ns=t_ns)
+                        wrote(len(data))
+                except OSError as e:
+                    write_failed(e)
 
         def flusher() -> None:
             while not rt.stop.wait(min(0.1, args.flush / 4)):
                 with lock:
-                    files.rec.maybe_flush()
-                    wrote(0)  # a time split is due even when nothing arrives
+                    if files.rec.closed:
+                        continue
+                    try:
+                        files.rec.maybe_flush()
+                        wrote(0)  # a time split is due even when nothing arrives
+                    except OSError as e:
+                        write_failed(e)
 
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
         inbox = rt.inbox(sub_key, args.queue, on_arrival=accept, on_gap=gap_seen)  # the queue feeds the views only
@@ -178,12 +211,12 @@ def run(args, conf: zenoh.Config) -> int:
         if not args.no_foxglove:  # stopping: the views of what was already received
             while (item := inbox.pop()) is not None:
                 view_one(*item)
-        rt.publish_stats({**stats(), "state": "stopped"})
-    log.info("closed %s: %d messages%s", files.rec.path, files.rec.messages,
+        rt.publish_stats({**stats(), "state": "error" if failure else "stopped"})
+    log.info("%s %s: %d messages%s", "abandoned" if failure else "closed", files.rec.path, files.rec.messages,
              f" ({len(files.done)} earlier files, {files.messages} messages in all)" if files.done else "")
     if unreceived := inbox.arrivals.unreceived():
         log.warning("never arrived, per stage: %s", unreceived)
-    return 0
+    return 2 if failure else 0  # 2: not restarted (docs/reliability.md: a full disk stops the run)
 
 
 def main(argv: list[str] | None = None) -> int:

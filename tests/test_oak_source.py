@@ -262,7 +262,7 @@ def test_a_capture_that_cannot_open_its_camera_fails_up_and_is_not_restarted(tmp
     r = subprocess.run([sys.executable, "-m", "quick_stream", "up", "--quiet", "--out", str(tmp_path), "--source", spec],
                        capture_output=True, text=True, timeout=180)
     assert r.returncode == 1 and "stopped: capture failed (see logs/capture.log)" in r.stdout, r.stdout + r.stderr
-    assert "capture exited 2 (configuration error), not restarted" in r.stdout and "restarted" not in \
+    assert "capture exited 2 (cannot go on, see its log), not restarted" in r.stdout and "restarted" not in \
         r.stdout.replace("not restarted", "")
     log = (tmp_path / "logs" / "capture.log").read_text()
     assert "cannot be opened" in log and "no such device" in log

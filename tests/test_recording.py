@@ -127,3 +127,30 @@ def test_split_recorder_splits_by_age(tmp_path, monkeypatch):
         assert rec.wrote(0) == base  # due even when nothing arrives
         rec.rec.write("t", b"b", log_time_ns=2)
     assert [len(list(read_messages(p))) for p in (base, tmp_path / "rec-1.mcap")] == [1, 1]
+
+
+def test_a_full_disk_stops_the_run_with_one_clear_error_and_a_recoverable_file(tmp_path):
+    """A file size limit (as a full disk): the recorder's flush thread died, every message printed a
+    traceback and its stats kept saying `running`. Now: one error naming the file and the cause,
+    `state: error` in its stats and in up's status, exit 2 (not restarted), up stops with exit 1,
+    and what reached the disk is recoverable."""
+    import json
+    import resource
+
+    limit = 12 << 20  # bytes per file: the recording passes it within seconds, the logs do not
+
+    def limit_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = tmp_path / "o"
+    r = subprocess.run([sys.executable, "-m", "quick_stream", "up", "--quiet", "--out", str(out), "--source",
+                        "synthetic:frames=3000,width=320,height=240"], capture_output=True, text=True,
+                       timeout=300, preexec_fn=limit_files)
+    assert r.returncode == 1 and "stopped: recorder failed (see logs/recorder.log)" in r.stdout, r.stdout + r.stderr
+    assert "recorder exited 2 (cannot go on, see its log), not restarted" in r.stdout
+    log = (out / "logs" / "recorder.log").read_text()
+    assert log.count("cannot write") == 1 and "File too large" in log and "Traceback" not in log, log
+    rec = json.loads((out / "logs" / "status.json").read_text())["services"]["recorder"]["stats"]
+    assert rec["state"] == "error" and "File too large" in rec["error"], rec
+    rep = recover(out / "recording.mcap", tmp_path / "fixed.mcap")
+    assert rep.messages > 100 and not rep.complete  # the chunks flushed before the failure survive

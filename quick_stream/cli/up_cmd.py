@@ -200,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
                 reason = f"--duration {args.duration:g} s"
                 break
             failed = [n for n, c in sup.children.items() if c.finished and c.exits and c.exits[-1][1] != 0]
-            if failed:  # not restarted: a configuration error (exit 2: no camera, a bad flag) or too many crashes
+            if failed:  # not restarted: cannot go on (exit 2: no camera, a bad flag, a full disk) or too many crashes
                 reason = f"{failed[0]} failed (see logs/{failed[0]}.log)"
                 break
             if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
