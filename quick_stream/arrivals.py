@@ -26,6 +26,7 @@ from .wire import WireError, check
 @dataclass
 class _Stage:
     newest: int = -1
+    first: int = -1  # the first seq accounted (or seeded)
     missing: set[int] = field(default_factory=set)
     unreceived: int = 0  # seqs skipped and not (yet) filled: the stage's count
     jumps: JumpGuard = field(default_factory=JumpGuard)  # a far-future seq moves nothing until confirmed
@@ -90,7 +91,7 @@ class ArrivalLedger:
                 self._ended[where[1]] = self._ended.get(where[1], 0) + ended.unreceived
             return None
         if st.newest < 0:  # the first message of this stage we see: nothing before it is ours to miss
-            st.newest = seq
+            st.newest = st.first = seq
             return None
         if seq > st.newest and not st.jumps.admit(st.newest, seq):
             self.jumps += 1  # one far-future seq (a glitch, a stray publisher) is not the stage's newest
@@ -112,6 +113,22 @@ class ArrivalLedger:
         else:
             self.duplicates += 1
         return None
+
+    def seed(self, stream: str, stage: str, newest: int) -> Gap | None:
+        """Start a stage's account at ``newest`` as if it had been received (a restarted recorder
+        continuing its predecessor's account): the next message reveals what came in between. If
+        messages of the stage already arrived, the hole before the first of them is returned."""
+        where = (stream, stage)
+        st = self._stages.get(where)
+        if st is None:
+            self._stages[where] = _Stage(newest=int(newest), first=int(newest))
+            return None
+        if st.first <= newest + 1:
+            return None
+        gap = Gap(stream, stage, newest + 1, st.first - 1)
+        st.unreceived += gap.count
+        st.first = int(newest)
+        return gap
 
     def newest(self) -> dict[tuple[str, str], int]:
         """Per (stream, stage): the highest seq received since that stage's last ``end``."""

@@ -37,7 +37,7 @@ from quick_stream import foxglove, keys
 from quick_stream.arrivals import Gap
 from quick_stream.cli import argtypes as at
 from quick_stream.foxglove_view import FoxgloveView
-from quick_stream.recording import SplitRecorder, fresh_path
+from quick_stream.recording import SplitRecorder, fresh_path, load_recorded, recorded_path, save_recorded
 from quick_stream.meters import RateMeter
 from quick_stream.runtime import ServiceRuntime, lower_priority, service_main, service_parser
 from quick_stream.wire import WireError
@@ -98,8 +98,20 @@ def run(args, conf: zenoh.Config) -> int:
                 files.rec.abandon()
                 rt.stop.set()
         last_gap_log: dict[str, float] = {}
+        # A restarted recorder continues its predecessor's account: what that one flushed (its side
+        # file, docs/reliability.md) up to what arrives now was published while no recorder ran.
+        before = load_recorded(args.output)
+        holes = {"messages": 0}
+
+        def hole(gap: Gap) -> None:
+            holes["messages"] += gap.count
+            log.warning("recorder restart: %s/%s seq %d-%d (%d) were published while no recorder ran and are in "
+                        "no recording", gap.stream, gap.stage, gap.first, gap.last, gap.count)
 
         def gap_seen(gap: Gap) -> None:  # zenoh's thread; one line per stage and second at most
+            if (gap.stream, gap.stage) in before and gap.first == before[(gap.stream, gap.stage)] + 1:
+                hole(gap)
+                return
             now = time.monotonic()
             if now - last_gap_log.get(gap.stage, -1e9) >= 1.0:
                 last_gap_log[gap.stage] = now
@@ -119,7 +131,7 @@ def run(args, conf: zenoh.Config) -> int:
                 unreceived = ledger.unreceived()
                 return {"state": "error" if failure else "running", **({"error": failure[0]} if failure else {}),
                         "messages": files.messages, "bytes": logged["bytes"],
-                        "files": len(files.done) + 1, **errors, "unreceived": sum(unreceived.values()),
+                        "files": len(files.done) + 1, **errors, "restart_hole": holes["messages"], "unreceived": sum(unreceived.values()),
                         **{f"unreceived_{k}": v for k, v in unreceived.items()}, "late": ledger.late,
                         "duplicates": ledger.duplicates, **meter.take("log")}
 
@@ -191,11 +203,15 @@ def run(args, conf: zenoh.Config) -> int:
                     try:
                         files.rec.maybe_flush()
                         wrote(0)  # a time split is due even when nothing arrives
+                        save_recorded(args.output, inbox.arrivals.newest())  # for a successor
                     except OSError as e:
                         write_failed(e)
 
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
         inbox = rt.inbox(sub_key, args.queue, on_arrival=accept, on_gap=gap_seen)  # the queue feeds the views only
+        for (stream, stage), seq in before.items():
+            if (gap := inbox.arrivals.seed(stream, stage, seq)) is not None:
+                hole(gap)
         rt.serve_cursor(args.all_streams)  # the newest seq of every stage: how far a restarted service's predecessor got
         threading.Thread(target=flusher, name="recorder-flush", daemon=True).start()
         rt.ready()
@@ -216,6 +232,7 @@ def run(args, conf: zenoh.Config) -> int:
              f" ({len(files.done)} earlier files, {files.messages} messages in all)" if files.done else "")
     if unreceived := inbox.arrivals.unreceived():
         log.warning("never arrived, per stage: %s", unreceived)
+    recorded_path(args.output).unlink(missing_ok=True)  # a clean stop: no successor continues this account
     return 2 if failure else 0  # 2: not restarted (docs/reliability.md: a full disk stops the run)
 
 

@@ -105,3 +105,15 @@ def test_a_far_future_seq_moves_nothing_until_a_run_confirms_a_new_numbering():
     for s in range(5000, 5005):  # a publisher that really renumbered: taken on the 5th in a row
         led.add(KEY, msg(s))
     assert led.newest() == {("cam0", "stabilized"): 5004} and led.jumps == 1 + 4
+
+
+def test_a_seeded_account_reveals_the_hole_of_a_restart():
+    led = ArrivalLedger()
+    led.seed("cam0", "stabilized", 60)  # the predecessor recorded up to 60
+    gap = led.add(KEY, msg(108))
+    assert (gap.first, gap.last) == (61, 107) and led.unreceived() == {"stabilized": 47}
+    late = ArrivalLedger()  # messages arrived before the seed: the hole is before the first of them
+    late.add(KEY, msg(90))
+    late.add(KEY, msg(91))
+    gap = late.seed("cam0", "stabilized", 60)
+    assert (gap.first, gap.last) == (61, 89) and late.unreceived() == {"stabilized": 29}

@@ -39,6 +39,10 @@ def test_sigkill_mid_stream(tmp_path, case):
         # seq range it holds of that stage) is missing (the hole's size, messages per second of
         # downtime, is a benchmark number)
         assert r["lost_while_recording"] == 0, r
+        # and the successor says so: it continues its predecessor's account (the side file of what
+        # that one flushed), logs the hole per stage and counts it
+        assert r["recorder_restart_hole"] > 0, r
+        assert "recorder restart:" in (tmp_path / "logs" / "recorder.log").read_text()
     else:
         assert len(r["recordings"]) == 1, r
         # a message in flight when its publisher is killed can reach some peers (the monitor) and

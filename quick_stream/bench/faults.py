@@ -291,6 +291,7 @@ def _report(out: Path, case: str, victims: list[str], kills: list[float], mon: S
             "render": {k: render.get(k) for k in ("missing", "dropped", "orphans", "refused_frames")},
             "recorder_unreceived": {k: v for k, v in services.get("recorder", {}).get("stats", {}).items()
                                     if k.startswith("unreceived_")},
+            "recorder_restart_hole": services.get("recorder", {}).get("stats", {}).get("restart_hole"),
             "recordings": files, "not_recorded": len(missing),
             "not_recorded_by_stage": {s: sum(m.stage == s for m in missing) for s in sorted({m.stage for m in missing})},
             "not_recorded_no_copy": len(no_copy),
