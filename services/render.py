@@ -127,9 +127,12 @@ def run(args, conf: zenoh.Config) -> int:
             while len(pub_ns) > args.max_frames + 64:
                 pub_ns.pop(next(iter(pub_ns)))
 
-        def drain_frames() -> None:
-            """Take what arrived (while a batch renders, frames keep coming: hold or drop them now)."""
-            while (item := frames_in.pop()) is not None:
+        def drain_frames(limit: int | None = None) -> None:
+            """Take what arrived (while a batch renders, frames keep coming: hold or drop them now); at
+            most ``limit`` frames, so frames arriving faster than they decode never starve the rest."""
+            n = 0
+            while (limit is None or n < limit) and (item := frames_in.pop()) is not None:
+                n += 1
                 with rt.contained("frame message", errors):
                     take_frame(item[0], item[1])
 
@@ -150,10 +153,11 @@ def run(args, conf: zenoh.Config) -> int:
         ended = False
         while not rt.stop.is_set():
             rt.maybe_stats(stats)
-            got = bool(len(frames_in))
-            drain_frames()
-            item = corr_in.pop()
-            if item is not None:
+            # Every pending correction first (cheap, and what releases frames), then the frames that had
+            # arrived by now: under overload frames keep coming faster than they decode, and taking
+            # one correction per pass of an endless frame drain starved the corrections (no output).
+            got = False
+            while not ended and (item := corr_in.pop()) is not None:
                 got = True
                 msg = rt.decode(item[0], item[1], ("correction", "end"), errors)
                 if msg is not None and msg.type == "correction":
@@ -161,6 +165,9 @@ def run(args, conf: zenoh.Config) -> int:
                         releases.add(msg.obj, msg.extra.get("batch"))
                 elif msg is not None and msg.type == "end":
                     ended = True
+            pending = len(frames_in)
+            got = got or pending > 0
+            drain_frames(pending)
             render_ready(force=False)
             if ended:
                 drain_frames()

@@ -1,5 +1,6 @@
 """A zenoh session that subscribes or publishes for a while, run inside a network namespace by
-tests/test_netns.py. Prints one JSON line: {"opened": bool, "received": n, "sent": n, "error": str}.
+tests/test_netns.py. Prints one JSON line: {"opened": bool, "received": n, "sent": n, "error": str}
+(a subscriber first prints {"subscribed": true} once its subscriber is declared).
 
     python tests/netns_probe.py sub|pub ENDPOINT KEY SECONDS [TLS_DIR TLS_NAME]
 """
@@ -41,6 +42,7 @@ def main(argv: list[str]) -> int:
     try:
         if role == "sub":
             sub = session.declare_subscriber(key, on_sample)
+            print(json.dumps({"subscribed": True}), flush=True)  # the test starts publishing on this line
             time.sleep(seconds)
             sub.undeclare()
         else:

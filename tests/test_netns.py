@@ -163,7 +163,7 @@ def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path
         # control: a subscriber (monitor certificate) sees what the capture certificate publishes
         listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, key, "4", good, "monitor"],
                                   stdout=subprocess.PIPE, text=True)
-        time.sleep(1.5)
+        assert "subscribed" in listen.stdout.readline()  # wait for the subscriber itself, not a clock
         sent = hosts.probe("cam", "pub", ep, key, "1.5", good, "capture")
         got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
         assert sent["opened"] and sent["sent"] > 10 and got["received"] > 10
@@ -174,7 +174,7 @@ def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path
         for who, where in (("monitor", key), ("capture", "quick/@v1/cam9/correction"), ("flow", key)):
             listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, where, "4", good,
                                        "monitor"], stdout=subprocess.PIPE, text=True)
-            time.sleep(1.5)
+            assert "subscribed" in listen.stdout.readline()
             sent = hosts.probe("compute", "pub", ep, where, "1.5", good, who)
             got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
             assert sent["opened"] and sent["sent"] > 10, (who, sent)
