@@ -172,13 +172,19 @@ def _setting(flag_value: Any, environ: Mapping[str, str], name: str, flag: str) 
 
 
 def tls_settings(tls_dir: str, name: str, mode: str) -> dict[str, object]:
-    """The zenoh ``transport/link/tls`` keys for certificates made by deploy/tls/make-certs.sh."""
+    """The zenoh ``transport/link/tls`` keys for the folder deploy/tls/make-certs.sh writes for one
+    party (ca.pem, NAME.pem, NAME.key); a folder holding any other private key is refused."""
     d = Path(tls_dir)
     if not d.is_dir():
         raise ValueError(f"--tls-dir {tls_dir}: no such directory")
     for f in (d / "ca.pem", d / f"{name}.pem", d / f"{name}.key"):
         if not f.is_file():
-            raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}")
+            raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}"
+                             + (f" (make-certs.sh writes each party's files to {d / name})" if (d / name).is_dir() else ""))
+    others = sorted(p.name for p in d.glob("*.key") if p.name != f"{name}.key")
+    if others:  # a process is given its own key only: a folder of every key hands each the others' identity
+        raise ValueError(f"--tls-dir {tls_dir}: holds other private keys ({', '.join(others)}); give each process a "
+                         f"folder with only its own key (make-certs.sh writes DIR/{name}/: ca.pem, {name}.pem, {name}.key)")
     out: dict[str, object] = {"root_ca_certificate": str(d / "ca.pem"), "enable_mtls": True,
                               "connect_certificate": str(d / f"{name}.pem"),
                               "connect_private_key": str(d / f"{name}.key")}

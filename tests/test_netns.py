@@ -152,30 +152,31 @@ def certs(tmp_path_factory, hosts):
 def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path):
     ep = f"tls/{hosts.addr['hub']}:7447"
     good = str(certs / "good")
-    router = ["-c", str(ROOT / "deploy" / "zenoh" / "router-tls.json5"), "-l", ep, "--tls-dir", good,
+    router = ["-c", str(ROOT / "deploy" / "zenoh" / "router-tls.json5"), "-l", ep, "--tls-dir", f"{good}/router",
               "--tls-name", "router"]
-    z = {s: ["-m", "client", "-e", ep, "--no-multicast-scouting", "--tls-dir", good, "--tls-name", s]
+    z = {s: ["-m", "client", "-e", ep, "--no-multicast-scouting", "--tls-dir", f"{good}/{s}", "--tls-name", s]
          for s in ("recorder", "render", "flow", "motion", "capture")}
     sup = run_pipeline(hosts, tmp_path, router, z)
     try:
         assert_same(tmp_path, single_host)  # everything allowed still flows, bit for bit
         key = "quick/@v1/cam9/frame"
         # control: a subscriber (monitor certificate) sees what the capture certificate publishes
-        listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, key, "4", good, "monitor"],
+        listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, key, "4", f"{good}/monitor",
+                                   "monitor"],
                                   stdout=subprocess.PIPE, text=True)
         assert "subscribed" in listen.stdout.readline()  # wait for the subscriber itself, not a clock
-        sent = hosts.probe("cam", "pub", ep, key, "1.5", good, "capture")
+        sent = hosts.probe("cam", "pub", ep, key, "1.5", f"{good}/capture", "capture")
         got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
         assert sent["opened"] and sent["sent"] > 10 and got["received"] > 10
         # a certificate from another CA does not get in at all
-        rogue = hosts.probe("cam", "pub", ep, key, "1.0", str(certs / "rogue"), "capture")
+        rogue = hosts.probe("cam", "pub", ep, key, "1.0", str(certs / "rogue" / "capture"), "capture")
         assert not rogue["opened"] or rogue["sent"] == 0, rogue
         # valid certificates publishing where their name is not allowed get nothing through
         for who, where in (("monitor", key), ("capture", "quick/@v1/cam9/correction"), ("flow", key)):
-            listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, where, "4", good,
-                                       "monitor"], stdout=subprocess.PIPE, text=True)
+            listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, where, "4",
+                                       f"{good}/monitor", "monitor"], stdout=subprocess.PIPE, text=True)
             assert "subscribed" in listen.stdout.readline()
-            sent = hosts.probe("compute", "pub", ep, where, "1.5", good, who)
+            sent = hosts.probe("compute", "pub", ep, where, "1.5", f"{good}/{who}", who)
             got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
             assert sent["opened"] and sent["sent"] > 10, (who, sent)
             assert got["received"] == 0, (who, where, got)
