@@ -2,7 +2,11 @@
 tests/test_netns.py. Prints one JSON line: {"opened": bool, "received": n, "sent": n, "error": str}
 (a subscriber first prints {"subscribed": true} once its subscriber is declared).
 
-    python tests/netns_probe.py sub|pub ENDPOINT KEY SECONDS [TLS_DIR TLS_NAME]
+    python tests/netns_probe.py sub|pub|cache|history ENDPOINT KEY SECONDS [TLS_DIR TLS_NAME]
+
+``cache``: an advanced publisher with a 20-message history cache puts 20 messages, prints
+{"published": 20}, then stays SECONDS; ``history``: an advanced subscriber that asks the
+publishers' caches for their history counts what it gets in SECONDS.
 """
 from __future__ import annotations
 
@@ -12,6 +16,7 @@ import threading
 import time
 
 import zenoh
+import zenoh.ext
 
 
 def main(argv: list[str]) -> int:
@@ -20,6 +25,7 @@ def main(argv: list[str]) -> int:
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("timestamping/enabled", "true")  # history caches need timestamps
     if len(argv) > 5:
         d, name = argv[4], argv[5]
         for k, v in {"root_ca_certificate": f"{d}/ca.pem", "connect_certificate": f"{d}/{name}.pem",
@@ -40,7 +46,20 @@ def main(argv: list[str]) -> int:
             out["received"] += 1
 
     try:
-        if role == "sub":
+        if role == "cache":
+            pub = zenoh.ext.declare_advanced_publisher(session, key, cache=zenoh.ext.CacheConfig(20),
+                                                       publisher_detection=True)
+            for i in range(20):
+                pub.put(f"cached {i}".encode())
+                out["sent"] += 1
+            print(json.dumps({"published": out["sent"]}), flush=True)
+            time.sleep(seconds)
+        elif role == "history":
+            sub = zenoh.ext.declare_advanced_subscriber(
+                session, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+            time.sleep(seconds)
+            sub.undeclare()
+        elif role == "sub":
             sub = session.declare_subscriber(key, on_sample)
             print(json.dumps({"subscribed": True}), flush=True)  # the test starts publishing on this line
             time.sleep(seconds)

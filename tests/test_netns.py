@@ -180,6 +180,18 @@ def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path
             got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
             assert sent["opened"] and sent["sent"] > 10, (who, sent)
             assert got["received"] == 0, (who, where, got)
+        # history: a restarted service reads what it missed from its inputs' publishers' caches (the ACL
+        # denied it: under TLS a restarted capture renumbered from 0 and flow and render refused every frame)
+        cache = subprocess.Popen([*hosts.prefix("cam"), sys.executable, PROBE, "cache", ep, key, "30",
+                                  f"{good}/capture", "capture"], stdout=subprocess.PIPE, text=True)
+        try:
+            assert "published" in cache.stdout.readline()
+            got = hosts.probe("compute", "history", ep, key, "3", f"{good}/flow", "flow")
+            assert got["opened"] and got["received"] == 20, got  # the whole cache, as on TCP
+            got = hosts.probe("view", "history", ep, key, "3", f"{good}/monitor", "monitor")
+            assert got["received"] == 0, got  # the monitor only watches live data
+        finally:
+            cache.kill()
         # without TLS (plain TCP to the TLS port) nothing connects
         plain = hosts.probe("cam", "pub", f"tcp/{hosts.addr['hub']}:7447", key, "1.0")
         assert not plain["opened"] or plain["sent"] == 0
