@@ -25,6 +25,16 @@ from quick_stream.wire import WireError, decode
 UP = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
 
 
+def stabilize(frames, params=None) -> tuple[Stabilizer, list]:
+    """Every frame through one in-process Stabilizer: (the stabilizer, its stabilized frames)."""
+    st = Stabilizer(params)
+    out = []
+    for f in frames:
+        out += st.push(f)
+    out += st.finish()
+    return st, out
+
+
 def offline_images(spec: str) -> dict[int, np.ndarray]:
     """Stabilized images by seq from the in-process stabilizer with ``stabilize``'s default settings
     (those ``up`` passes on) and one OpenCV thread, as the services and ``stabilize`` run it."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from helpers import stabilize
+
 from quick_stream.lie import get_group
 from quick_stream.metrics_border import uncovered_mask
 from quick_stream.motion import MotionEstimate
@@ -17,7 +19,6 @@ from quick_stream.path.planner import PathPlanner, PlannerParams
 from quick_stream.render.fill import FillSource, covered_zoom, fill_border, nearest_depth, ordered_sources
 from quick_stream.sources.synthetic import SyntheticSource
 from quick_stream.bench.quality import parse_settings
-from quick_stream.stabilizer import Stabilizer
 from quick_stream.wire import decode, encode_correction
 
 SE3 = get_group("se3")
@@ -68,18 +69,9 @@ def test_nearest_depth_extends_the_known_depth():
     assert nearest_depth(np.zeros((3, 3))) is None
 
 
-def _stabilize(frames, params):
-    st = Stabilizer(params)
-    out = []
-    for f in frames:
-        out += st.push(f)
-    out += st.finish()
-    return st, out
-
-
 def test_shaky_frames_come_out_border_free_with_less_zoom_than_without_fill():
     frames = list(SyntheticSource(width=320, height=240, frames=75, seed=4, shake=3.0))
-    st, out = _stabilize(frames, parse_settings([]).params)  # the defaults of quick-stream stabilize
+    st, out = stabilize(frames, parse_settings([]).params)  # the defaults of quick-stream stabilize
     assert [sf.seq for sf in out] == list(range(75))
     assert st.render.filled > 0  # the shake uncovered bands the neighbours filled
     assert st.render.fill_raised == 0  # the planned zoom track already counted on what the fill could do
@@ -87,13 +79,13 @@ def test_shaky_frames_come_out_border_free_with_less_zoom_than_without_fill():
         assert not uncovered_mask(sf.image).any(), sf.seq
     z = np.array([sf.zoom for sf in out])
     assert np.abs(np.diff(z)).max() < 0.02  # no zoom jumps
-    _, without = _stabilize(frames, parse_settings(["--fill-frames", "0"]).params)
+    _, without = stabilize(frames, parse_settings(["--fill-frames", "0"]).params)
     assert np.mean(1 / z) > np.mean([1 / sf.zoom for sf in without]) + 0.01
 
 
 def test_covered_zoom_is_enough_for_the_renderer():
     frames = list(SyntheticSource(width=320, height=240, frames=45, seed=5, shake=3.0))
-    st, out = _stabilize(frames, parse_settings([]).params)
+    st, out = stabilize(frames, parse_settings([]).params)
     by_seq = {f.seq: f for f in frames}
     srcs = [FillSource(sf.seq, sf.correction.chain, sf.correction.camera, by_seq[sf.seq].color,
                        by_seq[sf.seq].intrinsics.K) for sf in out]

@@ -4,20 +4,13 @@ import json
 import cv2
 import numpy as np
 
+from helpers import stabilize
+
 from quick_stream.cli import main
 from quick_stream.frame import BadFrame
 from quick_stream.render import FramingParams
 from quick_stream.sources.synthetic import SyntheticSource
-from quick_stream.stabilizer import Stabilizer, StabilizerParams
-
-
-def stabilize(frames, params=None):
-    st = Stabilizer(params)
-    out = []
-    for f in frames:
-        out += st.push(f)
-    out += st.finish()
-    return st, out
+from quick_stream.stabilizer import StabilizerParams
 
 
 def test_same_input_and_settings_give_bit_identical_frames():
