@@ -69,8 +69,10 @@ class OutputCredit:
     """Flow control for ``--pace fast``: hold frame ``seq`` until the stabilized output has reached
     ``seq - window`` and the motion stage ``seq - window // 3``, so a replay runs as fast as the
     slowest stage without overrunning its drop-oldest queue (flow holds 30 frames; output lags
-    by a segment, so the output window must be wider). After ``stall_s`` with no progress (no
-    renderer or motion stage running) it stops waiting and says so."""
+    by a segment, so the output window must be wider). After ``stall_s`` with no progress it says
+    so and goes on waiting: a stage or the router restarting comes back (sending without flow
+    control then overran the stages and lost frames); with nothing downstream at all, use
+    ``--window 0`` or realtime pace."""
 
     def __init__(self, rt: ServiceRuntime, stream: str, window: int, stall_s: float = 10.0) -> None:
         self.rt, self.window, self.stall_s = rt, window, stall_s
@@ -95,6 +97,14 @@ class OutputCredit:
     def _blocked(self, seq: int) -> bool:
         return seq - self.done["stabilized"] > self.window or seq - self.done["motion"] > self.window // 3
 
+    def resume_from(self, seq: int) -> None:
+        """A restarted capture: the stream had reached frame ``seq`` downstream (the cursor), so the
+        credit counts from there, not from -1 (it waited for output the idle pipeline never made,
+        10 s, then sent without flow control and overran the stages)."""
+        with self._cond:
+            for stage in self.done:
+                self.done[stage] = max(self.done[stage], seq)
+
     def wait_for(self, seq: int) -> None:
         if self.window <= 0:
             return
@@ -104,9 +114,10 @@ class OutputCredit:
                 self.waits += 1
             while self._blocked(seq) and not self.rt.stop.is_set():
                 if time.monotonic() > deadline:
-                    log.warning("no pipeline progress for %.0f s: sending without flow control", self.stall_s)
-                    self.window = 0
-                    return
+                    log.warning("no pipeline progress for %.0f s (frame %d waits for the stabilized output to "
+                                "reach %d): still waiting; --window 0 sends without flow control", self.stall_s,
+                                seq, seq - self.window)
+                    deadline = time.monotonic() + self.stall_s
                 self._cond.wait(0.05)
 
 
@@ -164,6 +175,7 @@ def run(args, conf: zenoh.Config) -> int:
         st = CaptureStats(credit)
         st.resume_after = rt.stream_cursor("frame")
         if st.resume_after is not None:
+            credit.resume_from(st.resume_after)
             log.warning("stream %s is under way (frame %d seen downstream; a restarted capture): numbering "
                         "continues after it", args.stream, st.resume_after)
         replay = getattr(source, "iter_with_messages", None)

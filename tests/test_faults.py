@@ -1,6 +1,9 @@
 """SIGKILL each process of a running ``quick-stream up`` mid-stream, in turn, repeatedly, and the
-router together with a service (issue 7); the numbers come from ``quick-stream bench faults``
-(quick_stream/bench/faults.py), which these tests run with the same code.
+router together with a service; the numbers come from ``quick-stream bench faults``
+(quick_stream/bench/faults.py), which these tests run with the same code, paced by the pipeline
+(``--pace fast``: the capture sends as fast as the stages take frames) instead of a 30 fps live
+camera, so a loaded machine (a second suite beside this one) slows the stream down instead of
+overrunning the stages: what is tested is recovery; live capacity is the benchmark's.
 
 For every case: the supervisor restarts each killed process and nothing else; everything stops
 cleanly at the end; the killed stage publishes again (how soon is measured by the benchmark,
@@ -21,7 +24,7 @@ from quick_stream.bench.faults import CASES, parse_case, run_case
 
 @pytest.mark.parametrize("case", CASES)
 def test_sigkill_mid_stream(tmp_path, case):
-    r = run_case(tmp_path, case)
+    r = run_case(tmp_path, case, pace="fast")
     victims, repeat = parse_case(case)
     assert r["kills"] == repeat
     assert r["restarts"] == {n: (repeat if n in victims else 0) for n in r["restarts"]}, r
