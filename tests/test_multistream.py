@@ -1,7 +1,7 @@
 """Two cameras on one deployment (issue 6): two streams, one router, one recorder, side by side.
 
 Each stream has its own capture, flow, motion and render (one process per stream per stage);
-both run at 30 frames/s; each stream's output equals its own single-stream result
+both run side by side, each paced by its own pipeline; each stream's output equals its own single-stream result
 bit for bit (nothing of one leaks into the other), and one recorder keeps both.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
                                                 "--color", "raw"])]
     for cam, spec in SPECS.items():
         specs.append(ServiceSpec(f"capture-{cam}", ["-m", "services.capture", *z, "--stream", cam, "--source", spec,
-                                                    "--color", "raw", "--fps", "30",
+                                                    "--color", "raw", "--pace", "fast",
                                                     "--wait-for", "flow,motion,render", "--wait-timeout", "60"],
                                  may_finish=True))
     sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)
@@ -68,8 +68,10 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
         assert "0 flagged, 0 orphans, 0 missing" in text, text[-400:]
         # the other stream's frames are not this one's: its capture starts a new stream at 0
         assert "under way" not in (tmp_path / "logs" / f"capture-{cam}.log").read_text()
-    # both streams recorded whole, side by side (the rate each capture kept is a benchmark number:
-    # `quick-stream bench pipeline --streams 2`; a loaded machine slows it, so it is not asserted here)
+    # both streams recorded whole, side by side. Each capture is paced by its pipeline (--pace fast):
+    # at 30 fps live, a second suite beside this one starved the stages and a frame dropped in flow's
+    # queue changed cam1's path (frames 30-89). The rate two streams keep live is a benchmark number:
+    # `quick-stream bench pipeline --streams 2`.
     with open(tmp_path / "rec.mcap", "rb") as f:
         r = make_reader(f)
         for cam in SPECS:
