@@ -27,10 +27,12 @@ def test_slow_render_drops_oldest_and_reports_it(tmp_path):
              ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(tmp_path / "rec.mcap")]),
              ServiceSpec("flow", ["-m", "services.flow", *z]),
              ServiceSpec("motion", ["-m", "services.motion", *z]),
-             # 60 ms more per frame: at most ~15 frames/s against 30 coming in
-             ServiceSpec("render", ["-m", "services.render", *z, "--slow-ms", "60", "--max-frames", "60"]),
+             # 120 ms more per frame: at most ~8 frames/s against 15 coming in (15, not 30: flow keeps
+             # twice its pace in hand, so a second suite beside this one does not make flow drop frames
+             # of its own, which is not what this test is about)
+             ServiceSpec("render", ["-m", "services.render", *z, "--slow-ms", "120", "--max-frames", "60"]),
              ServiceSpec("capture", ["-m", "services.capture", *z, "--source",
-                                     f"synthetic:frames={FRAMES},width=320,height=240", "--fps", "30",
+                                     f"synthetic:frames={FRAMES},width=320,height=240", "--fps", "15",
                                      "--wait-for", "recorder,flow,motion,render"], may_finish=True)]
     sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)
     sup.start("router")
