@@ -179,10 +179,12 @@ class Recorder:
         if time.monotonic() - self._last_flush >= self.flush_s:
             self.flush()
 
-    def maybe_flush(self) -> None:
-        """Flush if ``flush_s`` has passed since the last flush (call when idle)."""
+    def maybe_flush(self) -> bool:
+        """Flush if ``flush_s`` has passed since the last flush (call when idle); whether it did."""
         if time.monotonic() - self._last_flush >= self.flush_s:
             self.flush()
+            return True
+        return False
 
     def flush(self) -> None:
         """Write the open chunk and flush the file (what a kill can lose is what came after)."""

@@ -434,6 +434,9 @@ class _Contained:
         return True
 
 
+MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's --max-frame-side
+
+
 def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
     """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
     from .cli.argtypes import stream_id
@@ -449,9 +452,6 @@ def service_parser(service: str, description: str | None) -> argparse.ArgumentPa
                    f"(default 4096, or ${MAX_SIDE_ENV})")
     add_zenoh_args(p)
     return p
-
-
-MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"
 
 
 TRIM_EVERY = 10  # stats periods (about 10 s)

@@ -131,7 +131,8 @@ def run(args, conf: zenoh.Config) -> int:
                 unreceived = ledger.unreceived()
                 return {"state": "error" if failure else "running", **({"error": failure[0]} if failure else {}),
                         "messages": files.messages, "bytes": logged["bytes"],
-                        "files": len(files.done) + 1, **errors, "restart_hole": holes["messages"], "unreceived": sum(unreceived.values()),
+                        "files": len(files.done) + 1, **errors, "restart_hole": holes["messages"],
+                        "unreceived": sum(unreceived.values()),
                         **{f"unreceived_{k}": v for k, v in unreceived.items()}, "late": ledger.late,
                         "duplicates": ledger.duplicates, **meter.take("log")}
 
@@ -201,9 +202,9 @@ def run(args, conf: zenoh.Config) -> int:
                     if files.rec.closed:
                         continue
                     try:
-                        files.rec.maybe_flush()
+                        if files.rec.maybe_flush():  # what is on disk now, for a successor
+                            save_recorded(args.output, inbox.arrivals.newest())
                         wrote(0)  # a time split is due even when nothing arrives
-                        save_recorded(args.output, inbox.arrivals.newest())  # for a successor
                     except OSError as e:
                         write_failed(e)
 
