@@ -143,6 +143,7 @@ class Recorder:
         self._seq: dict[str, int] = {}
         self.flush_s = flush_s
         self._last_flush = time.monotonic()
+        self.flushes = 0  # how many times the open chunk went to disk (write() flushes too, when due)
         self.messages = 0
         self.closed = False
 
@@ -190,6 +191,7 @@ class Recorder:
         """Write the open chunk and flush the file (what a kill can lose is what came after)."""
         self._writer.flush()
         self._last_flush = time.monotonic()
+        self.flushes += 1
 
     def close(self) -> None:
         if not self.closed:

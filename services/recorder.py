@@ -197,13 +197,18 @@ def run(args, conf: zenoh.Config) -> int:
                     write_failed(e)
 
         def flusher() -> None:
+            saved = (None, -1)  # the file and flush the side file last described
             while not rt.stop.wait(min(0.1, args.flush / 4)):
                 with lock:
                     if files.rec.closed:
                         continue
                     try:
-                        if files.rec.maybe_flush():  # what is on disk now, for a successor
+                        files.rec.maybe_flush()
+                        # write() flushes too when one is due, so under steady traffic most flushes
+                        # happen there: describe every new one (what is on disk now, for a successor)
+                        if (files.rec, files.rec.flushes) != saved and files.rec.flushes:
                             save_recorded(args.output, inbox.arrivals.newest())
+                            saved = (files.rec, files.rec.flushes)
                         wrote(0)  # a time split is due even when nothing arrives
                     except OSError as e:
                         write_failed(e)
