@@ -9,8 +9,10 @@ stage asks :class:`ContinuityCheck` about every frame against the previous good 
   frame fails :meth:`RGBDFrame.validate` (no valid depth pixel, bad intrinsics), or its
   seq is not after the previous frame's (duplicate, out of order). The chain goes on
   from the previous good frame.
-* **break**: flow is not computed across a seq gap of more than ``max_missing`` frames,
-  a capture-time gap over ``max_gap_s`` or not forward, or a change of image size;
+* **break**: flow is not computed across a seq gap of more than ``max_missing`` frames
+  spanning more than ``max_bridge_s`` of capture time (a fast camera whose frames were shed
+  upstream is bridged by time: 4 missing frames at 30 fps, more at 120 fps), a capture-time gap
+  over ``max_gap_s`` or not forward, or a change of image size;
   the flow stage emits an empty flow naming the reason, so the motion is invalid, the
   path restarts at that frame and the frames are flagged (design note section 5: the
   fallback when no motion can be measured).
@@ -43,6 +45,7 @@ class ContinuityParams:
     """Limits beyond which scene flow does not bridge two frames."""
 
     max_missing: int = 4  # frames missing between two frames that flow still bridges
+    max_bridge_s: float = 0.17  # ... or more, if they span at most this much capture time (5 frames at 30 fps)
     max_gap_s: float = 0.5  # capture time between two frames that flow still bridges
     max_jump: int = 300  # a seq further ahead than this (10 s at 30 fps) needs confirming (JumpGuard)
     confirm: int = 5  # consecutive frames of a new numbering that confirm a jump
@@ -54,6 +57,8 @@ class ContinuityParams:
             raise ValueError(f"max_jump must be > max_missing and confirm >= 2, got {self.max_jump}, {self.confirm}")
         if not (math.isfinite(self.max_gap_s) and self.max_gap_s > 0):
             raise ValueError(f"max_gap_s must be a finite number > 0, got {self.max_gap_s}")
+        if not (math.isfinite(self.max_bridge_s) and 0 <= self.max_bridge_s <= self.max_gap_s):
+            raise ValueError(f"max_bridge_s must be in [0, max_gap_s], got {self.max_bridge_s}")
 
 
 @dataclass
@@ -128,12 +133,13 @@ class ContinuityCheck:
             return v
         reasons = []
         missing = frame.seq - prev.seq - 1
+        dt = (frame.timestamp_ns - prev.timestamp_ns) / 1e9
         if missing:
             c["seq_gaps"] += 1
             c["missing_frames"] += missing
-            if missing > self.params.max_missing:
+            bridged = 0 < dt <= self.params.max_bridge_s and missing < self.params.max_jump  # not a renumbering
+            if missing > self.params.max_missing and not bridged:
                 reasons.append(f"{missing} frames missing between frame {prev.seq} and {frame.seq}")
-        dt = (frame.timestamp_ns - prev.timestamp_ns) / 1e9
         if dt <= 0 or dt > self.params.max_gap_s:
             c["timestamp_jumps"] += 1
             reasons.append(f"capture time jumps by {dt:+.3f} s from frame {prev.seq} to {frame.seq}")

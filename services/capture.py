@@ -13,6 +13,7 @@ first frame until the named services are up, so a run loses nothing at start-up.
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import sys
 import threading
@@ -25,6 +26,7 @@ from quick_stream.cli import argtypes as at
 from quick_stream.frame import BadFrame
 from quick_stream.meters import RateMeter
 from quick_stream.runtime import ServiceRuntime, service_main, service_parser
+from quick_stream.shedding import ShedLimits, Shedder
 from quick_stream.sources import SourceError, open_source
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
 from quick_stream.wire.codec import unpack
@@ -45,6 +47,9 @@ def build_parser():
     p.add_argument("--window", type=at.nonneg_int, default=60,
                    help="fast pace: frames in flight before waiting for stabilized output (default 60; "
                         "a third of it for the motion stage; 0: no limit)")
+    p.add_argument("--shed", choices=("on", "off"), default="on",
+                   help="realtime pace: frames offered faster than the pipeline takes them are shed (skipped "
+                        "before encoding, evenly spaced, counted in 'shed'; default on; docs/reliability.md)")
     p.add_argument("--speed", type=at.positive_float, default=1.0, help="realtime pacing speed factor (default 1)")
     p.add_argument("--fps", type=at.positive_float, default=None,
                    help="override the pacing rate (frames/s; realtime only)")
@@ -65,21 +70,37 @@ def build_parser():
     return p
 
 
-class OutputCredit:
-    """Flow control for ``--pace fast``: hold frame ``seq`` until the stabilized output has reached
-    ``seq - window`` and the motion stage ``seq - window // 3``, so a replay runs as fast as the
-    slowest stage without overrunning its drop-oldest queue (flow holds 30 frames; output lags
-    by a segment, so the output window must be wider). After ``stall_s`` with no progress it says
-    so and goes on waiting: a stage or the router restarting comes back (sending without flow
-    control then overran the stages and lost frames); with nothing downstream at all, use
-    ``--window 0`` or realtime pace."""
+# Frames in flight (sent, not yet through the stage) before a live capture sheds: the motion stage
+# follows flow a frame or two behind when keeping up; the output lags one planning window (30
+# frames, up to 45 with the look-ahead) plus rendering, so its bounds sit above that.
+SHED_LIMITS = {"motion": ShedLimits(soft=4, hard=10, alive_s=0.3),
+               "stabilized": ShedLimits(soft=60, hard=90, alive_s=1.0)}
 
-    def __init__(self, rt: ServiceRuntime, stream: str, window: int, stall_s: float = 10.0) -> None:
+
+class OutputCredit:
+    """How far the pipeline has got (the motion stage's and the stabilized output's newest frame, from
+    their messages), and what capture does with it.
+
+    ``--pace fast`` (:meth:`wait_for`): hold frame ``seq`` until the stabilized output has reached
+    ``seq - window`` and the motion stage ``seq - window // 3``, so a replay runs as fast as the
+    slowest stage without overrunning its drop-oldest queue (flow holds 30 frames; output lags by a
+    segment, so the output window must be wider). After ``stall_s`` with no progress it says so and
+    goes on waiting: a stage or the router restarting comes back (sending without flow control then
+    overran the stages and lost frames); with nothing downstream at all, use ``--window 0`` or
+    realtime pace.
+
+    ``--pace realtime`` (:meth:`admit`): a live source cannot wait, so frames offered faster than the
+    pipeline takes them are shed before they are encoded (:class:`quick_stream.shedding.Shedder`).
+    """
+
+    def __init__(self, rt: ServiceRuntime, stream: str, window: int, stall_s: float = 10.0,
+                 shed: dict[str, ShedLimits] | None = None) -> None:
         self.rt, self.window, self.stall_s = rt, window, stall_s
+        self.shedder = Shedder(shed or {})
         self.done = {"stabilized": -1, "motion": -1}
         self.waits = 0
         self._cond = threading.Condition()
-        if window > 0:
+        if window > 0 or self.shedder.enabled:
             for stage in self.done:
                 rt.subscribe(keys.key(stream, stage), self._on_output)
 
@@ -92,6 +113,7 @@ class OutputCredit:
         if r.type in self.done and isinstance(seq, int):
             with self._cond:
                 self.done[r.type] = max(self.done[r.type], seq)
+                self.shedder.progressed(r.type, seq, time.monotonic())
                 self._cond.notify_all()
 
     def _blocked(self, seq: int) -> bool:
@@ -104,6 +126,7 @@ class OutputCredit:
         with self._cond:
             for stage in self.done:
                 self.done[stage] = max(self.done[stage], seq)
+            self.shedder.resume_from(seq)
 
     def wait_for(self, seq: int) -> None:
         if self.window <= 0:
@@ -119,6 +142,11 @@ class OutputCredit:
                                 seq, seq - self.window)
                     deadline = time.monotonic() + self.stall_s
                 self._cond.wait(0.05)
+
+    def admit(self, seq: int) -> bool:
+        """Realtime pace: send frame ``seq`` (True) or shed it (False, counted)."""
+        with self._cond:
+            return self.shedder.admit(seq, time.monotonic())
 
 
 def list_devices() -> int:
@@ -171,7 +199,9 @@ def run(args, conf: zenoh.Config) -> int:
             if missing and not rt.stop.is_set():
                 log.error("services not up after %.0f s: %s", args.wait_timeout, ", ".join(sorted(missing)))
                 return 3
-        credit = OutputCredit(rt, args.stream, args.window if args.pace == "fast" else 0)
+        fast = args.pace == "fast"
+        credit = OutputCredit(rt, args.stream, args.window if fast else 0,
+                              shed=SHED_LIMITS if not fast and args.shed == "on" else None)
         st = CaptureStats(credit)
         st.resume_after = rt.stream_cursor("frame")
         if st.resume_after is not None:
@@ -179,7 +209,8 @@ def run(args, conf: zenoh.Config) -> int:
             log.warning("stream %s is under way (frame %d seen downstream; a restarted capture): numbering "
                         "continues after it", args.stream, st.resume_after)
         replay = getattr(source, "iter_with_messages", None)
-        items = replay() if replay is not None and not args.reencode else ((f, None) for f in source)
+        # an exact replay sends the recorded bytes: their pixels are decoded (and checked) by the receivers
+        items = replay(pixels=False) if replay is not None and not args.reencode else ((f, None) for f in source)
         try:
             reason = send_all(args, rt, pub, items, credit, st, depth_scale)
         except Exception as e:  # noqa: BLE001 - a source that fails for good ends the stream, said loudly
@@ -206,6 +237,7 @@ class CaptureStats:
         self.bad = self.sent = 0
         self.last_seq = -1
         self.behind_ms = 0.0
+        self.shed_logged = -math.inf  # when shedding was last logged
         self.resume_after: int | None = None  # the stream's newest frame seq when this capture started
         self.offset: int | None = None  # added to the source's seq (0, or the continuation of the stream)
 
@@ -217,7 +249,7 @@ class CaptureStats:
 
     def values(self) -> dict:
         return {"state": "running", "sent": self.sent, "bad_frames": self.bad, "behind_ms": round(self.behind_ms, 1),
-                "credit_waits": self.credit.waits, **self.meter.take("send")}
+                "credit_waits": self.credit.waits, "shed": self.credit.shedder.shed, **self.meter.take("send")}
 
 
 def send_all(args, rt: ServiceRuntime, pub: zenoh.Publisher, items, credit: OutputCredit, st: CaptureStats,
@@ -243,6 +275,14 @@ def send_all(args, rt: ServiceRuntime, pub: zenoh.Publisher, items, credit: Outp
         credit.wait_for(st.seq(fr.seq))
         t0 = time.perf_counter()
         seq = st.seq(fr.seq)
+        if not credit.admit(seq):  # offered faster than the pipeline takes frames: skipped, not encoded
+            if time.monotonic() - st.shed_logged >= 5.0:
+                st.shed_logged = time.monotonic()
+                sh = credit.shedder
+                log.warning("shedding frames: the pipeline is behind (%d sent not through motion, %d not "
+                            "stabilized); %d shed so far", sh.in_flight("motion"), sh.in_flight("stabilized"),
+                            sh.shed)
+            continue
         try:
             if recorded is not None:  # a recording: its exact bytes, re-stamped
                 data = restamp_frame(recorded, args.stream, time.time_ns(), seq)

@@ -72,6 +72,27 @@ def test_more_frames_dropped_than_flow_bridges_restart_the_path(frames):
     assert motion.gaps == 0 and render.orphans == 5
 
 
+@pytest.mark.parametrize("fps,breaks", [(120, 0), (30, 3)])
+def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, breaks):
+    """A 120 fps camera whose capture sends every 8th frame (the pipeline takes 15 frames/s): 7
+    frames missing between two sent ones span 67 ms, which flow bridges; the same gaps at 30 fps
+    (267 ms) break the path. Render only ever sees the frames sent: none is flagged at 120 fps."""
+    sent = list(open_source(f"synthetic:frames=25,width=160,height=120,fps={fps}"))[::8]
+    flow, motion, render = FlowStage(), MotionStage(), RenderStage()
+    out, batches = [], [motion.start(sent[0].seq)]
+    for f in sent:
+        render.add_frame(f.seq, f)
+        if (fl := flow.push(f)) is not None:
+            batches += motion.push(fl)[1]
+    batches += motion.finish()
+    for b in batches:
+        out += render.render_batch(b)
+    out += render.flush()
+    assert [sf.seq for sf in out] == [0, 8, 16, 24]
+    assert flow.check.counts["missing_frames"] == 21 and flow.check.counts["breaks"] == breaks
+    assert sum(bool(sf.flags) for sf in out) == breaks and render.orphans == 0
+
+
 def test_motion_stage_refuses_stale_flows(frames):
     flow, motion = FlowStage(), MotionStage()
     flow.push(frames[0])

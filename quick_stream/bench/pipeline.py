@@ -145,7 +145,8 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]
                                  + (["--all-streams"] if streams > 1 else [])))
     for i, cam in enumerate(cams):
-        src = f"synthetic:frames={frames},width={width},height={height},seed={i + 1}"
+        # a camera at the rate offered (its frames' capture times follow it), 30 fps for 'fast'
+        src = f"synthetic:frames={frames},width={width},height={height},seed={i + 1},fps={fps or 30:g}"
         if replay:
             src = prerecord(out / f"source-{cam}.mcap", src)
         s = ["--stream", cam]

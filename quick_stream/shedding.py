@@ -1,0 +1,116 @@
+"""Load shedding at the capture: a live source offered faster than the pipeline takes frames.
+
+A live camera cannot wait for the pipeline. Without shedding, every frame is published and every
+receiver (flow, render, the recorder) pays for it, while flow's and render's drop-oldest queues
+throw most of them away later, unevenly: the gaps flow cannot bridge restart the path, and the
+corrections render waits for point at frames it already dropped (docs/reliability.md, overload).
+:class:`Shedder` decides per offered frame, before it is encoded, whether to send it:
+
+* per downstream stage (the motion stage, which follows flow; the stabilized output) it counts the
+  frames *in flight*: sent, and not yet reached by that stage (its newest seq, from its messages);
+* while a stage is making progress (its newest message is under ``alive_s`` old) and more than
+  ``soft`` frames are in flight to it, the capture sends the share of the offered frames that the
+  stage has completed over the last ``rate_s`` seconds, evenly spaced (an accumulator: one frame
+  in k, not bursts), so the pipeline gets frames at its own pace and the gaps stay bridgeable;
+* at ``hard`` frames in flight to a live stage, nothing more is sent;
+* a stage that has stopped (a restart, a stall) sheds nothing: the frames then wait in the
+  publishers' history and the drop-oldest queues, as without shedding; once it is back, the
+  backlog it left may drain (not shed) but not grow, and its pace is measured afresh.
+
+Pure logic: the caller feeds it the stages' progress (:meth:`progressed`) and the clock.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+from collections import deque
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ShedLimits:
+    """Frames in flight to one stage: above ``soft`` the capture sends at the stage's pace, at
+    ``hard`` nothing (0: no limit); ``alive_s``: how recent the stage's last progress must be."""
+
+    soft: int
+    hard: int
+    alive_s: float
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.soft <= self.hard) or not (math.isfinite(self.alive_s) and self.alive_s > 0):
+            raise ValueError(f"need 0 <= soft <= hard and alive_s > 0, got {self}")
+
+
+class Shedder:
+    """Which offered frames a live capture sends (module docstring)."""
+
+    def __init__(self, limits: dict[str, ShedLimits], rate_s: float = 3.0) -> None:
+        self.limits = {k: v for k, v in limits.items() if v.hard > 0}
+        self.rate_s = rate_s
+        self.done = dict.fromkeys(limits, -1)  # each stage's newest seq
+        self.progress = dict.fromkeys(limits, -math.inf)  # when it last moved on
+        self._completed: dict[str, deque[tuple[float, int]]] = {k: deque() for k in limits}
+        self._since = dict.fromkeys(limits, -math.inf)  # when the stage last resumed after a stop
+        self._backlog = dict.fromkeys(limits, 0)  # in flight when it resumed, as it drains: not shed
+        self._offered: list[float] = []  # when frames were offered, over the last rate_s
+        self._sent: list[int] = []  # seqs sent that some stage has not reached (ascending)
+        self._acc = 0.0
+        self.shed = 0
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.limits)
+
+    def progressed(self, stage: str, seq: int, now: float) -> None:
+        """``stage`` has reached frame ``seq`` (its newest message)."""
+        old = self.done.get(stage)
+        if old is None or seq <= old:
+            return
+        n = bisect.bisect_right(self._sent, seq) - bisect.bisect_right(self._sent, old)
+        if stage in self.limits and now - self.progress[stage] > self.limits[stage].alive_s:
+            # back from a stop: its pace is measured from now (the stop is not its pace, and while
+            # it catches up nothing is shed on account of it)
+            self._since[stage] = now
+            self._completed[stage].clear()
+            self._backlog[stage] = self.in_flight(stage)
+        self.done[stage], self.progress[stage] = seq, now
+        self._completed[stage].append((now, n))
+
+    def resume_from(self, seq: int) -> None:
+        """A restarted capture: every stage had reached ``seq`` (the stream's cursor)."""
+        for stage in self.done:
+            self.done[stage] = max(self.done[stage], seq)
+
+    def in_flight(self, stage: str) -> int:
+        """Frames sent that ``stage`` has not reached yet."""
+        return len(self._sent) - bisect.bisect_right(self._sent, self.done[stage])
+
+    def admit(self, seq: int, now: float) -> bool:
+        """Send frame ``seq`` (True: counted in flight) or shed it (False: counted in ``shed``)."""
+        if not self.limits:
+            return True
+        self._offered.append(now)
+        horizon = now - self.rate_s
+        if self._offered[0] < horizon:
+            del self._offered[:bisect.bisect_left(self._offered, horizon)]
+        del self._sent[:bisect.bisect_right(self._sent, min(self.done.values()))]
+        share = 1.0
+        for stage, lim in self.limits.items():
+            done = self._completed[stage]
+            while done and done[0][0] < horizon:
+                done.popleft()
+            if now - self.progress[stage] > lim.alive_s:
+                continue  # stopped, or not started: nothing to match
+            n = self.in_flight(stage)
+            self._backlog[stage] = min(self._backlog[stage], n)  # a backlog drains, and never grows back
+            if n >= max(lim.hard, self._backlog[stage] + 1):
+                share = 0.0
+            elif n > lim.soft and self._since[stage] < horizon:
+                share = min(share, sum(k for _, k in done) / len(self._offered))
+        self._acc += share
+        if self._acc >= 1.0 - 1e-9:
+            self._acc = min(self._acc - 1.0, 1.0)
+            self._sent.append(seq)
+            return True
+        self.shed += 1
+        return False

@@ -1,0 +1,86 @@
+"""Load shedding at a live capture (quick_stream/shedding.py), on a simulated clock."""
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import pytest
+
+from quick_stream.shedding import ShedLimits, Shedder
+
+MOTION = ShedLimits(soft=4, hard=10, alive_s=0.3)
+OUTPUT = ShedLimits(soft=60, hard=90, alive_s=1.0)
+
+
+def simulate(offered_fps: float, motion_fps: float, seconds: float = 20.0, batch: int = 1,
+             stall: tuple[float, float] | None = None, limits=None):
+    """A camera at ``offered_fps``; one stage takes the sent frames in order at ``motion_fps`` and
+    reports its progress every ``batch`` frames (15: like the stabilized output's releases); during
+    ``stall`` (start, end) it takes nothing. Returns (shedder, sent seqs, in-flight samples)."""
+    sh = Shedder(limits or {"motion": MOTION})
+    stage = next(iter(sh.limits))
+    queue: deque[int] = deque()
+    sent, inflight = [], []
+    period, work = 1.0 / offered_fps, 1.0 / motion_fps
+    busy_until, done_in_batch, t = 0.0, [], 0.0
+    for seq in range(int(seconds * offered_fps)):
+        t = seq * period
+        # the stage works through its queue up to now
+        while queue and busy_until <= t and not (stall and stall[0] <= busy_until < stall[1]):
+            busy_until = max(busy_until, 0.0) + work
+            done_in_batch.append(queue.popleft())
+            if len(done_in_batch) >= batch:
+                sh.progressed(stage, done_in_batch[-1], busy_until)
+                done_in_batch.clear()
+        if stall and stall[0] <= busy_until < stall[1]:
+            busy_until = stall[1]
+        if not queue:
+            busy_until = max(busy_until, t)
+        if sh.admit(seq, t):
+            sent.append(seq)
+            queue.append(seq)
+        inflight.append(sh.in_flight(stage))
+    return sh, np.array(sent), np.array(inflight)
+
+
+def test_a_pipeline_that_keeps_up_sheds_nothing():
+    sh, sent, inflight = simulate(30, 45)
+    assert sh.shed == 0 and len(sent) == 600 and inflight.max() <= 2
+
+
+def test_overload_sends_at_the_pipelines_pace_evenly_spaced():
+    """120 fps offered, 30 taken: about one frame in four is sent, never two gaps in a row that a
+    bridge cannot span (gaps of 3-4 frames, not bursts), and in flight stays bounded."""
+    sh, sent, inflight = simulate(120, 30)
+    steady = sent[sent > 120 * 5]  # after the rate estimate has settled
+    rate = len(steady) / 15.0
+    assert 27 <= rate <= 31, rate
+    gaps = np.diff(steady) - 1
+    assert gaps.max() <= 5, np.bincount(gaps)
+    assert inflight.max() <= MOTION.hard
+    assert sh.shed == 2400 - len(sent)
+
+
+def test_bursty_progress_still_gives_evenly_spaced_frames():
+    """The stabilized output moves on a release (15 frames) at a time: the frames sent stay evenly
+    spaced (the share of a 3 s window, not a gate that opens for a burst and closes)."""
+    sh, sent, inflight = simulate(120, 30, batch=15, limits={"stabilized": OUTPUT})
+    steady = sent[sent > 120 * 8]
+    gaps = np.diff(steady) - 1
+    assert 25 <= len(steady) / 12.0 <= 33
+    assert gaps.max() <= 8, np.bincount(gaps)
+    assert inflight.max() <= OUTPUT.hard
+
+
+def test_a_stopped_stage_sheds_nothing():
+    """A stage restarting (no progress for longer than alive_s) is not a slow stage: the frames go
+    out (into the publishers' history) instead of being shed."""
+    sh, sent, _ = simulate(30, 45, stall=(5.0, 7.0))
+    assert sh.shed <= 4  # until the stall is older than alive_s (0.3 s: about 9 frames, 4 in flight)
+    assert set(range(int(5.5 * 30), int(6.9 * 30))) <= set(sent.tolist())
+
+
+def test_limits_are_checked():
+    with pytest.raises(ValueError):
+        ShedLimits(soft=5, hard=4, alive_s=1.0)
+    assert not Shedder({"motion": ShedLimits(0, 0, 1.0)}).enabled
