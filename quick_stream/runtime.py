@@ -58,6 +58,7 @@ class Inbox:
                  on_arrival: Callable[[str, bytes, int], None] | None = None,
                  on_gap: Callable[[Gap], None] | None = None) -> None:
         self.capacity = self.base_capacity = self.catch_up = capacity
+        self.catch_up_until = 0.0  # monotonic time before which a drained queue keeps the catch-up bound
         self.on_arrival = on_arrival
         self.on_gap = on_gap
         self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
@@ -104,7 +105,7 @@ class Inbox:
             if not self._q:
                 return None
             item = self._q.popleft()
-            if not self._q and self.capacity != self.base_capacity:
+            if not self._q and self.capacity != self.base_capacity and time.monotonic() >= self.catch_up_until:
                 self.capacity = self.base_capacity  # caught up: back to the live bound
             return item
 
@@ -164,20 +165,31 @@ class ServiceRuntime:
     def inbox(self, key_expr: str, capacity: int, history: bool = False,
               on_arrival: Callable[[str, bytes, int], None] | None = None,
               on_gap: Callable[[Gap], None] | None = None, skip_through: int | None = None,
-              catch_up: int = 0) -> Inbox:
+              catch_up: int = 0, publisher: str | None = None, publisher_wait_s: float = 5.0,
+              catch_up_s: float = 5.0) -> Inbox:
         """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages. ``history``: first
         receive what the publishers' caches hold (a service restarted mid-stream takes over);
         ``skip_through``: data messages with a seq up to this one are counted (``skipped``) but not
         queued, so a history replay of what the predecessor handled leaves room for the rest;
-        ``catch_up``: the capacity until the queue first drains (the backlog a restarted service
-        finds in the history is longer than the live bound).
+        ``catch_up``: the capacity for ``catch_up_s`` and then until the queue first drains (the
+        backlog a restarted service finds in the history is longer than the live bound, and a
+        history replay arrives in pieces: the queue may drain between them; a restarted flow fell
+        back to the live bound after the first frames of its history and dropped 17 of the rest). ``publisher``: with ``history``, the
+        service whose cache holds it; the subscription waits (up to ``publisher_wait_s``) until that
+        service's liveliness token is seen, so its history query reaches it (killed together with the
+        router, a restarted flow subscribed before the capture was reachable again and never got the
+        frames of its restart: 45 orphans).
         ``on_arrival(key, payload, arrival_ns)`` runs in zenoh's thread as each message arrives, before it is
         queued (keep it short; it must not raise); ``on_gap(gap)`` before it, when the message skips seqs
         of its stage (:mod:`quick_stream.arrivals`)."""
         box = Inbox(capacity, self._cond, on_arrival, on_gap)
         box.skip_through = skip_through
         box.capacity = box.catch_up = max(capacity, catch_up)
+        box.catch_up_until = time.monotonic() + catch_up_s if catch_up > capacity else 0.0
         if history:
+            if publisher is not None and (missing := self.wait_for([publisher], publisher_wait_s)):
+                log.warning("%s/%s: %s not seen after %.0f s; subscribing to %s with history all the same",
+                            self.stream, self.service, publisher, publisher_wait_s, key_expr)
             # a publisher this session does not know yet (its declaration arrives after ours) is queried
             # once seen
             sub = zenoh.ext.declare_advanced_subscriber(self.session, key_expr, box._on_sample,

@@ -10,12 +10,16 @@ corrections render waits for point at frames it already dropped (docs/reliabilit
   frames *in flight*: sent, and not yet reached by that stage (its newest seq, from its messages);
 * while a stage is making progress (its newest message is under ``alive_s`` old) and more than
   ``soft`` frames are in flight to it, the capture sends the share of the offered frames that the
-  stage has completed over the last ``rate_s`` seconds, evenly spaced (an accumulator: one frame
-  in k, not bursts), so the pipeline gets frames at its own pace and the gaps stay bridgeable;
-* at ``hard`` frames in flight to a live stage, nothing more is sent;
+  stage has completed over the last ``rate_s`` seconds (times ``headroom``, 1.1), evenly spaced (an
+  accumulator: one frame in k, not bursts), so the pipeline gets frames at its own pace and the
+  gaps stay bridgeable;
+* at ``hard`` frames in flight to a live stage, the share drops below its pace (divided by
+  ``headroom``), so the backlog drains, still evenly spaced; before its pace is known, and at twice
+  ``hard``, nothing is sent;
 * a stage that has stopped (a restart, a stall) sheds nothing: the frames then wait in the
   publishers' history and the drop-oldest queues, as without shedding; once it is back, the
-  backlog it left may drain (not shed) but not grow, and its pace is measured afresh.
+  backlog it left may drain (not shed) but not grow (beyond ``hard - soft``, its bursts), and its
+  pace is measured afresh.
 
 Pure logic: the caller feeds it the stages' progress (:meth:`progressed`) and the clock.
 """
@@ -29,8 +33,8 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class ShedLimits:
-    """Frames in flight to one stage: above ``soft`` the capture sends at the stage's pace, at
-    ``hard`` nothing (0: no limit); ``alive_s``: how recent the stage's last progress must be."""
+    """Frames in flight to one stage: above ``soft`` the capture sends at the stage's pace, from
+    ``hard`` a little under it (0: no limit); ``alive_s``: how recent the stage's last progress must be."""
 
     soft: int
     hard: int
@@ -44,9 +48,11 @@ class ShedLimits:
 class Shedder:
     """Which offered frames a live capture sends (module docstring)."""
 
-    def __init__(self, limits: dict[str, ShedLimits], rate_s: float = 3.0) -> None:
+    def __init__(self, limits: dict[str, ShedLimits], rate_s: float = 3.0, headroom: float = 1.1) -> None:
+        """``headroom``: the share sent is that many times the stage's measured pace (a stage that
+        keeps up on average, behind by a hiccup, sheds nothing; a slow one is held at its hard bound)."""
         self.limits = {k: v for k, v in limits.items() if v.hard > 0}
-        self.rate_s = rate_s
+        self.rate_s, self.headroom = rate_s, headroom
         self.done = dict.fromkeys(limits, -1)  # each stage's newest seq
         self.progress = dict.fromkeys(limits, -math.inf)  # when it last moved on
         self._completed: dict[str, deque[tuple[float, int]]] = {k: deque() for k in limits}
@@ -102,11 +108,17 @@ class Shedder:
             if now - self.progress[stage] > lim.alive_s:
                 continue  # stopped, or not started: nothing to match
             n = self.in_flight(stage)
-            self._backlog[stage] = min(self._backlog[stage], n)  # a backlog drains, and never grows back
-            if n >= max(lim.hard, self._backlog[stage] + 1):
-                share = 0.0
-            elif n > lim.soft and self._since[stage] < horizon:
-                share = min(share, sum(k for _, k in done) / len(self._offered))
+            # a backlog drains and does not grow back, give or take the stage's bursts (a release
+            # of the output moves 15 frames at once): hard - soft of slack above its lowest point
+            self._backlog[stage] = min(self._backlog[stage], n)
+            hard = max(lim.hard, self._backlog[stage] + lim.hard - lim.soft)
+            pace = sum(k for _, k in done) / len(self._offered) if self._since[stage] < horizon else None
+            if n >= hard and (pace is None or n >= 2 * hard):
+                share = 0.0  # pace unknown yet (or far behind): nothing more
+            elif n >= hard:
+                share = min(share, pace / self.headroom)  # drain back under the bound, still evenly
+            elif n > lim.soft and pace is not None:
+                share = min(share, pace * self.headroom)
         self._acc += share
         if self._acc >= 1.0 - 1e-9:
             self._acc = min(self._acc - 1.0, 1.0)

@@ -47,8 +47,9 @@ def run(args, conf: zenoh.Config) -> int:
         if resume_after is not None:
             log.warning("stream %s under way (flows out up to frame %d): taking over from the frames' history",
                         args.stream, resume_after)
-        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, history=resume_after is not None,
-                         skip_through=resume_after, catch_up=args.catch_up if resume_after is not None else 0)
+        taking_over = resume_after is not None
+        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, history=taking_over, publisher="capture",
+                         skip_through=resume_after, catch_up=args.catch_up if taking_over else 0)
         pub = rt.publisher("flow", lossless=True, cache=args.history)
         rt.serve_cursor()
         rt.ready()

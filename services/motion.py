@@ -62,7 +62,7 @@ def run(args, conf: zenoh.Config) -> int:
             log.warning("stream %s under way (corrections out up to frame %d): the path restarts after it, "
                         "from the flows' history", args.stream, resume_after)
         inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue, history=resume_after is not None,
-                         skip_through=resume_after)
+                         publisher="flow", skip_through=resume_after)
         motion_pub = rt.publisher("motion", lossless=True)
         release = Releaser(rt.publisher("correction", lossless=True, cache=args.history), args.stream)
         rt.serve_cursor()

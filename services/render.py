@@ -61,8 +61,9 @@ def run(args, conf: zenoh.Config) -> int:
         if resume_after is not None:
             log.warning("stream %s under way (stabilized out up to frame %d): taking over from the frames' and "
                         "corrections' history", args.stream, resume_after)
-        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, history=resume_after is not None)
-        corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=resume_after is not None)
+        taking_over = resume_after is not None
+        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, history=taking_over, publisher="capture")
+        corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=taking_over, publisher="motion")
         pub = rt.publisher("stabilized")
         releases = ReleaseGroups()
         pub_ns: dict[int, int] = {}

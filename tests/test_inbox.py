@@ -50,6 +50,30 @@ def test_a_history_replay_arriving_after_live_messages_is_still_held():
     assert peek(box.pop()[1]) == ("frame", 66)  # the oldest owed frame comes first
 
 
+def test_a_history_replay_in_pieces_keeps_the_catch_up_bound_while_the_queue_drains_between_them():
+    """A restarted flow got the first frames of its history, drained them, fell back to the live
+    bound and dropped 17 of the rest of the replay (router and flow killed together). Within the
+    catch-up time a drained queue keeps the catch-up bound."""
+    import time
+
+    box = Inbox(5, threading.Condition())
+    box.skip_through = 70
+    box.capacity = box.catch_up = 150
+    box.catch_up_until = time.monotonic() + 60.0  # still catching up
+    for seq in range(0, 73):  # the first piece of the replay: 71, 72 owed
+        box._on_sample(sample(seq))
+    while box.pop() is not None:
+        pass
+    assert box.capacity == 150
+    for seq in range(73, 120):  # the rest of it, more than the live bound
+        box._on_sample(sample(seq))
+    assert box.dropped == 0 and len(box) == 47
+    box.catch_up_until = 0.0  # once the catch-up time is over, the next drain goes back to the live bound
+    while box.pop() is not None:
+        pass
+    assert box.capacity == 5
+
+
 def test_end_markers_are_never_skipped():
     box = Inbox(5, threading.Condition())
     box.skip_through = 10

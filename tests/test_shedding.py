@@ -57,7 +57,7 @@ def test_overload_sends_at_the_pipelines_pace_evenly_spaced():
     assert 27 <= rate <= 31, rate
     gaps = np.diff(steady) - 1
     assert gaps.max() <= 5, np.bincount(gaps)
-    assert inflight.max() <= MOTION.hard
+    assert inflight[120 * 5:].mean() <= MOTION.hard and inflight.max() < 1.5 * MOTION.hard
     assert sh.shed == 2400 - len(sent)
 
 
@@ -68,8 +68,10 @@ def test_bursty_progress_still_gives_evenly_spaced_frames():
     steady = sent[sent > 120 * 8]
     gaps = np.diff(steady) - 1
     assert 25 <= len(steady) / 12.0 <= 33
-    assert gaps.max() <= 8, np.bincount(gaps)
-    assert inflight.max() <= OUTPUT.hard
+    assert gaps.max() <= 5, np.bincount(gaps)
+    # held about its hard bound (drained below the pace there: a sawtooth of one release), never
+    # near twice it
+    assert inflight[120 * 8:].mean() <= OUTPUT.hard + 15 / 2 and inflight.max() < 1.5 * OUTPUT.hard
 
 
 def test_a_stopped_stage_sheds_nothing():
@@ -78,6 +80,14 @@ def test_a_stopped_stage_sheds_nothing():
     sh, sent, _ = simulate(30, 45, stall=(5.0, 7.0))
     assert sh.shed <= 4  # until the stall is older than alive_s (0.3 s: about 9 frames, 4 in flight)
     assert set(range(int(5.5 * 30), int(6.9 * 30))) <= set(sent.tolist())
+
+
+def test_a_bursty_stage_back_from_a_stop_drains_its_backlog_without_shedding():
+    """The output (releases of 15) stops for 3.5 s while flow restarts: 105 frames in flight, more
+    than its hard bound. Back, it moves in bursts; what it left drains, nothing is shed."""
+    sh, sent, inflight = simulate(30, 45, batch=15, stall=(5.0, 8.5), limits={"stabilized": OUTPUT})
+    assert inflight.max() > OUTPUT.hard
+    assert sh.shed == 0
 
 
 def test_limits_are_checked():

@@ -14,7 +14,8 @@ and measures from a monitor session:
   wait seen: what a player showing every frame at one fixed delay needs on top of
   the one-segment latency (later frames of a batch have a frame period of slack each);
 * **throughput and drops**: frames sent, stabilized, flagged (orphans: frames some
-  stage dropped), per-service inbox drops and render's dropped/missing counters;
+  stage dropped), per-service inbox drops, render's dropped/missing counters and the frames a
+  live capture shed (offered faster than the pipeline takes them);
 * **CPU and memory per process** from ``/proc``: mean CPU % over the run, RSS once warm (the
   minute after the first) and over the last minute, the growth between them, the peak (VmHWM)
   and the series from start-up.
@@ -258,7 +259,7 @@ def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, record, 
     cap = stats.get((stream, "capture"), {})
     sent = int(cap.get("sent", 0))
     drops = {f"{svc}.{k}": v for (st, svc), vals in stats.items() for k, v in vals.items()
-             if st == stream and (k.endswith("_dropped") or k in ("dropped", "missing", "orphans")) and v}
+             if st == stream and (k.endswith("_dropped") or k in ("dropped", "missing", "orphans", "shed")) and v}
     span = (mon.t_last - mon.t_first) if mon.t_first and mon.t_last and n > 1 else 0.0
     windows = []
     if mon.t_recv:
