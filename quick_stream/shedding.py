@@ -10,7 +10,7 @@ corrections render waits for point at frames it already dropped (docs/reliabilit
   frames *in flight*: sent, and not yet reached by that stage (its newest seq, from its messages);
 * while a stage is making progress (its newest message is under ``alive_s`` old) and more than
   ``soft`` frames are in flight to it, the capture sends the share of the offered frames that the
-  stage has completed over the last ``rate_s`` seconds (times ``headroom``, 1.1), evenly spaced (an
+  stage has completed over the last ``rate_s`` seconds (times ``headroom``, 1.25), evenly spaced (an
   accumulator: one frame in k, not bursts), so the pipeline gets frames at its own pace and the
   gaps stay bridgeable;
 * at ``hard`` frames in flight to a live stage, the share drops below its pace (divided by
@@ -48,7 +48,7 @@ class ShedLimits:
 class Shedder:
     """Which offered frames a live capture sends (module docstring)."""
 
-    def __init__(self, limits: dict[str, ShedLimits], rate_s: float = 3.0, headroom: float = 1.1) -> None:
+    def __init__(self, limits: dict[str, ShedLimits], rate_s: float = 3.0, headroom: float = 1.25) -> None:
         """``headroom``: the share sent is that many times the stage's measured pace (a stage that
         keeps up on average, behind by a hiccup, sheds nothing; a slow one is held at its hard bound)."""
         self.limits = {k: v for k, v in limits.items() if v.hard > 0}
