@@ -13,7 +13,7 @@ from quick_stream.launcher import ServiceSpec, Supervisor
 from quick_stream.recording import read_messages
 from quick_stream.wire import decode
 
-FRAMES = 240
+FRAMES = 150
 
 
 def peak_rss_mb(pid: int) -> float:
