@@ -227,3 +227,43 @@ def test_the_stabilizer_stabilizes_the_renumbered_stream_after_the_run(frames):
     assert len(st.bad_frames) == FIRST and all("out of order" in b["error"] for b in st.bad_frames)
     assert st.flow.check.counts["renumberings"] == st.motion.renumberings == st.render.renumberings == 1
     assert st.render.orphans == st.render.missing == 0
+
+
+def test_a_confirming_frame_refused_for_its_depth_leaves_the_next_one_to_confirm(small):
+    st = FlowStage()
+    for f in small[:OLD]:
+        st.push(f)
+    new = [f.with_(seq=i) for i, f in enumerate(small[OLD:])]
+    for f in new[:FIRST]:
+        with pytest.raises(FrameRefused, match="out of order"):
+            st.push(f)
+    with pytest.raises(FrameRefused, match="depth"):
+        st.push(new[FIRST].with_(depth=np.zeros_like(new[FIRST].depth)))
+    brk = st.push(new[FIRST + 1])  # continues the run: confirms at once, not 15 frames later
+    assert (brk.seq, brk.seq_next) == (OLD - 1, FIRST + 1) and RENUMBERED in brk.problem
+
+
+def test_a_service_taking_over_skips_the_replay_but_not_a_live_renumbered_stream():
+    """The inbox of a restarted service skips what its predecessor handled (at or below its cursor),
+    replayed from the capture's history; a frame published after those it queued is live: a stream
+    renumbered below the cursor, which must reach the stage to be confirmed."""
+    import threading
+
+    from types import SimpleNamespace
+
+    from quick_stream.runtime import Inbox
+
+    def sample(seq: int, pub_ns: int):
+        data = encode_frame(_F.with_(seq=seq), "cam0", pub_ns=pub_ns)
+        return SimpleNamespace(key_expr="quick/@v1/cam0/frame", payload=SimpleNamespace(to_bytes=lambda: data))
+
+    box = Inbox(30, threading.Condition())
+    box.skip_through = 93
+    for seq in (94, 95):  # live frames first
+        box._on_sample(sample(seq, 1000 + seq))
+    for seq in range(60, 94):  # then the history: published before them, skipped
+        box._on_sample(sample(seq, 1000 + seq))
+    assert box.skipped == 34 and len(box) == 2
+    for seq in range(RESYNC):  # a capture restarted from 0, published after them: queued
+        box._on_sample(sample(seq, 2000 + seq))
+    assert box.skipped == 34 and len(box) == 2 + RESYNC
