@@ -10,17 +10,29 @@ account of everything it records, so no loss is silent (docs/reliability.md).
 A seq that arrives late (after a higher one) fills its gap again. The missing seqs of a
 stage are remembered up to ``window`` behind its newest; older ones are final.
 
+A stage whose numbering restarts lower (a camera or capture restarted without the stream's
+cursor) is followed once a run of seqs confirms it, as the stages confirm it
+(:class:`~quick_stream.continuity.JumpGuard`: ``resync`` consecutive seqs at or behind the newest,
+none of them filling a gap, each following the previous by 1..``step``; a frame published before
+the newest one, a history replay, never counts): the stage's newest becomes the run's last seq,
+the run's seqs are taken back from ``duplicates``, the gaps inside the run are counted, the old
+numbering's missing seqs are final (``renumberings``; logged). So the cursor a restarted service
+resumes from follows the new numbering, and the new numbering is not a flood of duplicates.
+
 Only messages that pass :func:`quick_stream.wire.check` are accounted (every field valid, the
 envelope's stream and type those of the key it came on): one malformed message with a huge seq
 must not move a stage's newest seq, which restarted services resume from (the stream cursor).
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 from . import keys
-from .continuity import JumpGuard
+from .continuity import JumpGuard, published_after
 from .wire import WireError, check
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -29,7 +41,8 @@ class _Stage:
     first: int = -1  # the first seq accounted (or seeded)
     missing: set[int] = field(default_factory=set)
     unreceived: int = 0  # seqs skipped and not (yet) filled: the stage's count
-    jumps: JumpGuard = field(default_factory=JumpGuard)  # a far-future seq moves nothing until confirmed
+    jumps: JumpGuard = field(default_factory=JumpGuard)  # a far-future or lower seq moves nothing until confirmed
+    newest_pub: int | None = None  # when the newest was published (frames carry it), None: unknown
 
 
 @dataclass
@@ -57,11 +70,13 @@ class ArrivalLedger:
         self.duplicates = 0  # arrived again (a restarted publisher republishing, a replay)
         self.invalid = 0  # failed the check: not accounted
         self.jumps = 0  # far ahead of the stage's newest and not (yet) confirmed by a run: not accounted
+        self.renumberings = 0  # a stage's numbering went back, confirmed by a run: followed
         self.last_error: str | None = None  # why the newest invalid one failed
 
-    def checked(self, key_expr: str, payload: bytes) -> tuple[str, int] | None:
-        """(type, seq) of a message that passes :func:`~quick_stream.wire.check` on its key; None
-        (counted in ``invalid``, the reason in ``last_error``) for one that does not."""
+    def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None] | None:
+        """(type, seq, publication time ns or None) of a message that passes
+        :func:`~quick_stream.wire.check` on its key (a frame's ``pub_ns``); None (counted in
+        ``invalid``, the reason in ``last_error``) for one that does not."""
         try:
             stream, stage = keys.parse(key_expr)
             d = check(payload, stream, stage)
@@ -69,17 +84,17 @@ class ArrivalLedger:
             self.invalid += 1
             self.last_error = f"{key_expr}: {e}"
             return None
-        return d.type, d.seq
+        return d.type, d.seq, d.extra.get("pub_ns") if d.extra else None
 
     def add(self, key_expr: str, payload: bytes) -> Gap | None:
         """Check and account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any."""
         env = self.checked(key_expr, payload)
         return None if env is None else self.account(key_expr, *env)
 
-    def account(self, key_expr: str, mtype: str, seq: int) -> Gap | None:
-        """Account a checked message (:meth:`checked`); the gap it reveals, if any. Stats and health
-        (numbered on their own) are not counted; an ``end`` closes the stage's stream (a new one may
-        start again from 0)."""
+    def account(self, key_expr: str, mtype: str, seq: int, pub_ns: int | None = None) -> Gap | None:
+        """Account a checked message (:meth:`checked`; ``pub_ns``: when it was published, if known);
+        the gap it reveals, if any. Stats and health (numbered on their own) are not counted; an
+        ``end`` closes the stage's stream (a new one may start again from 0)."""
         if mtype in ("stats", "health"):
             return None
         where = tuple(key_expr.rsplit("/", 2)[-2:])
@@ -92,6 +107,7 @@ class ArrivalLedger:
             return None
         if st.newest < 0:  # the first message of this stage we see: nothing before it is ours to miss
             st.newest = st.first = seq
+            st.newest_pub = pub_ns
             return None
         if seq > st.newest and not st.jumps.admit(st.newest, seq):
             self.jumps += 1  # one far-future seq (a glitch, a stray publisher) is not the stage's newest
@@ -103,6 +119,7 @@ class ArrivalLedger:
                 st.missing.update(range(max(st.newest + 1, seq - self.window), seq))
                 st.unreceived += gap.count
             st.newest = seq
+            st.newest_pub = pub_ns
             if len(st.missing) > self.window:
                 st.missing = {s for s in st.missing if s > seq - self.window}
             return gap
@@ -110,9 +127,25 @@ class ArrivalLedger:
             st.missing.discard(seq)
             st.unreceived -= 1
             self.late += 1
-        else:
-            self.duplicates += 1
+            return None
+        self.duplicates += 1
+        if st.jumps.renumbered(seq, published_after(pub_ns, st.newest_pub)):
+            self._renumber(where, st, pub_ns)
         return None
+
+    def _renumber(self, where: tuple[str, str], st: _Stage, pub_ns: int | None) -> None:
+        """Follow a stage's confirmed new numbering: its run (:attr:`JumpGuard.run`) was counted as
+        duplicates; it is the new numbering's start, with what is missing inside it."""
+        run = st.jumps.run
+        self.renumberings += 1
+        self.duplicates -= len(run)
+        log.warning("%s/%s: the numbering restarts at seq %d (after %d; confirmed by %d in a row): followed",
+                    where[0], where[1], run[0], st.newest, len(run))
+        st.missing = set()  # the old numbering's: final
+        for a, b in zip(run, run[1:]):
+            st.missing.update(range(a + 1, b))
+        st.unreceived += len(st.missing)
+        st.newest, st.first, st.newest_pub = run[-1], run[0], pub_ns
 
     def seed(self, stream: str, stage: str, newest: int) -> Gap | None:
         """Start a stage's account at ``newest`` as if it had been received (a restarted recorder

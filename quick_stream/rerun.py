@@ -288,7 +288,7 @@ def _render_run(frames: list[_Msg], corrections: list[_Msg], ended: bool, params
 
     def render_ready() -> None:
         while groups.ready:
-            _, batch, _ = groups.ready.pop(0)
+            _, batch, *_ = groups.ready.pop(0)
             feed(max(c.seq for c in batch))
             out.extend(stage.render_batch(batch))
 

@@ -68,6 +68,7 @@ class Inbox:
         self.skipped = 0
         self.skip_through: int | None = None  # data messages with a seq <= this are not queued (taken over)
         self._newest: int | None = None  # taking over: the newest data seq queued so far
+        self._newest_pub: int | None = None  # taking over: the latest publication time queued so far (frames)
         self.arrivals = ArrivalLedger()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -84,9 +85,14 @@ class Inbox:
             # A service taking over skips what its predecessor already handled; a history
             # replay of many of those must not push the ones it needs out of the queue.
             if env is not None and env[0] != "end":
-                if env[1] <= self.skip_through:
+                if env[1] <= self.skip_through and not (env[2] is not None and self._newest_pub is not None
+                                                        and env[2] > self._newest_pub):
+                    # (one published after everything queued is live, not a replay: a stream renumbered
+                    # below the cursor, which the stage takes as a new numbering once a run confirms it)
                     self.skipped += 1
                     return
+                if env[2] is not None:
+                    self._newest_pub = max(env[2], self._newest_pub or env[2])
                 if self._newest is not None and env[1] < self._newest:
                     # older than what already came: the history replay, delivered after live messages
                     # (and after the queue first drained); it is owed, so hold it as during catch-up

@@ -18,7 +18,10 @@ Streams with holes: :class:`MotionStage` turns a gap between consecutive flows
 (the flow stage skipped frames or was restarted) into an invalid motion, so the
 path restarts there and the frames are flagged; :class:`RenderStage` renders a
 frame that no correction will ever reach (an *orphan*, skipped upstream) with
-no correction, flagged, instead of holding it forever.
+no correction, flagged, instead of holding it forever. A stream renumbered lower
+(confirmed by a run of frames, :class:`~quick_stream.continuity.JumpGuard`) is a break:
+the flow goes back, :class:`MotionStage` restarts the path there, and
+:class:`RenderStage` keeps the old numbering's frames apart from the new one's.
 """
 from __future__ import annotations
 
@@ -29,7 +32,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .continuity import ContinuityCheck, ContinuityParams, JumpGuard
+from .continuity import ContinuityCheck, ContinuityParams, JumpGuard, published_after, restarts_numbering
 from .frame import RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .motion_pipeline import StageTimer
@@ -56,19 +59,23 @@ class FlowStage:
         self.check = ContinuityCheck(continuity)
         self.notes: list[str] = []
         self._prev: RGBDFrame | None = None
+        self._prev_pub: int | None = None  # when the previous good frame was published (None: unknown)
 
-    def push(self, frame: RGBDFrame) -> SceneFlowResult | None:
+    def push(self, frame: RGBDFrame, pub_ns: int | None = None) -> SceneFlowResult | None:
         """Add the next frame; returns the flow from the previous good frame to it (None for the first).
 
         A frame the check refuses (no valid depth, duplicate, out of order) raises
         :class:`~quick_stream.continuity.FrameRefused` (a ValueError) and is not used. Across a
-        discontinuity (too many missing frames, a timestamp jump, a size change) the flow is
-        empty and its ``problem`` names the discontinuity, so the path restarts there.
+        discontinuity (too many missing frames, a timestamp jump, a size change, a confirmed
+        renumbering: the flow then goes back, ``seq_next < seq``) the flow is empty and its
+        ``problem`` names the discontinuity, so the path restarts there. ``pub_ns``: when the frame
+        was published (a frame message's ``pub_ns``), so a history replay of older frames never
+        passes for a new numbering (:func:`~quick_stream.continuity.published_after`).
         """
         prev = self._prev
-        verdict = self.check.inspect(prev, frame)
+        verdict = self.check.inspect(prev, frame, published_after(pub_ns, self._prev_pub))
         self.notes = verdict.notes
-        self._prev = frame
+        self._prev, self._prev_pub = frame, pub_ns
         if prev is None:
             return None
         if verdict.brk:
@@ -77,7 +84,7 @@ class FlowStage:
 
     def restart(self) -> None:
         """End of stream: the next frame starts a new chain (the counters go on)."""
-        self._prev = None
+        self._prev = self._prev_pub = None
 
 
 class MotionStage:
@@ -93,6 +100,8 @@ class MotionStage:
                              f"{self.planner.params.group!r} differ")
         self._last: int | None = None  # seq of the newest frame the path has reached
         self.gaps = 0
+        self.renumberings = 0  # breaks to a new numbering taken (the path restarted at a lower seq)
+        self._break: tuple[int, int] | None = None  # (seq, seq_next) of the last of them
         self.timer = StageTimer()
 
     @property
@@ -110,15 +119,21 @@ class MotionStage:
         Starts the path at ``flow.seq`` if not started. A flow that does not begin
         at the newest frame reached (frames skipped upstream) first gets an invalid
         motion across the gap. A flow that ends at or before that frame is refused
-        with ValueError (stale or duplicate).
+        with ValueError (stale or duplicate), unless it is the flow stage's break to a
+        new numbering (:meth:`renumbers`): the path then restarts at its ``seq_next``, and
+        the corrections of the old numbering and of the new one go out in separate batches.
         """
         batches: list[list[Correction]] = []
         motions: list[MotionEstimate] = []
         if self._last is None:
             batches.append(self.start(flow.seq))
-        if flow.seq_next <= self._last:
+        renumbered = self.renumbers(flow)
+        if flow.seq_next <= self._last and not renumbered:
             raise ValueError(f"flow {flow.seq}->{flow.seq_next} ends at or before frame {self._last} "
                              "(stale or duplicate)")
+        if renumbered:
+            self.renumberings += 1
+            self._break = (flow.seq, flow.seq_next)
         p = self.estimator.params
         if flow.seq != self._last:
             self.gaps += 1
@@ -130,11 +145,19 @@ class MotionStage:
         m = self.estimator.estimate(flow)
         t1 = time.perf_counter()
         motions.append(m)
-        batches.append(self.planner.push(m, self.frame_model(flow)))
+        batches += split_numberings(self.planner.push(m, self.frame_model(flow)))
         self.timer.add("motion", (t1 - t0) * 1e3)
         self.timer.add("path", (time.perf_counter() - t1) * 1e3)
         self._last = flow.seq_next
         return motions, [b for b in batches if b]
+
+    def renumbers(self, flow: SceneFlowResult) -> bool:
+        """Whether ``flow`` is the flow stage's break to a new numbering: empty, going back
+        (``seq_next <= seq``), its problem naming the renumbering, and starting at or after the newest
+        frame the path reached and not the one already taken (either is a stale copy)."""
+        return (bool(flow.problem) and len(flow) == 0 and flow.seq_next <= flow.seq
+                and restarts_numbering(flow.problem) and (self._last is None or flow.seq >= self._last)
+                and self._break != (flow.seq, flow.seq_next))
 
     def frame_model(self, flow: SceneFlowResult) -> FrameModel | None:
         """The 3D points of the flow's second frame (x + v at the pixels the flow reached), for the crop budget."""
@@ -151,6 +174,13 @@ class MotionStage:
         return [b] if b else []
 
 
+def split_numberings(batch: list[Correction]) -> list[list[Correction]]:
+    """``batch`` cut where its seqs go back (a path closed by a renumbering and restarted in the new
+    numbering), so no correction batch mixes two numberings."""
+    cuts = [i for i in range(1, len(batch)) if batch[i].seq <= batch[i - 1].seq]
+    return [batch[a:b] for a, b in zip([0, *cuts], [*cuts, len(batch)])]
+
+
 @dataclass
 class StabilizedFrame:
     seq: int
@@ -160,6 +190,7 @@ class StabilizedFrame:
     zoom: float
     mesh: MeshWarp
     input_image: np.ndarray | None = None  # kept only when the caller asks (metrics)
+    numbering: int = 0  # which of the stream's numberings the render stage took the frame in (see RenderStage)
 
     @property
     def flags(self) -> list[str]:
@@ -171,9 +202,13 @@ class StabilizedFrame:
         return out
 
 
-def orphan_correction(seq: int) -> Correction:
+ORPHAN = "no correction: frame skipped upstream"
+STALE = "no correction: the stream's numbering restarted before this frame's correction came"
+
+
+def orphan_correction(seq: int, reason: str = ORPHAN) -> Correction:
     """What a frame no correction reached is rendered with: none, flagged."""
-    return Correction(seq, np.eye(4), -1, False, False, "no correction: frame skipped upstream")
+    return Correction(seq, np.eye(4), -1, False, False, reason)
 
 
 class RenderStage:
@@ -183,6 +218,14 @@ class RenderStage:
     service buffers compressed bytes). At most ``max_frames`` wait; beyond that the
     oldest is dropped and counted (``dropped``); a correction whose frame is gone is
     counted in ``missing``; a frame that cannot be loaded is reported in ``bad``.
+
+    A stream whose numbering goes back (confirmed as the flow stage confirms it,
+    :class:`~quick_stream.continuity.JumpGuard`) is held apart from the frames of the old
+    numbering still waiting (``numbering`` counts the renumberings taken, ``renumberings``
+    too): the old numbering's corrections still come first, each batch renders against the
+    frames of its own numbering, and once the corrections reach the new numbering (the
+    restart correction the renumbering's break made, :func:`~quick_stream.continuity.restarts_numbering`)
+    what is left of the old one is rendered uncorrected and flagged (``orphans``) before it.
     """
 
     def __init__(self, warp: WarpParams | None = None, framing: FramingParams | None = None,
@@ -194,8 +237,14 @@ class RenderStage:
         self.max_frames = max_frames
         self.keep_inputs = keep_inputs
         self.timer = StageTimer()
-        self._frames: OrderedDict[int, RGBDFrame | FrameLoader] = OrderedDict()
-        self._prepared: dict[int, WarpInput] = {}  # warp inputs of decoded frames, made on arrival
+        # held frames per numbering (0, then one more per renumbering), only those the corrections may still reach
+        self._held: dict[int, OrderedDict[int, RGBDFrame | FrameLoader]] = {0: OrderedDict()}
+        self._prepared: dict[tuple[int, int], WarpInput] = {}  # warp inputs of decoded frames, made on arrival
+        self.numbering = 0  # the numbering frames are taken in
+        self._corr = 0  # the numbering the corrections have reached
+        self._newest_in: dict[int, int] = {}  # per numbering held, the newest frame taken in it
+        self._newest_pub: int | None = None  # when the newest frame taken was published (None: unknown)
+        self.renumberings = 0
         self.dropped = 0
         self.missing = 0
         self.orphans = 0
@@ -204,32 +253,51 @@ class RenderStage:
         self.filled = 0  # frames whose border was filled from neighbours
         self.fill_raised = 0  # frames zoomed in beyond their plan because fill left a border
         self.jumps = JumpGuard()  # the flow stage's defaults: what it refuses gets no correction
-        self._newest: int | None = None  # the newest frame taken
 
     @property
     def buffered(self) -> int:
-        return len(self._frames)
+        return sum(len(h) for h in self._held.values())
 
-    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader) -> None:
+    @property
+    def newest(self) -> int | None:
+        """The newest frame taken (in the numbering frames are taken in), None before the first."""
+        return self._newest_in.get(self.numbering)
+
+    def fresh(self, pub_ns: int | None) -> bool:
+        """Whether a frame published at ``pub_ns`` may be newer than the newest frame taken
+        (:func:`~quick_stream.continuity.published_after`): False for a history replay."""
+        return published_after(pub_ns, self._newest_pub)
+
+    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None) -> None:
         """Buffer a frame (or its loader) until its correction arrives. Refused (ValueError): one not
-        after the newest buffered, and one far ahead of the newest taken that no run of frames
-        confirms (:class:`~quick_stream.continuity.JumpGuard`, as the flow stage does)."""
-        if self._frames and seq <= next(reversed(self._frames)):
-            raise ValueError(f"frame {seq} is not after the newest buffered frame (out of order or duplicate)")
-        if not self.jumps.admit(self._newest, seq):
-            raise ValueError(f"frame {seq} is {seq - self._newest} frames ahead of frame {self._newest} "
+        after the newest taken (unless a run of them confirms that the numbering went back: then
+        it is the first frame of a new numbering), and one far ahead of the newest taken that no
+        run of frames confirms (:class:`~quick_stream.continuity.JumpGuard`, as the flow stage
+        does). ``pub_ns``: when the frame was published, so a replay never starts a numbering."""
+        newest = self.newest
+        if newest is not None and seq <= newest:
+            if not self.jumps.renumbered(seq, self.fresh(pub_ns)):
+                raise ValueError(f"frame {seq} is not after frame {newest}, the newest taken (out of order or "
+                                 "duplicate)")
+            self.numbering += 1
+            self.renumberings += 1
+            self._held[self.numbering] = OrderedDict()
+        elif not self.jumps.admit(newest, seq):
+            raise ValueError(f"frame {seq} is {seq - newest} frames ahead of frame {newest} "
                              f"(more than {self.jumps.max_jump}): refused unless frames in a row continue from it")
-        self._newest = seq
-        self._frames[seq] = frame
+        self._newest_in[self.numbering] = seq
+        self._newest_pub = pub_ns
+        self._held[self.numbering][seq] = frame
         if isinstance(frame, RGBDFrame):
-            self._prepared[seq] = prepare_warp(frame, self.warp)
-        while len(self._frames) > self.max_frames:
-            old, _ = self._frames.popitem(last=False)
-            self._prepared.pop(old, None)
+            self._prepared[(self.numbering, seq)] = prepare_warp(frame, self.warp)
+        while self.buffered > self.max_frames:
+            n = min(k for k, h in self._held.items() if h)
+            old, _ = self._held[n].popitem(last=False)
+            self._prepared.pop((n, old), None)
             self.dropped += 1
 
-    def _load(self, seq: int) -> RGBDFrame | None:
-        f = self._frames.pop(seq, None)
+    def _load(self, numbering: int, seq: int) -> RGBDFrame | None:
+        f = self._held.get(numbering, {}).pop(seq, None)
         if f is None or isinstance(f, RGBDFrame):
             return f
         try:
@@ -237,6 +305,43 @@ class RenderStage:
         except Exception as e:  # noqa: BLE001 - a frame that cannot be decoded is reported, not fatal
             self.bad.append({"seq": seq, "error": f"{type(e).__name__}: {e}"})
             return None
+
+    @staticmethod
+    def _restarts(batch: list[Correction]) -> bool:
+        """Whether a batch begins a new numbering: the restart correction of a renumbering's break."""
+        return not batch[0].valid and restarts_numbering(batch[0].reason)
+
+    def numbering_of(self, batch: list[Correction]) -> int:
+        """The numbering a correction batch belongs to. The batch that restarts the path in a new
+        numbering belongs to the next numbering frames were taken in (if the frames have not shown
+        one, this stage never saw the old numbering: the current one); any other batch to the
+        numbering the corrections reached, unless only a later numbering holds any of its frames
+        (the restart batch was lost or rendered before its frames came)."""
+        later = sorted(n for n in self._held if n > self._corr)
+        if self._restarts(batch):
+            return later[0] if later else self._corr
+        seqs = {c.seq for c in batch}
+        for n in [self._corr, *later]:
+            if not seqs.isdisjoint(self._held.get(n, {})):
+                return n
+        return self._corr
+
+    def can_render(self, batch: list[Correction]) -> bool:
+        """Whether a correction batch can be rendered now, before the frames it waits for could come:
+        all its frames are held, or a newer frame of its numbering (or a later numbering) has been
+        taken, so a missing one will never come. A batch that restarts the path in a new numbering
+        waits for its frames while the frames have not shown the renumbering yet."""
+        if not batch:
+            return True
+        n = self.numbering_of(batch)
+        held = self._held.get(n, {})
+        seqs = [c.seq for c in batch]
+        if all(s in held for s in seqs):
+            return True
+        if self._restarts(batch) and n == self._corr:
+            return False
+        newest = self._newest_in.get(n)
+        return n < self.numbering or (newest is not None and newest > max(seqs))
 
     def render_batch(self, corrections: list[Correction]) -> list[StabilizedFrame]:
         """Render one correction batch and the orphans it reveals, in seq order (see :meth:`iter_batch`)."""
@@ -252,15 +357,31 @@ class RenderStage:
         will ever come); each is framed on its own, uncorrected and flagged."""
         if not corrections:
             return
+        n = self.numbering_of(corrections)
+        stale: list[tuple[Correction, RGBDFrame, MeshWarp, float, int]] = []
+        for old in sorted(k for k in self._held if k < n):  # the corrections moved on: none will reach these
+            for seq in list(self._held[old]):
+                self.orphans += 1
+                stale += [(*p, old) for p in self._plan([orphan_correction(seq, STALE)], old)]
+            del self._held[old]
+            self._newest_in.pop(old, None)
+        self._corr = n
+        held = self._held.get(n, {})
         last = max(c.seq for c in corrections)
         covered = {c.seq for c in corrections}
         plans: list[tuple[Correction, RGBDFrame, MeshWarp, float]] = []
-        for seq in [s for s in self._frames if s < last and s not in covered]:
+        for seq in [s for s in held if s < last and s not in covered]:
             self.orphans += 1
-            plans += self._plan([orphan_correction(seq)])
-        plans += self._plan(corrections)
+            plans += self._plan([orphan_correction(seq)], n)
+        plans += self._plan(corrections, n)
         if len(plans) > len(corrections):
             plans.sort(key=lambda x: x[0].seq)
+        for c, f, mesh, z, old in stale:  # the old numbering's last frames first, as they are
+            t0 = time.perf_counter()
+            sf = StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
+                                 f.color if self.keep_inputs else None, old)
+            self.timer.add("render", (time.perf_counter() - t0) * 1e3)
+            yield sf
         ahead = [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K) for c, f, _, _ in plans
                  if c.camera is not None] if self.framing.fill_frames else []
         if ahead and self.framing.mode == "auto":
@@ -268,7 +389,7 @@ class RenderStage:
         for c, f, mesh, z in plans:
             t0 = time.perf_counter()
             image, z = self._render(c, f, mesh, z, ahead)
-            sf = StabilizedFrame(c.seq, f.timestamp_ns, image, c, z, mesh, f.color if self.keep_inputs else None)
+            sf = StabilizedFrame(c.seq, f.timestamp_ns, image, c, z, mesh, f.color if self.keep_inputs else None, n)
             self.timer.add("render", (time.perf_counter() - t0) * 1e3)
             yield sf
 
@@ -314,29 +435,30 @@ class RenderStage:
             self._past = (self._past + [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K)])[-reach:]
         return image, zoom
 
-    def has_frames(self, seqs: list[int]) -> bool:
-        return all(s in self._frames for s in seqs)
-
     def flush(self) -> list[StabilizedFrame]:
-        """End of stream: render every frame still waiting as an orphan (no correction will come)."""
+        """End of stream: render every frame still waiting as an orphan (no correction will come),
+        numbering by numbering."""
         out: list[StabilizedFrame] = []
-        for seq in list(self._frames):
-            self.orphans += 1
-            for c, f, mesh, z in self._plan([orphan_correction(seq)]):
-                out.append(StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
-                                           f.color if self.keep_inputs else None))
+        for n in sorted(self._held):
+            for seq in list(self._held[n]):
+                self.orphans += 1
+                for c, f, mesh, z in self._plan([orphan_correction(seq, STALE if n < self.numbering else ORPHAN)], n):
+                    out.append(StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
+                                               f.color if self.keep_inputs else None, n))
         return out
 
-    def _plan(self, corrections: list[Correction]) -> list[tuple[Correction, RGBDFrame, MeshWarp, float]]:
-        """Load the frames, solve their warps and the batch's zoom track."""
+    def _plan(self, corrections: list[Correction],
+              numbering: int) -> list[tuple[Correction, RGBDFrame, MeshWarp, float]]:
+        """Load the frames (of ``numbering``), solve their warps and the batch's zoom track."""
         t0 = time.perf_counter()
         items = []
         for c in corrections:
-            f = self._load(c.seq)
+            f = self._load(numbering, c.seq)
             if f is None:
                 self.missing += 1
                 continue
-            items.append((c, f, solve_warp(f, c.point_transform, self.warp, self._prepared.pop(c.seq, None))))
+            items.append((c, f, solve_warp(f, c.point_transform, self.warp,
+                                           self._prepared.pop((numbering, c.seq), None))))
         if not items:
             return []
         t1 = time.perf_counter()
@@ -364,32 +486,48 @@ class ReleaseGroups:
     service): it is handed over with what arrived (``abandoned``). A restarted motion
     service numbers releases from 0 again; a correction that does not fit the open release
     of that number (other size, or an index already there) starts a new one.
+
+    ``ready`` holds (release, batch, completed at, numbering), in seq order within a numbering:
+    the restart correction of a renumbering's break (:func:`~quick_stream.continuity.restarts_numbering`,
+    going back) starts the next numbering, whose releases follow every release of the old one.
     """
 
     def __init__(self) -> None:
-        self._open: dict[int, tuple[int, dict[int, Correction]]] = {}
-        self.ready: list[tuple[int, list[Correction], float]] = []  # (release, batch, completed at)
+        self._open: dict[int, tuple[int, dict[int, Correction], int]] = {}
+        self.ready: list[tuple[int, list[Correction], float, int]] = []
         self.unbatched = 0
         self.abandoned = 0
+        self.numbering = 0  # renumberings the corrections announced
+        self._newest: int | None = None  # the newest correction seq of the current numbering
 
     def _hand_over(self, rel: int) -> None:
-        _, got = self._open.pop(rel)
-        self.ready.append((rel, [got[i] for i in sorted(got)], time.monotonic()))
-        self.ready.sort(key=lambda r: r[1][0].seq)
+        _, got, numbering = self._open.pop(rel)
+        self.ready.append((rel, [got[i] for i in sorted(got)], time.monotonic(), numbering))
+        self.ready.sort(key=lambda r: (r[3], r[1][0].seq))
+
+    def _numbering(self, c: Correction) -> int:
+        """The numbering ``c`` belongs to (a restart correction going back starts the next one)."""
+        if not c.valid and restarts_numbering(c.reason) and self._newest is not None and c.seq <= self._newest:
+            self.numbering += 1
+            self._newest = None
+        self._newest = c.seq if self._newest is None else max(self._newest, c.seq)
+        return self.numbering
 
     def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
+        numbering = self._numbering(c)
         if batch is None:  # a sender without release tags: each correction is its own batch
             self.unbatched += 1
-            self.ready.append((-1, [c], time.monotonic()))
+            self.ready.append((-1, [c], time.monotonic(), numbering))
             return
         rel, idx, size = batch
         for other in [r for r in self._open if r != rel]:
             self.abandoned += 1
             self._hand_over(other)
-        if rel in self._open and (self._open[rel][0] != size or idx in self._open[rel][1]):
+        if rel in self._open and (self._open[rel][0] != size or idx in self._open[rel][1]
+                                  or self._open[rel][2] != numbering):
             self.abandoned += 1
             self._hand_over(rel)
-        _, got = self._open.setdefault(rel, (size, {}))
+        _, got, _ = self._open.setdefault(rel, (size, {}, numbering))
         got[idx] = c
         if len(got) == size:
             self._hand_over(rel)

@@ -4,7 +4,9 @@ Reads frames through a drop-oldest inbox (``--queue``, default 30: if this stage
 falls that far behind, the oldest frames are dropped and counted, and the next
 flow spans the gap), runs :class:`quick_stream.stages.FlowStage` and publishes
 each pair's ``flow`` message (lossless: the motion stage needs every pair it can
-get). Undecodable or out-of-order frames are logged and counted; the ``end``
+get). Undecodable or out-of-order frames are logged and counted; a stream whose
+numbering restarts lower is followed once a run of frames confirms it (an empty flow
+naming the renumbering: the path restarts there; ``renumberings``). The ``end``
 marker is forwarded once the last flow is out.
 """
 from __future__ import annotations
@@ -54,18 +56,18 @@ def run(args, conf: zenoh.Config) -> int:
         rt.serve_cursor()
         rt.ready()
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0, "internal_errors": 0, "taken_over": 0}
+        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0, "internal_errors": 0}
 
         def stats():
-            return {"state": "running", **errors, **stage.check.counts, **meter.take("flow")}
+            # taken over: frames whose flow was out before the restart, skipped by the inbox (a replay of
+            # the capture's history; a frame published after those queued is live, a renumbered stream)
+            return {"state": "running", **errors, "taken_over": inbox.skipped, **stage.check.counts,
+                    **meter.take("flow")}
 
-        def take(frame) -> None:
-            if resume_after is not None and frame.seq <= resume_after:  # its flow was out before the restart
-                errors["taken_over"] += 1
-                return
+        def take(frame, pub_ns: int | None) -> None:
             t0 = time.perf_counter()
             try:
-                flow = stage.push(frame)
+                flow = stage.push(frame, pub_ns)
             except ValueError as e:
                 errors["refused_frames"] += 1
                 log.error("refused: %s", e)
@@ -85,10 +87,10 @@ def run(args, conf: zenoh.Config) -> int:
                 pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream after frame %d", msg.obj.seq)
                 stage.restart()  # a new stream may follow
-                resume_after = None
+                inbox.skip_through = None
                 continue
             with rt.contained(f"frame {msg.seq}", errors):
-                take(msg.obj)
+                take(msg.obj, msg.extra.get("pub_ns"))
         rt.publish_stats({**stats(), "state": "stopped"})
     return 0
 

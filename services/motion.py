@@ -6,8 +6,10 @@ pair's ``motion`` and, one segment late, the ``correction`` of every frame of a
 closed segment, tagged with its planner release (``batch``) so the renderer
 frames each release as a whole. A flow that skips frames (upstream drops or a
 restarted flow service) becomes an invalid motion: the path restarts there and
-those frames are flagged. On ``end`` the last segment is closed and released,
-then ``end`` is forwarded on ``correction``.
+those frames are flagged. The flow stage's break to a new numbering (a stream renumbered
+lower) restarts the path at its first frame (``renumberings``); the old numbering's
+corrections and the new one's go out in separate releases. On ``end`` the last segment is
+closed and released, then ``end`` is forwarded on ``correction``.
 """
 from __future__ import annotations
 
@@ -70,12 +72,15 @@ def run(args, conf: zenoh.Config) -> int:
         meter = RateMeter()
         errors = {"decode_errors": 0, "refused_flows": 0, "invalid_motions": 0, "internal_errors": 0,
                   "taken_over": 0}
+        done = {"renumberings": 0}  # of streams already ended
 
         def stats():
             return {"state": "running", **errors, "gaps": stage.gaps, "segments": len(stage.planner.segments),
-                    "corrections": release.sent, **meter.take("motion")}
+                    "corrections": release.sent, "renumberings": done["renumberings"] + stage.renumberings,
+                    **meter.take("motion")}
 
         def take(flow) -> None:
+            nonlocal resume_after
             if resume_after is not None and flow.seq <= resume_after:  # its frames were corrected before the restart
                 errors["taken_over"] += 1
                 return
@@ -86,6 +91,9 @@ def run(args, conf: zenoh.Config) -> int:
                 errors["refused_flows"] += 1
                 log.error("flow %d->%d refused: %s", flow.seq, flow.seq_next, e)
                 return
+            if flow.seq_next <= flow.seq and resume_after is not None:
+                # a new numbering: the predecessor's cursor says nothing of it
+                resume_after = inbox.skip_through = None
             for m in motions:
                 if not m.valid:
                     errors["invalid_motions"] += 1
@@ -99,8 +107,9 @@ def run(args, conf: zenoh.Config) -> int:
                 release(stage.finish())
                 release.pub.put(encode_end(msg.obj, args.stream))
                 log.info("end of stream: %d segments, %d corrections", len(stage.planner.segments), release.sent)
+                done["renumberings"] += stage.renumberings
                 stage = MotionStage(params.motion, params.planner, params.warp)  # a new stream may follow
-                resume_after = None
+                resume_after = inbox.skip_through = None
                 continue
             with rt.contained(f"flow {msg.seq}->{msg.obj.seq_next}", errors):
                 take(msg.obj)

@@ -134,7 +134,8 @@ def run(args, conf: zenoh.Config) -> int:
                         "files": len(files.done) + 1, **errors, "restart_hole": holes["messages"],
                         "unreceived": sum(unreceived.values()),
                         **{f"unreceived_{k}": v for k, v in unreceived.items()}, "late": ledger.late,
-                        "duplicates": ledger.duplicates, **meter.take("log")}
+                        "duplicates": ledger.duplicates, "renumberings": ledger.renumberings,
+                        **meter.take("log")}
 
         def accept(key_expr: str, payload: bytes, t_ns: int) -> None:
             """Zenoh's thread, on arrival: the exact wire bytes into the file's open chunk at once, so

@@ -5,7 +5,10 @@ release and each release is warped, framed and rendered as a whole by
 :class:`quick_stream.stages.RenderStage`. A release is rendered once all its
 frames are here, or a newer frame has arrived (a missing one is lost: counted),
 or after ``--frame-wait`` seconds. Frames that no correction will reach (skipped
-upstream) are rendered uncorrected and flagged. ``--max-frames`` bounds what is
+upstream) are rendered uncorrected and flagged. A stream whose numbering restarts lower is
+followed once a run of frames confirms it (``renumberings``): the old numbering's frames
+still held are rendered with the old numbering's corrections, what none reaches uncorrected
+and flagged, then the new numbering's. ``--max-frames`` bounds what is
 held: beyond it the oldest frame is dropped and counted. Each stabilized frame
 is published as soon as it is rendered (the batch's warps and zoom track are
 solved first), with its latency stamps (docs/wire-format.md); ``--output``/``--png``
@@ -66,8 +69,7 @@ def run(args, conf: zenoh.Config) -> int:
         corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=taking_over, publisher="motion")
         pub = rt.publisher("stabilized")
         releases = ReleaseGroups()
-        pub_ns: dict[int, int] = {}
-        newest = -1
+        pub_ns: dict[tuple[int, int], int] = {}  # (numbering, seq) -> when the capture published the frame
         rt.serve_cursor()
         rt.ready()
         meter = RateMeter()
@@ -75,7 +77,7 @@ def run(args, conf: zenoh.Config) -> int:
         flagged = 0
         ended_streams = 0
         done = {"dropped": 0, "missing": 0, "orphans": 0, "bad": 0,  # counts of streams already ended
-                "filled": 0, "fill_raised": 0}
+                "filled": 0, "fill_raised": 0, "renumberings": 0}
         lat_proc, lat_total = Percentiles(), Percentiles()
 
         def stats():
@@ -85,46 +87,58 @@ def run(args, conf: zenoh.Config) -> int:
                     "flagged": flagged, "pending_releases": len(releases.ready), "ended": ended_streams,
                     "abandoned_releases": releases.abandoned, "resized_frames": sink.resized,
                     "filled": done["filled"] + stage.filled, "fill_raised": done["fill_raised"] + stage.fill_raised,
+                    "renumberings": done["renumberings"] + stage.renumberings,
                     **meter.take("render"), **lat_proc.take("lat_proc_ms"), **lat_total.take("lat_total_ms")}
 
-        def publish(out: Iterable[StabilizedFrame], ready_seq: int | None) -> None:
+        def publish(out: Iterable[StabilizedFrame], ready: tuple[int, int] | None) -> None:
+            """Publish (and write) rendered frames; ``ready``: (numbering, seq) of the frame whose
+            arrival closed their release (latency stamps)."""
             nonlocal flagged
             for sf in out:
                 t0 = time.perf_counter()
                 if args.slow_ms > 0:
                     time.sleep(args.slow_ms / 1e3)
                     drain_frames()
-                src = pub_ns.pop(sf.seq, None)
-                ready = pub_ns.get(ready_seq, src) if ready_seq is not None else src
+                src = pub_ns.pop((sf.numbering, sf.seq), None)
+                ready_ns = pub_ns.get(ready, src) if ready is not None else src
                 pub.put(encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags),
                                           args.stream, color=args.color, quality=args.quality,
-                                          src_pub_ns=src, ready_pub_ns=ready))
+                                          src_pub_ns=src, ready_pub_ns=ready_ns))
                 now = time.time_ns()
                 sink.write(sf.seq, sf.image)
                 flagged += bool(sf.flags)
-                if ready:
-                    lat_proc.add((now - ready) / 1e6)
+                if ready_ns:
+                    lat_proc.add((now - ready_ns) / 1e6)
                 if src:
                     lat_total.add((now - src) / 1e6)
                 meter.add((time.perf_counter() - t0) * 1e3)
                 rt.maybe_stats(stats)
 
         def take_frame(key_expr: str, data: bytes) -> None:
-            nonlocal newest
+            nonlocal resume_after
             msg = rt.decode(key_expr, data, ("frame", "end"), errors)  # now, not in the burst of a segment's corrections
             if msg is None or msg.type == "end":
                 return
-            if resume_after is not None and msg.seq <= resume_after:  # rendered before the restart
+            published = msg.extra.get("pub_ns")
+            if resume_after is not None and msg.seq <= resume_after and (stage.newest is None
+                                                                         or not stage.fresh(published)):
+                # rendered before the restart (the frames' history); once frames are taken, one published
+                # after them is live: a stream renumbered below the cursor, for the stage to confirm
                 errors["taken_over"] += 1
                 return
+            renumberings = stage.renumberings
             try:
-                stage.add_frame(msg.seq, msg.obj)
+                stage.add_frame(msg.seq, msg.obj, published)
             except ValueError as e:
                 errors["refused_frames"] += 1
                 log.error("frame %d: %s", msg.seq, e)
                 return
-            newest = msg.seq
-            pub_ns[msg.seq] = msg.extra.get("pub_ns") or 0
+            if stage.renumberings > renumberings:
+                log.warning("frame %d: the stream's numbering restarts (confirmed by %d frames in a row); %d frames "
+                            "of the old numbering held for their corrections", msg.seq, stage.jumps.resync,
+                            stage.buffered - 1)
+                resume_after = None  # the predecessor's cursor says nothing of the new numbering
+            pub_ns[(stage.numbering, msg.seq)] = published or 0
             while len(pub_ns) > args.max_frames + 64:
                 pub_ns.pop(next(iter(pub_ns)))
 
@@ -139,15 +153,15 @@ def run(args, conf: zenoh.Config) -> int:
 
         def render_ready(force: bool) -> None:
             while releases.ready:
-                rel, batch, t_done = releases.ready[0]
+                rel, batch, t_done, _ = releases.ready[0]
                 seqs = [c.seq for c in batch]
-                if not (force or stage.has_frames(seqs) or newest > max(seqs)
-                        or time.monotonic() - t_done > args.frame_wait):
+                if not (force or stage.can_render(batch) or time.monotonic() - t_done > args.frame_wait):
                     return
                 releases.ready.pop(0)
                 nbad = len(stage.bad)
+                out = stage.iter_batch(batch)
                 with rt.contained(f"release {rel} (frames {seqs[0]}..{seqs[-1]})", errors):
-                    publish(stage.iter_batch(batch), max(seqs))
+                    publish(out, (stage.numbering_of(batch), max(seqs)))
                 for b in stage.bad[nbad:]:
                     log.error("frame %d cannot be rendered: %s", b["seq"], b["error"])
 
@@ -182,12 +196,12 @@ def run(args, conf: zenoh.Config) -> int:
                 log.info("end of stream: %d frames written, %d flagged, %d orphans, %d missing",
                          sink.frames, flagged, stage.orphans, stage.missing)
                 ended = False
-                newest = -1
                 resume_after = None
                 ended_streams += 1
                 rt.publish_stats(stats())
                 for k, v in (("dropped", stage.dropped), ("missing", stage.missing), ("orphans", stage.orphans),
-                             ("bad", len(stage.bad)), ("filled", stage.filled), ("fill_raised", stage.fill_raised)):
+                             ("bad", len(stage.bad)), ("filled", stage.filled), ("fill_raised", stage.fill_raised),
+                             ("renumberings", stage.renumberings)):
                     done[k] += v
                 stage = RenderStage(params.warp, params.framing, max_frames=args.max_frames)  # a new stream may follow
                 continue

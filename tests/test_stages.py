@@ -137,9 +137,9 @@ def test_release_groups_hand_over_releases_whose_sender_died():
     g.add(c(2), (1, 1, 3))  # ... and the motion service dies before index 2
     assert [b[1] for b in g.ready][0][0].seq == 0 and len(g.ready) == 1
     g.add(c(9), (0, 0, 2))  # the restarted service numbers from 0 again
-    assert g.abandoned == 1 and [[x.seq for x in b] for _, b, _ in g.ready] == [[0], [1, 2]]
+    assert g.abandoned == 1 and [[x.seq for x in b] for _, b, *_ in g.ready] == [[0], [1, 2]]
     g.add(c(10), (0, 1, 2))
-    assert [[x.seq for x in b] for _, b, _ in g.ready][-1] == [9, 10]
+    assert [[x.seq for x in b] for _, b, *_ in g.ready][-1] == [9, 10]
     g.add(c(20), (5, 0, 2))
     g.add(c(21), (5, 0, 2))  # an index already there: a new release under a reused number
     assert g.abandoned == 2
