@@ -7,7 +7,7 @@ have dropped frames between). ``motion``: the logged flows in order through one
 ``MotionStage`` (``end``: finish); motions and release-numbered corrections
 (:class:`ReleaseNumbering`), the forwarded ``end`` included, compared in order. Both
 compare bytes. ``render``: corrections grouped into releases as the service does
-(:class:`~quick_stream.stages.ReleaseGroups`), rendered by one ``RenderStage`` per stream fed the logged frames
+(:class:`~quick_stream.render_stage.ReleaseGroups`), rendered by one ``RenderStage`` per stream fed the logged frames
 each release needs (orphans as the service renders them), each frame encoded as its logged
 message was and compared decoded (seq, t_ns, image, zoom, flags; the bytes carry wall-clock
 latency stamps). ``end`` messages split a channel into stream runs, paired in order across
@@ -29,7 +29,8 @@ from .path.planner import Correction
 from .recording import RecordingError, read_messages
 from .sceneflow import SceneFlow
 from .stabilizer import StabilizerParams
-from .stages import MotionStage, ReleaseGroups, RenderStage, StabilizedFrame
+from .render_stage import ReleaseGroups, RenderStage, StabilizedFrame
+from .stages import MotionStage
 from .wire import StabilizedImage, WireError, decode
 from .wire.codec import unpack
 from .wire.messages import encode_correction, encode_end, encode_flow, encode_motion, encode_stabilized

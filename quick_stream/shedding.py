@@ -45,6 +45,14 @@ class ShedLimits:
             raise ValueError(f"need 0 <= soft <= hard and alive_s > 0, got {self}")
 
 
+# Frames in flight (sent, not yet through the stage) before a live capture sheds: the motion stage
+# follows flow a frame or two behind when keeping up, and flow's queue holds 30, which absorbs a
+# hiccup (hard stays under it); the output lags one planning window (30 frames, up to 45 with the
+# look-ahead) plus rendering, so its bounds sit above that (render holds 150).
+DEFAULT_LIMITS = {"motion": ShedLimits(soft=8, hard=20, alive_s=0.3),
+               "stabilized": ShedLimits(soft=60, hard=90, alive_s=1.0)}
+
+
 class Shedder:
     """Which offered frames a live capture sends (module docstring)."""
 

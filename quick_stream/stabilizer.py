@@ -24,7 +24,8 @@ from .motion_pipeline import StageTimer
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .render import FramingParams, WarpParams
 from .sceneflow import SceneFlowParams
-from .stages import FlowStage, MotionStage, RenderStage, StabilizedFrame
+from .render_stage import RenderStage, StabilizedFrame
+from .stages import FlowStage, MotionStage
 
 __all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]
 

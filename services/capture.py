@@ -26,7 +26,7 @@ from quick_stream.cli import argtypes as at
 from quick_stream.frame import BadFrame
 from quick_stream.meters import RateMeter
 from quick_stream.runtime import ServiceRuntime, service_main, service_parser
-from quick_stream.shedding import ShedLimits, Shedder
+from quick_stream.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
 from quick_stream.sources import SourceError, open_source
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
 from quick_stream.wire.codec import unpack
@@ -68,13 +68,6 @@ def build_parser():
                    help="at the end, seconds to wait until every consumer has received the last frame before "
                         "sending the end marker (default 10)")
     return p
-
-
-# Frames in flight (sent, not yet through the stage) before a live capture sheds: the motion stage
-# follows flow a frame or two behind when keeping up; the output lags one planning window (30
-# frames, up to 45 with the look-ahead) plus rendering, so its bounds sit above that.
-SHED_LIMITS = {"motion": ShedLimits(soft=4, hard=10, alive_s=0.3),
-               "stabilized": ShedLimits(soft=60, hard=90, alive_s=1.0)}
 
 
 class OutputCredit:
@@ -201,7 +194,7 @@ def run(args, conf: zenoh.Config) -> int:
                 return 3
         fast = args.pace == "fast"
         credit = OutputCredit(rt, args.stream, args.window if fast else 0,
-                              shed=SHED_LIMITS if not fast and args.shed == "on" else None)
+                              shed=DEFAULT_LIMITS if not fast and args.shed == "on" else None)
         st = CaptureStats(credit)
         st.resume_after = rt.stream_cursor("frame")
         if st.resume_after is not None:

@@ -2,7 +2,7 @@
 
 Frames are decoded as they arrive and held until their correction arrives, one segment later; corrections are collected per planner
 release and each release is warped, framed and rendered as a whole by
-:class:`quick_stream.stages.RenderStage`. A release is rendered once all its
+:class:`quick_stream.render_stage.RenderStage`. A release is rendered once all its
 frames are here, or a newer frame has arrived (a missing one is lost: counted),
 or after ``--frame-wait`` seconds. Frames that no correction will reach (skipped
 upstream) are rendered uncorrected and flagged. A stream whose numbering restarts lower is
@@ -30,7 +30,7 @@ from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.meters import Percentiles, RateMeter
 from quick_stream.runtime import ServiceRuntime, service_main, service_parser
 from quick_stream.sinks import BackgroundSink, VideoSink
-from quick_stream.stages import ReleaseGroups, RenderStage, StabilizedFrame
+from quick_stream.render_stage import ReleaseGroups, RenderStage, StabilizedFrame
 from quick_stream.wire import StabilizedImage, encode_end, encode_stabilized
 
 log = logging.getLogger("render")

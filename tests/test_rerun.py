@@ -20,7 +20,8 @@ from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.recording import Recorder, read_messages
 from quick_stream.rerun import RerunError, rerun_stage
 from quick_stream.sources import open_source
-from quick_stream.stages import FlowStage, MotionStage, RenderStage
+from quick_stream.render_stage import RenderStage
+from quick_stream.stages import FlowStage, MotionStage
 from quick_stream.wire import (
     EndOfStream,
     StabilizedImage,

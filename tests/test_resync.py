@@ -17,7 +17,8 @@ from quick_stream.path.planner import Correction
 from quick_stream.sources import open_source
 from quick_stream.sources.synthetic import SyntheticSource
 from quick_stream.stabilizer import Stabilizer
-from quick_stream.stages import STALE, FlowStage, MotionStage, ReleaseGroups, RenderStage
+from quick_stream.render_stage import STALE, ReleaseGroups, RenderStage
+from quick_stream.stages import FlowStage, MotionStage
 from quick_stream.wire import encode_frame
 
 RESYNC = ContinuityParams().resync

@@ -6,10 +6,9 @@ from collections import deque
 import numpy as np
 import pytest
 
-from quick_stream.shedding import ShedLimits, Shedder
+from quick_stream.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
 
-MOTION = ShedLimits(soft=4, hard=10, alive_s=0.3)
-OUTPUT = ShedLimits(soft=60, hard=90, alive_s=1.0)
+MOTION, OUTPUT = DEFAULT_LIMITS["motion"], DEFAULT_LIMITS["stabilized"]
 
 
 def simulate(offered_fps: float, motion_fps: float, seconds: float = 20.0, batch: int = 1,

@@ -1,4 +1,4 @@
-"""The pipeline stages the services drive: gaps, orphans, order and bounds (quick_stream/stages.py)."""
+"""The pipeline stages the services drive: gaps, orphans, order and bounds (quick_stream/stages.py, render_stage.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,8 @@ import pytest
 
 from quick_stream.path.planner import Correction
 from quick_stream.sources import open_source
-from quick_stream.stages import FlowStage, MotionStage, RenderStage
+from quick_stream.render_stage import RenderStage
+from quick_stream.stages import FlowStage, MotionStage
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +127,7 @@ def test_release_groups_hand_over_releases_whose_sender_died():
     import numpy as np
 
     from quick_stream.path.planner import Correction
-    from quick_stream.stages import ReleaseGroups
+    from quick_stream.render_stage import ReleaseGroups
 
     def c(seq):
         return Correction(seq, np.eye(4), 0, False)
@@ -146,7 +147,7 @@ def test_release_groups_hand_over_releases_whose_sender_died():
 
 
 def test_render_refuses_one_far_future_frame_and_follows_a_confirmed_renumbering():
-    from quick_stream.stages import RenderStage
+    from quick_stream.render_stage import RenderStage
     from quick_stream.sources.synthetic import SyntheticSource
 
     fr = next(iter(SyntheticSource(width=64, height=48, frames=1)))
