@@ -15,7 +15,7 @@ import numpy as np
 
 from quick_stream.cli import build_parser
 from quick_stream.cli.settings import stabilizer_params
-from quick_stream.cli.up_cmd import free_port
+from quick_stream.cli.up_cmd import free_port, open_when_up
 from quick_stream.launcher import ServiceSpec, Supervisor
 from quick_stream.recording import read_messages
 from quick_stream.sources import open_source
@@ -103,11 +103,16 @@ def pipeline(tmp: Path, render: list[str] = (), record: bool = True, capture: li
         specs.append(ServiceSpec("capture", ["-m", "services.capture", *z, *capture, "--wait-for", wait],
                                  may_finish=True))
     sup = Supervisor(specs, tmp / "logs", max_restarts=max_restarts)
-    sup.start("router")
-    time.sleep(1.0)
+    start_router(sup, ep)
     for s in specs[1:]:
         sup.start(s.name)
     return sup, ep
+
+
+def start_router(sup: Supervisor, endpoint: str, timeout: float = 60) -> None:
+    """Start the supervisor's ``router`` and wait until it answers a session at ``endpoint``."""
+    sup.start("router")
+    open_when_up(endpoint, timeout).close()
 
 
 def wait_for_log(sup: Supervisor, log: Path, text: str, timeout: float = 120) -> None:

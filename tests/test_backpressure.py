@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import start_router
 
 from quick_stream.cli.up_cmd import free_port
 from quick_stream.launcher import ServiceSpec, Supervisor
@@ -43,8 +44,7 @@ def test_slow_render_drops_oldest_and_reports_it(tmp_path, shed):
                                      f"synthetic:frames={FRAMES},width=320,height=240", "--fps", "15", "--shed", shed,
                                      "--wait-for", "recorder,flow,motion,render"], may_finish=True)]
     sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)
-    sup.start("router")
-    time.sleep(1.0)
+    start_router(sup, ep)
     for s in specs[1:]:
         sup.start(s.name)
     log = tmp_path / "logs" / "render.log"

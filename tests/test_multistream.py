@@ -11,7 +11,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from helpers import offline_images
+from helpers import offline_images, start_router
 from mcap.reader import make_reader
 
 from quick_stream.cli.up_cmd import free_port
@@ -40,8 +40,7 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
                                                     "--wait-for", "flow,motion,render", "--wait-timeout", "60"],
                                  may_finish=True))
     sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)
-    sup.start("router")
-    time.sleep(1.0)
+    start_router(sup, ep)
     for s in specs[1:]:
         sup.start(s.name)
     deadline = time.monotonic() + 120
