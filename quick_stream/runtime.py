@@ -193,7 +193,7 @@ class ServiceRuntime:
         box.capacity = box.catch_up = max(capacity, catch_up)
         box.catch_up_until = time.monotonic() + catch_up_s if catch_up > capacity else 0.0
         if history:
-            if publisher is not None and (missing := self.wait_for([publisher], publisher_wait_s)):
+            if publisher is not None and self.wait_for([publisher], publisher_wait_s):
                 log.warning("%s/%s: %s not seen after %.0f s; subscribing to %s with history all the same",
                             self.stream, self.service, publisher, publisher_wait_s, key_expr)
             # a publisher this session does not know yet (its declaration arrives after ours) is queried
@@ -209,6 +209,19 @@ class ServiceRuntime:
     def subscribe(self, key_expr: str, callback: Callable[[zenoh.Sample], None]) -> None:
         """A plain callback subscriber (kept referenced until close); the callback must be quick."""
         self._subs.append(self.session.declare_subscriber(key_expr, callback))
+
+    def watch_health(self, callback: Callable[[str, bool], None]) -> None:
+        """``callback(service, up)`` for each service of this stream whose liveliness token is up now
+        (at once) and whenever one appears or goes away (zenoh's thread; keep it quick)."""
+        def on_token(sample: zenoh.Sample) -> None:
+            try:
+                _, service = keys.parse_health(str(sample.key_expr))
+            except ValueError:
+                return
+            callback(service, sample.kind != zenoh.SampleKind.DELETE)
+
+        key = f"{keys.PREFIX}/{self.stream}/health/*"
+        self._subs.append(self.session.liveliness().declare_subscriber(key, on_token, history=True))
 
     def wait(self, timeout_s: float) -> None:
         """Sleep until any inbox has a message, a stop signal, or ``timeout_s``."""

@@ -8,20 +8,22 @@ corrections render waits for point at frames it already dropped (docs/reliabilit
 
 * per downstream stage (the motion stage, which follows flow; the stabilized output) it counts the
   frames *in flight*: sent, and not yet reached by that stage (its newest seq, from its messages);
-* while a stage is making progress (its newest message is under ``alive_s`` old) and more than
-  ``soft`` frames are in flight to it, the capture sends the share of the offered frames that the
-  stage has completed over the last ``rate_s`` seconds (times ``headroom``, 1.25), evenly spaced (an
-  accumulator: one frame in k, not bursts), so the pipeline gets frames at its own pace and the
-  gaps stay bridgeable;
-* at ``hard`` frames in flight to a live stage, the share drops below its pace (divided by
-  ``headroom``), so the backlog drains, still evenly spaced; before its pace is known, and at twice
-  ``hard``, nothing is sent;
-* a stage that has stopped (a restart, a stall) sheds nothing: the frames then wait in the
-  publishers' history and the drop-oldest queues, as without shedding; once it is back, the
-  backlog it left may drain (not shed) but not grow (beyond ``hard - soft``, its bursts), and its
-  pace is measured afresh.
+* while the services a stage needs are up (their liveliness tokens: a slow service is up, a killed
+  one is not) and more than ``soft`` frames are in flight to it, the capture sends ``headroom``
+  (1.25) times the share of the offered frames that the stage completed over the last ``rate_s``
+  seconds, evenly spaced (an accumulator: one frame in k, not bursts), so the pipeline gets frames
+  at its own pace and the gaps stay bridgeable, while a stage that keeps up on average sheds
+  nothing for a hiccup;
+* from ``hard`` frames in flight the share drops below the stage's pace (divided by
+  ``headroom``), so the backlog drains, still evenly spaced; before its pace is known, and at
+  twice ``hard``, nothing is sent;
+* while a service the stage needs is down (restarting), nothing is shed on its account: the frames
+  wait in the publishers' history for its successor, as without shedding; once all are up again,
+  the backlog left may drain (not shed) but not grow (beyond ``hard - soft``, the stage's bursts),
+  and the stage's pace is measured afresh.
 
-Pure logic: the caller feeds it the stages' progress (:meth:`progressed`) and the clock.
+Pure logic: the caller feeds it the stages' progress (:meth:`progressed`), the services'
+liveliness (:meth:`set_up`) and the clock.
 """
 from __future__ import annotations
 
@@ -34,23 +36,23 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class ShedLimits:
     """Frames in flight to one stage: above ``soft`` the capture sends at the stage's pace, from
-    ``hard`` a little under it (0: no limit); ``alive_s``: how recent the stage's last progress must be."""
+    ``hard`` a little under it (0: no limit); ``needs``: the services the stage's progress needs."""
 
     soft: int
     hard: int
-    alive_s: float
+    needs: tuple[str, ...]
 
     def __post_init__(self) -> None:
-        if not (0 <= self.soft <= self.hard) or not (math.isfinite(self.alive_s) and self.alive_s > 0):
-            raise ValueError(f"need 0 <= soft <= hard and alive_s > 0, got {self}")
+        if not 0 <= self.soft <= self.hard:
+            raise ValueError(f"need 0 <= soft <= hard, got {self}")
 
 
 # Frames in flight (sent, not yet through the stage) before a live capture sheds: the motion stage
 # follows flow a frame or two behind when keeping up, and flow's queue holds 30, which absorbs a
 # hiccup (hard stays under it); the output lags one planning window (30 frames, up to 45 with the
 # look-ahead) plus rendering, so its bounds sit above that (render holds 150).
-DEFAULT_LIMITS = {"motion": ShedLimits(soft=8, hard=20, alive_s=0.3),
-               "stabilized": ShedLimits(soft=60, hard=90, alive_s=1.0)}
+DEFAULT_LIMITS = {"motion": ShedLimits(soft=8, hard=20, needs=("flow", "motion")),
+                  "stabilized": ShedLimits(soft=60, hard=90, needs=("flow", "motion", "render"))}
 
 
 class Shedder:
@@ -58,14 +60,14 @@ class Shedder:
 
     def __init__(self, limits: dict[str, ShedLimits], rate_s: float = 3.0, headroom: float = 1.25) -> None:
         """``headroom``: the share sent is that many times the stage's measured pace (a stage that
-        keeps up on average, behind by a hiccup, sheds nothing; a slow one is held at its hard bound)."""
+        keeps up on average, behind by a hiccup, sheds nothing; a slow one is held about its hard bound)."""
         self.limits = {k: v for k, v in limits.items() if v.hard > 0}
         self.rate_s, self.headroom = rate_s, headroom
         self.done = dict.fromkeys(limits, -1)  # each stage's newest seq
-        self.progress = dict.fromkeys(limits, -math.inf)  # when it last moved on
+        self.up: set[str] = set()  # services whose liveliness token is up
+        self._since = dict.fromkeys(limits, math.inf)  # when the stage's services were last all up (inf: not up)
+        self._backlog = dict.fromkeys(limits, 0)  # in flight when they came back, as it drains: not shed
         self._completed: dict[str, deque[tuple[float, int]]] = {k: deque() for k in limits}
-        self._since = dict.fromkeys(limits, -math.inf)  # when the stage last resumed after a stop
-        self._backlog = dict.fromkeys(limits, 0)  # in flight when it resumed, as it drains: not shed
         self._offered: list[float] = []  # when frames were offered, over the last rate_s
         self._sent: list[int] = []  # seqs sent that some stage has not reached (ascending)
         self._acc = 0.0
@@ -75,19 +77,30 @@ class Shedder:
     def enabled(self) -> bool:
         return bool(self.limits)
 
+    def _running(self, stage: str) -> bool:
+        return all(s in self.up for s in self.limits[stage].needs)
+
+    def set_up(self, service: str, up: bool, now: float) -> None:
+        """``service``'s liveliness token appeared (``up``) or went away. A stage whose services are
+        all up again starts afresh: its backlog may drain, its pace is measured from now."""
+        before = {st: self._running(st) for st in self.limits}
+        (self.up.add if up else self.up.discard)(service)
+        for st in self.limits:
+            running = self._running(st)
+            if running and not before[st]:
+                self._since[st] = now
+                self._completed[st].clear()
+                self._backlog[st] = self.in_flight(st)
+            elif not running:
+                self._since[st] = math.inf
+
     def progressed(self, stage: str, seq: int, now: float) -> None:
         """``stage`` has reached frame ``seq`` (its newest message)."""
         old = self.done.get(stage)
         if old is None or seq <= old:
             return
         n = bisect.bisect_right(self._sent, seq) - bisect.bisect_right(self._sent, old)
-        if stage in self.limits and now - self.progress[stage] > self.limits[stage].alive_s:
-            # back from a stop: its pace is measured from now (the stop is not its pace, and while
-            # it catches up nothing is shed on account of it)
-            self._since[stage] = now
-            self._completed[stage].clear()
-            self._backlog[stage] = self.in_flight(stage)
-        self.done[stage], self.progress[stage] = seq, now
+        self.done[stage] = seq
         self._completed[stage].append((now, n))
 
     def resume_from(self, seq: int) -> None:
@@ -113,8 +126,8 @@ class Shedder:
             done = self._completed[stage]
             while done and done[0][0] < horizon:
                 done.popleft()
-            if now - self.progress[stage] > lim.alive_s:
-                continue  # stopped, or not started: nothing to match
+            if self._since[stage] == math.inf:
+                continue  # a service it needs is down (restarting): nothing to match
             n = self.in_flight(stage)
             # a backlog drains and does not grow back, give or take the stage's bursts (a release
             # of the output moves 15 frames at once): hard - soft of slack above its lowest point

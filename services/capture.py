@@ -96,6 +96,12 @@ class OutputCredit:
         if window > 0 or self.shedder.enabled:
             for stage in self.done:
                 rt.subscribe(keys.key(stream, stage), self._on_output)
+        if self.shedder.enabled:  # a slow service is up, a restarting one is not (nothing shed for it)
+            rt.watch_health(self._on_health)
+
+    def _on_health(self, service: str, up: bool) -> None:
+        with self._cond:
+            self.shedder.set_up(service, up, time.monotonic())
 
     def _on_output(self, sample: zenoh.Sample) -> None:
         try:
