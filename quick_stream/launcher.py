@@ -24,6 +24,7 @@ from typing import Any
 import zenoh
 
 from . import keys
+from .runtime import RESTARTED_ENV
 from .wire import WireError, check
 
 log = logging.getLogger(__name__)
@@ -66,8 +67,11 @@ class Supervisor:
 
     def _spawn(self, c: Child) -> None:
         logf = open(self.log_dir / f"{c.spec.name}.log", "ab")
+        # a restarted service is told so (it waits longer for the others before deciding that no
+        # stream is under way: killed with the router, they may take seconds to reconnect)
+        env = {**self.env, RESTARTED_ENV: str(c.restarts)} if c.restarts else self.env
         c.proc = subprocess.Popen([*c.spec.prefix, sys.executable, *c.spec.argv], stdout=logf, stderr=subprocess.STDOUT,
-                                  stdin=subprocess.DEVNULL, env=self.env, start_new_session=True)
+                                  stdin=subprocess.DEVNULL, env=env, start_new_session=True)
         logf.close()
         c.started = time.monotonic()
 

@@ -43,6 +43,9 @@ from .arrivals import ArrivalLedger, Gap
 from .wire import Decoded, Stats, WireError, decode, encode_stats
 from .wire.codec import set_max_image_side
 
+# Set by the supervisor (quick_stream/launcher.py) for a service it restarted: how many times.
+RESTARTED_ENV = "QUICK_STREAM_RESTARTED"
+
 log = logging.getLogger(__name__)
 
 
@@ -271,6 +274,11 @@ class ServiceRuntime:
         way it answers None at once; with nobody else alive, once ``settle_s`` has passed (right after
         connecting, a session may see only some of the others' tokens, or none: a restarted flow
         once started afresh that way, and the frames of its restart went out uncorrected)."""
+        if os.environ.get(RESTARTED_ENV):
+            # restarted by the supervisor, so a stream was most likely under way: killed together with
+            # the router, the others may take seconds to reconnect (a restarted flow once settled after
+            # 1 s, alone, and started afresh: 77 frames went out uncorrected)
+            timeout_s = settle_s = max(timeout_s, 10.0)
         t0 = time.monotonic()
         deadline = t0 + timeout_s
         self._wait_connected(min(timeout_s, 1.0))

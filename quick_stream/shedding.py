@@ -17,10 +17,10 @@ corrections render waits for point at frames it already dropped (docs/reliabilit
 * from ``hard`` frames in flight the share drops below the stage's pace (divided by
   ``headroom``), so the backlog drains, still evenly spaced; before its pace is known, and at
   twice ``hard``, nothing is sent;
-* while a service the stage needs is down (restarting), nothing is shed on its account: the frames
-  wait in the publishers' history for its successor, as without shedding; once all are up again,
-  the backlog left may drain (not shed) but not grow (beyond ``hard - soft``, the stage's bursts),
-  and the stage's pace is measured afresh.
+* while a service the stage needs is down (restarting), and until the stage's first progress once
+  all are up again, nothing is shed on its account: the frames wait in the publishers' history for
+  its successor, as without shedding; from then on the backlog left may drain (not shed) but not
+  grow (beyond ``hard - soft``, the stage's bursts), and the stage's pace is measured afresh.
 
 Pure logic: the caller feeds it the stages' progress (:meth:`progressed`), the services'
 liveliness (:meth:`set_up`) and the clock.
@@ -65,7 +65,9 @@ class Shedder:
         self.rate_s, self.headroom = rate_s, headroom
         self.done = dict.fromkeys(limits, -1)  # each stage's newest seq
         self.up: set[str] = set()  # services whose liveliness token is up
-        self._since = dict.fromkeys(limits, math.inf)  # when the stage's services were last all up (inf: not up)
+        # when the stage last started (its services all up, then its first progress); inf: not started
+        self._since = dict.fromkeys(limits, math.inf)
+        self._pending: set[str] = set()  # stages whose services are up, waiting for their first progress
         self._backlog = dict.fromkeys(limits, 0)  # in flight when they came back, as it drains: not shed
         self._completed: dict[str, deque[tuple[float, int]]] = {k: deque() for k in limits}
         self._offered: list[float] = []  # when frames were offered, over the last rate_s
@@ -82,16 +84,16 @@ class Shedder:
 
     def set_up(self, service: str, up: bool, now: float) -> None:
         """``service``'s liveliness token appeared (``up``) or went away. A stage whose services are
-        all up again starts afresh: its backlog may drain, its pace is measured from now."""
+        all up again starts afresh at its first progress (a restarted service first works through
+        its history): its backlog then may drain, and its pace is measured from there."""
         before = {st: self._running(st) for st in self.limits}
         (self.up.add if up else self.up.discard)(service)
         for st in self.limits:
             running = self._running(st)
             if running and not before[st]:
-                self._since[st] = now
-                self._completed[st].clear()
-                self._backlog[st] = self.in_flight(st)
+                self._pending.add(st)
             elif not running:
+                self._pending.discard(st)
                 self._since[st] = math.inf
 
     def progressed(self, stage: str, seq: int, now: float) -> None:
@@ -101,6 +103,12 @@ class Shedder:
             return
         n = bisect.bisect_right(self._sent, seq) - bisect.bisect_right(self._sent, old)
         self.done[stage] = seq
+        if stage in self._pending:  # (re)started: from here on
+            self._pending.discard(stage)
+            self._since[stage] = now
+            self._completed[stage].clear()
+            self._backlog[stage] = self.in_flight(stage)
+            return
         self._completed[stage].append((now, n))
 
     def resume_from(self, seq: int) -> None:
