@@ -102,7 +102,7 @@ def run_pipeline(h: Hosts, out: Path, router: list[str], zflags: dict[str, list[
         ServiceSpec("flow", ["-m", "services.flow", *zflags["flow"]], prefix=h.prefix("compute")),
         ServiceSpec("motion", ["-m", "services.motion", *zflags["motion"]], prefix=h.prefix("compute")),
         ServiceSpec("capture", ["-m", "services.capture", *zflags["capture"], "--source", SPEC, "--color", "raw",
-                                "--fps", "60", "--wait-for", "recorder,render,flow,motion", "--wait-timeout", "60"],
+                                "--pace", "fast", "--wait-for", "recorder,render,flow,motion", "--wait-timeout", "60"],
                     prefix=h.prefix("cam"), may_finish=True),
     ]
     sup = Supervisor(specs, out / "logs", max_restarts=0)
