@@ -249,3 +249,16 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
         put(k, v, f"--cfg {item}")
         check_config_endpoints(conf, f"--cfg {item}")
     return conf
+
+
+def session_config(endpoint: str, mode: str = "client", tls_dir: str | None = None,
+                   tls_name: str | None = None) -> zenoh.Config:
+    """The configuration of a session of our own tools (``up``'s status board, the benches' monitors)
+    to the router at ``endpoint``, built from the same flags as a service's (``-m -e
+    --no-multicast-scouting [--tls-dir DIR --tls-name NAME]``), the environment ignored."""
+    p = argparse.ArgumentParser(add_help=False)
+    add_zenoh_args(p)
+    argv = ["-m", mode, "-e", endpoint, "--no-multicast-scouting"]
+    if tls_dir is not None:
+        argv += ["--tls-dir", str(tls_dir), "--tls-name", str(tls_name)]
+    return config_from_args(p.parse_args(argv), environ={})
