@@ -474,8 +474,9 @@ def format_report(r: dict) -> str:
 def main(cases: list[str], out: str, json_path: str | None, tls: bool = False, **kw) -> int:
     reports = []
     certs = make_certs(Path(out) / "certs") if tls else None  # once per run, in the run's folder
-    print(f"bench faults: {'mutual TLS + access control (' + str(ROUTER_TLS.relative_to(DEPLOY.parent)) + '), certificates in ' + str(certs) if tls else 'plain TCP, services are peers'}",
-          flush=True)
+    how = (f"mutual TLS and access control ({ROUTER_TLS.relative_to(DEPLOY.parent)}), every process a TLS client "
+           f"with its own certificate ({certs})" if tls else "plain TCP, the services are peers")
+    print(f"bench faults: {how}", flush=True)
     for case in cases:
         r = run_case(Path(out) / case.replace("*", "x").replace("+", "-"), case, tls=certs, **kw)
         reports.append(r)
