@@ -58,6 +58,7 @@ ENV = "QUICK_STREAM_ZENOH_"
 # Reconnection to the endpoints we connect to (zenoh's default starts at 1 s and backs off to 4 s):
 # a service started while the router restarts is connected ~0.1 s after the router is back.
 RECONNECT = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
+CLIENT_CONNECT_TIMEOUT_MS = 30_000  # how long a client's session keeps trying to reach its router when it opens
 
 
 def _env_list(environ: Mapping[str, str], name: str) -> list[str]:
@@ -223,6 +224,11 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
         put("listen/endpoints", json.dumps([port0]), "--connect")
     if connect and not config:
         put("connect/retry", json.dumps(RECONNECT), "--connect")
+        if (mode or "peer") == "client":
+            # zenoh opens a client's session only once it reaches a router, and by default fails at once:
+            # a client restarted while its router restarts (under TLS every service is a client) exited 2
+            # and `up` stopped the run; it now waits for the router, as a peer does in the background
+            put("connect/timeout_ms", json.dumps(CLIENT_CONNECT_TIMEOUT_MS), "--connect")
     # publishers with a history cache (a restarted service takes over, runtime.py) need timestamps
     put("timestamping/enabled", "true", "timestamping")
     # Multicast scouting is off unless asked for (zenoh's default is on: two deployments on one host
