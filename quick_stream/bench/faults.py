@@ -424,6 +424,8 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
               "flagged": sum(m.flagged for m in stab), "lost": len(set(sent) - out_seqs),
               "monitor_missed": len(monitor_missed), "monitor_missed_examples": monitor_missed[:5],
               "render": {k: render.get(k) for k in ("missing", "dropped", "orphans", "refused_frames")},
+              # frames a live capture skipped (the pipeline behind: never published, a seq gap flow bridges)
+              "shed": services.get("capture", {}).get("stats", {}).get("shed"),
               "recorder_unreceived": {k: v for k, v in services.get("recorder", {}).get("stats", {}).items()
                                       if k.startswith("unreceived_")},
               "recorder_restart_hole": services.get("recorder", {}).get("stats", {}).get("restart_hole"),
@@ -456,7 +458,7 @@ def format_report(r: dict) -> str:
     lines = [f"{r['case']:<12} kills {r['kills']}  [{events}]",
              f"{'':<12} frames sent {r['frames_sent']}, stabilized {r['stabilized_unique']} (flagged {r['flagged']}), "
              f"lost {r['lost']} (messages recorded that the monitor missed: {r['monitor_missed']} "
-             f"{r['monitor_missed_examples']}); render {r['render']}; never reached the recorder "
+             f"{r['monitor_missed_examples']}); render {r['render']}; capture shed {r['shed']}; never reached the recorder "
              f"{r['recorder_unreceived']}; restarts "
              f"{ {k: v for k, v in r['restarts'].items() if v} }; clean stop {r['clean_stop']}",
              f"{'':<12} recordings: {rec}; messages not recorded {r['not_recorded']} {r['not_recorded_by_stage']} "
