@@ -61,6 +61,7 @@ INJECTIONS = ("poison", "future-seq")  # bad messages on the frame key mid-strea
 CASES = KILLS + INJECTIONS
 STREAM = "cam0"
 FAR = 10**12  # the seq of the injected messages
+RELEASE_FRAMES = 15  # the motion stage releases corrections every 15 frames (docs/architecture.md, Latency)
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 ROUTER_TLS = DEPLOY / "zenoh" / "router-tls.json5"
 MAKE_CERTS = DEPLOY / "tls" / "make-certs.sh"
@@ -307,7 +308,7 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
             session.close()
     (out / "up.log").write_text(text)
     return _report(out, case, victims, events, mon, _status(status) or {}, proc.returncode, text, accept_s,
-                   bad, refused, tls is not None)
+                   bad, refused, tls is not None, fps)
 
 
 def _digest(data: bytes) -> bytes:
@@ -364,7 +365,7 @@ def _longest_gap(times: list[float]) -> float | None:
 
 def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, str]], mon: StreamMonitor,
             st: dict, code: int | None, text: str, accept_s: float, bad: list[bytes] = (),
-            refused: list[bytes] = (), tls: bool = False) -> dict:
+            refused: list[bytes] = (), tls: bool = False, fps: float = 30.0) -> dict:
     injected = {_digest(m) for m in bad}
     refused_d = {_digest(m) for m in refused}
     seen = [m for m in mon.seen if m.digest not in injected | refused_d]
@@ -395,9 +396,10 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
         if kind == "inject":  # the stream's own rhythm before: the output comes in bursts, one per release
             before = _longest_gap([m.t for m in stab if k - 10 < m.t <= k])
             row["stabilized_gap_before_s"] = before
-            # paused: a gap after the bad messages longer than any in the 10 s before (+ 0.2 s of slack)
+            # paused: a gap after the bad messages longer than any in the 10 s before by more than the
+            # planner's release period (15 frames: 0.5 s at 30 fps), i.e. at least one release held up
             row["output_paused"] = (None if before is None or row["stabilized_pause_s"] is None
-                                    else row["stabilized_pause_s"] > before + 0.2)
+                                    else row["stabilized_pause_s"] > before + RELEASE_FRAMES / fps)
         per_event.append(row)
     if "recorder" in victims:  # the restarted recorder's first message: when recording resumed
         for k, row, note in zip(kills, per_event, files[1:]):
