@@ -469,7 +469,8 @@ def format_report(r: dict) -> str:
              f"{r['loss_window_s']} s before the kill)"]
     if "injected" in r:
         i = r["injected"]
-        lines.append(f"{'':<12} injected {i['messages']} bad messages (capture's identity): seen {i['seen']}, "
+        lines.append(f"{'':<12} injected {i['messages']} bad messages{' (capture certificate)' if r['tls'] else ''}: "
+                     f"seen {i['seen']}, "
                      f"recorded {i['recorded']}; refused by {i['counters']}"
                      + (f"; the same from the monitor's certificate reached {r['refused_reached']}" if r["tls"] else ""))
     return "\n".join(lines)
