@@ -180,8 +180,11 @@ def tls_settings(tls_dir: str, name: str, mode: str) -> dict[str, object]:
         raise ValueError(f"--tls-dir {tls_dir}: no such directory")
     for f in (d / "ca.pem", d / f"{name}.pem", d / f"{name}.key"):
         if not f.is_file():
-            raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}"
-                             + (f" (make-certs.sh writes each party's files to {d / name})" if (d / name).is_dir() else ""))
+            per_stream = sorted(str(p) for p in d.glob(f"*/{name}") if p.is_dir())
+            hint = (f" (make-certs.sh writes each party's files to {d / name})" if (d / name).is_dir() else
+                    f" (make-certs.sh writes each service's files per stream: {', '.join(per_stream)})" if per_stream
+                    else "")
+            raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}{hint}")
     others = sorted(p.name for p in d.glob("*.key") if p.name != f"{name}.key")
     if others:  # a process is given its own key only: a folder of every key hands each the others' identity
         raise ValueError(f"--tls-dir {tls_dir}: holds other private keys ({', '.join(others)}); give each process a "
