@@ -162,8 +162,8 @@ class Injector:
 
     def __init__(self, endpoint: str, tls: Path | None, party: str) -> None:
         self.session = zenoh.open(_config(endpoint, tls, party))
-        self.pub = self.session.declare_publisher(keys.key(STREAM, "frame"), congestion_control=zenoh.CongestionControl.BLOCK,
-                                                  reliability=zenoh.Reliability.RELIABLE)
+        self.pub = self.session.declare_publisher(keys.key(STREAM, "frame"), reliability=zenoh.Reliability.RELIABLE,
+                                                  congestion_control=zenoh.CongestionControl.BLOCK)
 
     def put(self, messages: list[bytes], timeout: float) -> None:
         # a client's publisher sends only once it knows a subscriber: wait for that, not a clock
