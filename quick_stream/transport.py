@@ -58,6 +58,7 @@ ENV = "QUICK_STREAM_ZENOH_"
 # Reconnection to the endpoints we connect to (zenoh's default starts at 1 s and backs off to 4 s):
 # a service started while the router restarts is connected ~0.1 s after the router is back.
 RECONNECT = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
+CLIENT_CONNECT_TIMEOUT_MS = 30_000  # how long a client's session keeps trying to reach its router when it opens
 
 
 def _env_list(environ: Mapping[str, str], name: str) -> list[str]:
@@ -179,8 +180,11 @@ def tls_settings(tls_dir: str, name: str, mode: str) -> dict[str, object]:
         raise ValueError(f"--tls-dir {tls_dir}: no such directory")
     for f in (d / "ca.pem", d / f"{name}.pem", d / f"{name}.key"):
         if not f.is_file():
-            raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}"
-                             + (f" (make-certs.sh writes each party's files to {d / name})" if (d / name).is_dir() else ""))
+            per_stream = sorted(str(p) for p in d.glob(f"*/{name}") if p.is_dir())
+            hint = (f" (make-certs.sh writes each party's files to {d / name})" if (d / name).is_dir() else
+                    f" (make-certs.sh writes each service's files per stream: {', '.join(per_stream)})" if per_stream
+                    else "")
+            raise ValueError(f"--tls-dir {tls_dir} --tls-name {name}: missing {f}{hint}")
     others = sorted(p.name for p in d.glob("*.key") if p.name != f"{name}.key")
     if others:  # a process is given its own key only: a folder of every key hands each the others' identity
         raise ValueError(f"--tls-dir {tls_dir}: holds other private keys ({', '.join(others)}); give each process a "
@@ -223,6 +227,11 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
         put("listen/endpoints", json.dumps([port0]), "--connect")
     if connect and not config:
         put("connect/retry", json.dumps(RECONNECT), "--connect")
+        if (mode or "peer") == "client":
+            # zenoh opens a client's session only once it reaches a router, and by default fails at once:
+            # a client restarted while its router restarts (under TLS every service is a client) exited 2
+            # and `up` stopped the run; it now waits for the router, as a peer does in the background
+            put("connect/timeout_ms", json.dumps(CLIENT_CONNECT_TIMEOUT_MS), "--connect")
     # publishers with a history cache (a restarted service takes over, runtime.py) need timestamps
     put("timestamping/enabled", "true", "timestamping")
     # Multicast scouting is off unless asked for (zenoh's default is on: two deployments on one host
@@ -249,3 +258,16 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
         put(k, v, f"--cfg {item}")
         check_config_endpoints(conf, f"--cfg {item}")
     return conf
+
+
+def session_config(endpoint: str, mode: str = "client", tls_dir: str | None = None,
+                   tls_name: str | None = None) -> zenoh.Config:
+    """The configuration of a session of our own tools (``up``'s status board, the benches' monitors)
+    to the router at ``endpoint``, built from the same flags as a service's (``-m -e
+    --no-multicast-scouting [--tls-dir DIR --tls-name NAME]``), the environment ignored."""
+    p = argparse.ArgumentParser(add_help=False)
+    add_zenoh_args(p)
+    argv = ["-m", mode, "-e", endpoint, "--no-multicast-scouting"]
+    if tls_dir is not None:
+        argv += ["--tls-dir", str(tls_dir), "--tls-name", str(tls_name)]
+    return config_from_args(p.parse_args(argv), environ={})

@@ -294,6 +294,10 @@ COMMANDS = [
     c("qs", "up --out {d}/file.txt", "--out", "file.txt", "not a directory"),
     c("qs", "up --png {d}/file.txt/png", "--png", "file.txt"),
     c("qs", "up --pace bogus", "--pace", "'bogus'"),
+    c("qs", "up --tls-dir {d}/nosuchfolder", "--tls-dir", "nosuchfolder", "make-certs.sh"),
+    c("qs", "up --router-config {d}/rec.mcap", "--router-config goes with --tls-dir"),
+    *(c("qs", f"acl --streams {v}", "--streams", f"'{v}'") for v in ("a/b", "cam0,cam0")),
+    c("qs", "acl --streams ''", "--streams", "got ''"),
 ]
 
 CASES = ZENOH + STREAMS + SETTINGS + CAPTURE + SOURCES + RENDER_RECORDER_QUEUES + COMMANDS

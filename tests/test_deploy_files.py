@@ -38,6 +38,7 @@ import yaml
 import zenoh
 
 from quick_stream import keys
+from quick_stream.acl import common_name
 from quick_stream.transport import config_from_args
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,6 +111,94 @@ def acl_common_names() -> set[str]:
     policies = zget(zconf("router-tls.json5"), "access_control/policies")
     with_policy = {s for p in policies for s in p["subjects"]}
     return {cn for s in subjects if s["id"] in with_policy for cn in s.get("cert_common_names", [])}
+
+
+# ---------------------------------------------------------------- the router's access control
+
+def test_router_tls_is_the_generated_access_control():
+    """router-tls.json5 is `quick-stream acl --streams cam0` (regenerated, never edited by hand)."""
+    from quick_stream.acl import router_config_text
+
+    assert (ZENOH_DIR / "router-tls.json5").read_text() == router_config_text(["cam0"]), \
+        "regenerate: quick-stream acl --streams cam0 --output deploy/zenoh/router-tls.json5"
+
+
+class Acl:
+    """Decides like zenoh's access control with default deny: a message is allowed when a rule of one
+    of the subject's policies has its flow and message type and a key expression including its key."""
+
+    def __init__(self, conf: dict) -> None:
+        assert conf["enabled"] and conf["default_permission"] == "deny"
+        rules = {r["id"]: r for r in conf["rules"]}
+        assert len(rules) == len(conf["rules"]), "rule ids must be unique"
+        assert all(r["permission"] == "allow" for r in conf["rules"])
+        self.by_cn: dict[str, list[dict]] = {}
+        subjects = {x["id"]: x for x in conf["subjects"]}
+        for pol in conf["policies"]:
+            for sid in pol["subjects"]:
+                for cn in subjects[sid]["cert_common_names"]:
+                    self.by_cn.setdefault(cn, []).extend(rules[r] for r in pol["rules"])
+
+    def allows(self, cn: str, flow: str, message: str, key: str) -> bool:
+        return any(flow in r["flows"] and message in r["messages"]
+                   and any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key)) for k in r["key_exprs"])
+                   for r in self.by_cn.get(cn, []))
+
+
+def test_access_control_gives_each_certificate_what_its_service_needs_and_no_more():
+    from quick_stream.acl import access_control
+
+    acl = Acl(access_control(["cam0", "cam1"]))
+    assert Acl(zget(zconf("router-tls.json5"), "access_control")).by_cn.keys() == \
+        {common_name(s, "cam0") for s in SERVICES} | {"quick-recorder", "quick-monitor"}
+    publishes = {"capture": {"frame"}, "flow": {"flow"}, "motion": {"motion", "correction"},
+                 "render": {"stabilized"}, "recorder": set()}
+    stages = ("frame", "flow", "motion", "correction", "stabilized")
+    for svc in SERVICES:
+        cn = common_name(svc, "cam0")
+        for stage in stages:  # publishes its own stages of its own stream; reads its stream
+            assert acl.allows(cn, "ingress", "put", keys.key("cam0", stage)) == (stage in publishes[svc]), (cn, stage)
+            assert not acl.allows(cn, "ingress", "put", keys.key("cam1", stage)), (cn, stage)
+            assert acl.allows(cn, "egress", "put", keys.key("cam0", stage))
+            assert not acl.allows(cn, "egress", "put", keys.key("cam1", stage))
+        assert acl.allows(cn, "ingress", "declare_subscriber", keys.stream_keys("cam0"))
+        assert not acl.allows(cn, "ingress", "declare_subscriber", keys.stream_keys("cam1"))
+        assert acl.allows(cn, "ingress", "put", keys.key("cam0", "stats"))
+        for other in SERVICES:  # its own liveliness token and cursor queryable, nobody else's
+            own = other == svc
+            assert acl.allows(cn, "ingress", "liveliness_token", keys.health_key("cam0", other)) == own, (cn, other)
+            assert not acl.allows(cn, "ingress", "liveliness_token", keys.health_key("cam1", other))
+            assert acl.allows(cn, "egress", "liveliness_token", keys.health_key("cam0", other))  # sees who is up
+            serves = own and svc != "capture"  # capture asks the cursor, answers none
+            for message in ("declare_queryable", "reply"):
+                assert acl.allows(cn, "ingress", message, keys.cursor_key("cam0", other)) == serves, (cn, other)
+                assert not acl.allows(cn, "ingress", message, keys.cursor_key("cam1", other))
+        assert acl.allows(cn, "ingress", "query", keys.cursor_key("cam0")) == (svc != "recorder")
+        # history caches: served by the stage's publisher, read by its consumers
+        for stage, (server, readers) in {"frame": ("capture", {"flow", "render"}), "flow": ("flow", {"motion"}),
+                                         "correction": ("motion", {"render"})}.items():
+            adv = f"{keys.key('cam0', stage)}/@adv/pub/z/1/_"
+            assert acl.allows(cn, "ingress", "declare_queryable", adv) == (svc == server), (cn, stage)
+            assert acl.allows(cn, "ingress", "reply", keys.key("cam0", stage)) == (svc == server), (cn, stage)
+            assert acl.allows(cn, "ingress", "query", adv) == (svc in readers), (cn, stage)
+            assert not acl.allows(cn, "ingress", "query", f"{keys.key('cam1', stage)}/@adv/pub/z/1/_")
+    # the monitor watches every stream: subscribes, receives, sees tokens; declares and publishes nothing
+    for stream in ("cam0", "cam1"):
+        assert acl.allows("quick-monitor", "egress", "put", keys.key(stream, "frame"))
+        assert acl.allows("quick-monitor", "egress", "liveliness_token", keys.health_key(stream, "flow"))
+        assert acl.allows("quick-monitor", "ingress", "declare_subscriber", keys.stream_keys(stream))
+        for message, key in (("put", keys.key(stream, "frame")), ("put", keys.key(stream, "stats")),
+                             ("liveliness_token", keys.health_key(stream, "monitor")),
+                             ("declare_queryable", keys.cursor_key(stream, "flow")), ("query", keys.cursor_key(stream)),
+                             ("query", f"{keys.key(stream, 'frame')}/@adv/pub/z/1/_")):
+            assert not acl.allows("quick-monitor", "ingress", message, key), (message, key)
+    # the recorder of every stream: reads all, answers the recorder's cursor and holds its token, publishes no data
+    assert acl.allows("quick-recorder", "ingress", "declare_subscriber", f"{keys.PREFIX}/*/*")
+    assert acl.allows("quick-recorder", "ingress", "declare_queryable", keys.cursor_key("*", "recorder"))
+    assert not acl.allows("quick-recorder", "ingress", "declare_queryable", keys.cursor_key("*", "flow"))
+    assert acl.allows("quick-recorder", "ingress", "liveliness_token", keys.health_key("cam1", "recorder"))
+    assert not acl.allows("quick-recorder", "ingress", "liveliness_token", keys.health_key("cam1", "flow"))
+    assert not acl.allows("quick-recorder", "ingress", "put", keys.key("cam0", "frame"))
 
 
 # ---------------------------------------------------------------- containers, as deployed
@@ -217,9 +306,11 @@ def merge_compose(base: dict, override: dict) -> dict:
     for name, svc in override["services"].items():
         merged = out[name]
         for key, value in svc.items():
-            if key == "volumes":  # merged by target
-                vols = {(v["target"] if isinstance(v, dict) else v.split(":")[1]): v for v in merged.get("volumes", [])}
-                vols.update({(v["target"] if isinstance(v, dict) else v.split(":")[1]): v for v in value})
+            if key == "volumes":  # merged by target (of the interpolated entry: ${VAR:-x} holds a colon)
+                def target(v):
+                    return v["target"] if isinstance(v, dict) else interpolate(v, {}).split(":")[1]
+                vols = {target(v): v for v in merged.get("volumes", [])}
+                vols.update({target(v): v for v in value})
                 merged["volumes"] = list(vols.values())
             elif key == "environment":
                 merged["environment"] = {**compose_env(merged), **compose_env(svc)}
@@ -506,7 +597,8 @@ def test_compose_tls_mounts_each_service_its_own_certificate():
             assert zget(conf, "mode") == "client", f"{c.where}: peers bypass the router's access control"
             expect = {"root_ca_certificate": "ca.pem", "connect_certificate": f"{service}.pem",
                       "connect_private_key": f"{service}.key"}
-            assert f"quick-{service}" in names, f"{c.where}: CN quick-{service} has no access-control policy"
+            cn = common_name(service, args.stream)  # one service of one stream
+            assert cn in names, f"{c.where}: CN {cn} has no access-control policy"
         else:
             (config,) = [c.argv[i + 1] for i, a in enumerate(c.argv) if a in ("-c", "--config")]
             local = c.local_file(config)
@@ -519,6 +611,9 @@ def test_compose_tls_mounts_each_service_its_own_certificate():
         for k, want in expect.items():
             src = c.local_file(paths[k])
             assert src is not None and src.name == want, f"{c.where}: {paths[k]} should be the host's {want}, is {src}"
+            # from the party's own folder (make-certs.sh: STREAM/SERVICE/, router/)
+            folder = [args.stream, service] if c.ours else ["router"]
+            assert list(src.parent.parts[-len(folder):]) == folder, f"{c.where}: {paths[k]} is {src}"
             assert c.mounts[paths[k]].read_only, f"{c.where}: mount {paths[k]} read-only"
         if c.ours:  # and nobody else's key
             others = {f"{s}.key" for s in SERVICES if s != service} | {"router.key", "ca.key"}

@@ -110,20 +110,24 @@ def test_tls_flags_use_the_certificates_and_name_what_is_missing(tmp_path):
         config_from_args(_args(["--tls-dir", str(tmp_path)]), {})
     script = Path(__file__).resolve().parents[1] / "deploy" / "tls" / "make-certs.sh"
     subprocess.run(["bash", str(script), str(tmp_path / "c")], check=True, capture_output=True)
-    c = config_from_args(_args(["-m", "client", "--tls-dir", str(tmp_path / "c" / "flow"), "--tls-name", "flow"]), {})
+    c = config_from_args(_args(["-m", "client", "--tls-dir", str(tmp_path / "c" / "cam0" / "flow"), "--tls-name",
+                                "flow"]), {})
     tls = json.loads(c.get_json("transport/link/tls"))
     assert tls["connect_certificate"].endswith("flow.pem") and tls["enable_mtls"] is True
     assert tls["root_ca_certificate"].endswith("ca.pem")
     # each party's folder holds its own key only, and no CA key is kept anywhere
-    assert sorted(p.name for p in (tmp_path / "c").rglob("*.key")) == sorted(
-        f"{n}.key" for n in ("router", "capture", "flow", "motion", "render", "recorder", "monitor"))
+    assert sorted(str(p.relative_to(tmp_path / "c")) for p in (tmp_path / "c").rglob("*.key")) == sorted(
+        ["router/router.key", "monitor/monitor.key",
+         *(f"cam0/{n}/{n}.key" for n in ("capture", "flow", "motion", "render", "recorder"))])
     assert all([k.name] == [p.name for p in k.parent.glob("*.key")] for k in (tmp_path / "c").rglob("*.key"))
     with pytest.raises(ValueError, match="missing .*make-certs.sh writes each party's files to"):
+        config_from_args(_args(["--tls-dir", str(tmp_path / "c"), "--tls-name", "monitor"]), {})
+    with pytest.raises(ValueError, match="missing .*make-certs.sh writes each service's files per stream: .*cam0/flow"):
         config_from_args(_args(["--tls-dir", str(tmp_path / "c"), "--tls-name", "flow"]), {})
     shared = tmp_path / "shared"  # a folder of every key: refused
     shared.mkdir()
     for n in ("flow", "render"):
-        for f in (tmp_path / "c" / n).iterdir():
+        for f in (tmp_path / "c" / "cam0" / n).iterdir():
             (shared / f.name).write_bytes(f.read_bytes())
     with pytest.raises(ValueError, match=r"holds other private keys \(render.key\)"):
         config_from_args(_args(["--tls-dir", str(shared), "--tls-name", "flow"]), {})

@@ -4,7 +4,8 @@ Four namespaces, addresses only inside them: ``hub`` (a bridge, 10.77.x.1, the r
 ``cam`` (.2, capture), ``compute`` (.3, flow and motion), ``view`` (.4, render and recorder).
 The stabilized frames must equal the single-host result; then the same with TLS (mutual
 authentication) and the router's access control, where a session without a valid
-certificate, or publishing on a key its certificate does not allow, gets nothing through.
+certificate, or publishing on a key its certificate does not allow (another stage, or another
+stream: certificates are per stream), gets nothing through.
 Needs root (CAP_NET_ADMIN) for ``ip netns``, which these machines grant.
 """
 from __future__ import annotations
@@ -141,52 +142,55 @@ def test_pipeline_across_three_hosts_matches_single_host(hosts, single_host, tmp
 
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory, hosts):
+    """Certificates for streams cam0 (the pipeline) and cam9 (the probes), and a router configuration
+    whose access control covers both (`quick-stream acl`; deploy/zenoh/router-tls.json5 is cam0's)."""
     d = tmp_path_factory.mktemp("certs")
-    subprocess.run(["bash", str(ROOT / "deploy" / "tls" / "make-certs.sh"), str(d / "good"), hosts.addr["hub"]],
-                   check=True, capture_output=True)
-    subprocess.run(["bash", str(ROOT / "deploy" / "tls" / "make-certs.sh"), str(d / "rogue"), hosts.addr["hub"]],
-                   check=True, capture_output=True)
+    for name in ("good", "rogue"):
+        subprocess.run(["bash", str(ROOT / "deploy" / "tls" / "make-certs.sh"), "--streams", "cam0,cam9",
+                        str(d / name), hosts.addr["hub"]], check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "quick_stream", "acl", "--streams", "cam0,cam9", "--output",
+                    str(d / "router-tls.json5")], check=True)
     return d
 
 
 def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path):
     ep = f"tls/{hosts.addr['hub']}:7447"
     good = str(certs / "good")
-    router = ["-c", str(ROOT / "deploy" / "zenoh" / "router-tls.json5"), "-l", ep, "--tls-dir", f"{good}/router",
-              "--tls-name", "router"]
-    z = {s: ["-m", "client", "-e", ep, "--no-multicast-scouting", "--tls-dir", f"{good}/{s}", "--tls-name", s]
+    router = ["-c", str(certs / "router-tls.json5"), "-l", ep, "--tls-dir", f"{good}/router", "--tls-name", "router"]
+    z = {s: ["-m", "client", "-e", ep, "--no-multicast-scouting", "--tls-dir", f"{good}/cam0/{s}", "--tls-name", s]
          for s in ("recorder", "render", "flow", "motion", "capture")}
     sup = run_pipeline(hosts, tmp_path, router, z)
     try:
         assert_same(tmp_path, single_host)  # everything allowed still flows, bit for bit
         key = "quick/@v1/cam9/frame"
-        # control: a subscriber (monitor certificate) sees what the capture certificate publishes
+        # control: a subscriber (monitor certificate) sees what cam9's capture certificate publishes
         listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, key, "4", f"{good}/monitor",
                                    "monitor"],
                                   stdout=subprocess.PIPE, text=True)
         assert "subscribed" in listen.stdout.readline()  # wait for the subscriber itself, not a clock
-        sent = hosts.probe("cam", "pub", ep, key, "1.5", f"{good}/capture", "capture")
+        sent = hosts.probe("cam", "pub", ep, key, "1.5", f"{good}/cam9/capture", "capture")
         got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
         assert sent["opened"] and sent["sent"] > 10 and got["received"] > 10
         # a certificate from another CA does not get in at all
-        rogue = hosts.probe("cam", "pub", ep, key, "1.0", str(certs / "rogue" / "capture"), "capture")
+        rogue = hosts.probe("cam", "pub", ep, key, "1.0", str(certs / "rogue" / "cam9" / "capture"), "capture")
         assert not rogue["opened"] or rogue["sent"] == 0, rogue
-        # valid certificates publishing where their name is not allowed get nothing through
-        for who, where in (("monitor", key), ("capture", "quick/@v1/cam9/correction"), ("flow", key)):
+        # valid certificates publishing where their name is not allowed get nothing through: the monitor, a
+        # capture on another stage, a flow on frames (another stream's capture: tests/test_acl.py)
+        for who, where in (("monitor", key), ("cam9/capture", "quick/@v1/cam9/correction"), ("cam9/flow", key)):
             listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, where, "4",
                                        f"{good}/monitor", "monitor"], stdout=subprocess.PIPE, text=True)
             assert "subscribed" in listen.stdout.readline()
-            sent = hosts.probe("compute", "pub", ep, where, "1.5", f"{good}/{who}", who)
+            sent = hosts.probe("compute", "pub", ep, where, "1.5", f"{good}/{who}", who.rpartition("/")[2])
             got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
             assert sent["opened"] and sent["sent"] > 10, (who, sent)
             assert got["received"] == 0, (who, where, got)
         # history: a restarted service reads what it missed from its inputs' publishers' caches (the ACL
         # denied it: under TLS a restarted capture renumbered from 0 and flow and render refused every frame)
         cache = subprocess.Popen([*hosts.prefix("cam"), sys.executable, PROBE, "cache", ep, key, "30",
-                                  f"{good}/capture", "capture"], stdout=subprocess.PIPE, text=True)
+                                  f"{good}/cam9/capture", "capture"], stdout=subprocess.PIPE, text=True)
         try:
             assert "published" in cache.stdout.readline()
-            got = hosts.probe("compute", "history", ep, key, "3", f"{good}/flow", "flow")
+            got = hosts.probe("compute", "history", ep, key, "3", f"{good}/cam9/flow", "flow")
             assert got["opened"] and got["received"] == 20, got  # the whole cache, as on TCP
             got = hosts.probe("view", "history", ep, key, "3", f"{good}/monitor", "monitor")
             assert got["received"] == 0, got  # the monitor only watches live data

@@ -15,7 +15,7 @@ from types import ModuleType
 
 from .argtypes import check_outputs
 
-COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "router", "up")
+COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "router", "up", "acl")
 
 
 def command(name: str) -> ModuleType:

@@ -70,13 +70,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="--target mcap: where recordings that find a bug are kept (default out/fuzz-mcap)")
     fl = b.add_parser("faults", help="SIGKILL services of a running `up` mid-stream: restart, resume, losses")
     fl.add_argument("--cases", default="all", help="comma-separated: a service (flow), repeated (render*3), "
-                    "together (router+flow); default all (every service, flow*3, render*3, router+flow)")
+                    "together (router+flow), bad messages on the frame key (poison, future-seq); default all "
+                    "(every service, flow*3, render*3, router+flow, poison, future-seq)")
     fl.add_argument("--frames", type=int, default=240, help="frames each case sends at least; the stream ends once "
                     "every successor is back (default 240)")
     fl.add_argument("--fps", type=float, default=30.0)
     fl.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
     fl.add_argument("--kill-after", type=int, default=60, help="frames sent before the first kill (default 60)")
-    fl.add_argument("--out", default="out/bench-faults", help="folder for each case's recordings and logs")
+    fl.add_argument("--out", default=None, help="folder for each case's recordings and logs (default "
+                    "out/bench-faults, with --tls out/bench-faults-tls)")
+    fl.add_argument("--tls", action="store_true", help="the router on deploy/zenoh/router-tls.json5 (mutual TLS, "
+                    "access control), every process a TLS client with its own certificate (made in OUT/certs)")
     fl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
     pl = b.add_parser("pipeline", help="the services under load: latency, throughput, drops, CPU and memory")
     pl.add_argument("--fps", type=at.rates, default=[30.0],
@@ -239,7 +243,8 @@ def _run(args: argparse.Namespace) -> int:
         from ..bench import faults
 
         cases = list(faults.CASES) if args.cases == "all" else args.cases.split(",")
-        return faults.main(cases, args.out, args.json, frames=args.frames, fps=args.fps, size=args.size,
+        out = args.out or ("out/bench-faults-tls" if args.tls else "out/bench-faults")
+        return faults.main(cases, out, args.json, tls=args.tls, frames=args.frames, fps=args.fps, size=args.size,
                            kill_after=args.kill_after)
     if args.bench == "fuzz":
         return _fuzz(args)

@@ -2,7 +2,9 @@
 
 Starts a Zenoh router (a Python process, no ``zenohd``) and the services as
 separate processes, all on loopback: recorder, flow, motion, render, then
-capture (which waits until the others are up). Shows fps, ms per item, drops and
+capture (which waits until the others are up). With ``--tls-dir`` the router
+requires mutual TLS and enforces its access control, and every service is a TLS
+client of it with its own certificate (deploy/tls/make-certs.sh; docs/deployment.md). Shows fps, ms per item, drops and
 restarts per service once a second; restarts a service that dies; stops
 everything cleanly when the source is exhausted and the last frame is rendered,
 after ``--duration`` seconds, or on Ctrl-C. Leaves the MCAP recording, the
@@ -47,6 +49,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--png", type=at.output_dir("--png"), default=None, metavar="DIR",
                    help="render also writes every frame as PNG here")
     p.add_argument("--quiet", action="store_true", help="no live status")
+    p.add_argument("--tls-dir", default=None, metavar="DIR",
+                   help="mutual TLS and access control: the folder deploy/tls/make-certs.sh wrote (router/, "
+                   "monitor/: this command's own session, <stream>/<service>/); the services are TLS clients "
+                   "of the router")
+    p.add_argument("--router-config", default=None, metavar="FILE",
+                   help="with --tls-dir: the router's configuration (default: `quick-stream acl --streams <stream>`, "
+                   "written to <out>/logs/router-tls.json5); its listen endpoint and certificate paths are replaced")
     add_stabilizer_args(p)
 
 
@@ -56,22 +65,63 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def tls_party(args: argparse.Namespace, name: str) -> tuple[str, str]:
+    """(--tls-dir, --tls-name) of party ``name`` (router, monitor, or a service of ``args.stream``) in the
+    folder make-certs.sh wrote."""
+    d = Path(args.tls_dir)
+    return (str(d / name), name) if name in ("router", "monitor") else (str(d / args.stream / name), name)
+
+
+def check_tls(args: argparse.Namespace) -> None:
+    """ValueError naming what is missing when ``--tls-dir`` lacks a certificate ``up`` needs."""
+    if args.router_config and not args.tls_dir:
+        raise ValueError("--router-config goes with --tls-dir")
+    if not args.tls_dir:
+        return
+    from ..transport import tls_settings
+
+    names = ["router", "monitor", *(s for s in SERVICES if s != "recorder" or not args.no_record)]
+    for name in names:
+        d, n = tls_party(args, name)
+        try:
+            tls_settings(d, n, "client")
+        except ValueError as e:
+            raise ValueError(f"--tls-dir {args.tls_dir}: {e} (deploy/tls/make-certs.sh --streams {args.stream} "
+                             f"{args.tls_dir})") from None
+    if args.router_config and not Path(args.router_config).is_file():
+        raise ValueError(f"--router-config {args.router_config}: no such file")
+
+
 def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[ServiceSpec]:
-    """Router first, then the services in start order, each with the zenoh flags to reach the router."""
-    z = ["-e", endpoint, "--no-multicast-scouting", "--stream", args.stream]
+    """Router first, then the services in start order, each with the zenoh flags to reach the router
+    (with ``--tls-dir``: as TLS clients, each with its own certificate)."""
+    tls = bool(getattr(args, "tls_dir", None))
+
+    def z(name: str) -> list[str]:
+        flags = ["-e", endpoint, "--no-multicast-scouting", "--stream", args.stream]
+        if tls:
+            d, n = tls_party(args, name)
+            flags = ["-m", "client", *flags, "--tls-dir", d, "--tls-name", n]
+        return flags
+
     st = settings_argv(args)
-    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
+    router = ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"]
+    if tls:
+        d, n = tls_party(args, "router")
+        router += ["-c", str(args.router_config), "--tls-dir", d, "--tls-name", n]
+    specs = [ServiceSpec("router", router)]
     if not args.no_record:
-        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(args.recording)]))
+        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z("recorder"), "--output",
+                                              str(args.recording)]))
     specs += [
-        ServiceSpec("flow", ["-m", "services.flow", *z, *st]),
-        ServiceSpec("motion", ["-m", "services.motion", *z, *st]),
-        ServiceSpec("render", ["-m", "services.render", *z, *st, "--output", str(out / "stabilized.mp4")]
+        ServiceSpec("flow", ["-m", "services.flow", *z("flow"), *st]),
+        ServiceSpec("motion", ["-m", "services.motion", *z("motion"), *st]),
+        ServiceSpec("render", ["-m", "services.render", *z("render"), *st, "--output", str(out / "stabilized.mp4")]
                     + (["--png", args.png] if args.png else [])),
     ]
     wait = ",".join(s.name for s in specs[1:])
-    cap = ["-m", "services.capture", *z, "--source", args.source, "--pace", args.pace, "--color", args.color,
-           "--wait-for", wait]
+    cap = ["-m", "services.capture", *z("capture"), "--source", args.source, "--pace", args.pace, "--color",
+           args.color, "--wait-for", wait]
     if args.frames is not None:
         cap += ["--frames", str(args.frames)]
     if args.fps is not None:
@@ -92,12 +142,12 @@ def _first(v: dict, names: tuple[str, ...]) -> str:
     return "-"
 
 
-def open_when_up(endpoint: str, timeout_s: float) -> zenoh.Session:
-    """A client session to the router at ``endpoint``, retried until it answers or ``timeout_s``."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
+def open_when_up(endpoint: str, timeout_s: float, tls: tuple[str, str] | None = None) -> zenoh.Session:
+    """A client session to the router at ``endpoint``, retried until it answers or ``timeout_s``;
+    ``tls``: (folder, name) of its certificate."""
+    from ..transport import session_config
+
+    conf = session_config(endpoint, "client", *(tls or (None, None)))
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -145,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         stabilizer_params(args)
         check_source(args.source)  # before any process starts: a bad spec is not capture's to find
+        check_tls(args)
     except SourceError as e:
         print(f"quick-stream up: --source: {e}", file=sys.stderr)
         return 2
@@ -164,11 +215,17 @@ def run(args: argparse.Namespace) -> int:
     # never overwrite a recording: an earlier run's stays, this one gets recording-1.mcap, ...
     args.recording = fresh_path(out / "recording.mcap")
     before = set(out.glob("recording*.mcap"))
-    endpoint = f"tcp/127.0.0.1:{args.port or free_port()}"
+    endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
+    if args.tls_dir and not args.router_config:
+        from ..acl import router_config_text
+
+        (out / "logs").mkdir(exist_ok=True)
+        args.router_config = str(out / "logs" / "router-tls.json5")
+        Path(args.router_config).write_text(router_config_text([args.stream]))
     sup = Supervisor(service_specs(args, endpoint, out), out / "logs")
     sup.start("router")
     try:
-        session = open_when_up(endpoint, timeout_s=20.0)
+        session = open_when_up(endpoint, timeout_s=20.0, tls=tls_party(args, "monitor") if args.tls_dir else None)
     except zenoh.ZError as e:
         sup.stop()
         print(f"quick-stream up: router did not come up on {endpoint}: {e} (see {out / 'logs' / 'router.log'})",
