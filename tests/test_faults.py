@@ -80,9 +80,14 @@ def check_case(r: dict, case: str, out) -> None:
             assert r["refused_reached"] == 0, r
 
 
-@pytest.mark.parametrize("case", KILLS)
+# render*3 (three takeovers by render in a row) is `quick-stream bench faults`' case, not CI's: flow*3
+# covers repeated takeovers, and the suite's time is bounded (10 minutes on a 2-core machine)
+CI_KILLS = [c for c in KILLS if c != "render*3"]
+
+
+@pytest.mark.parametrize("case", CI_KILLS)
 def test_sigkill_mid_stream(tmp_path, case):
-    r = run_case(tmp_path, case, pace="fast", kill_after=KILL_AFTER)
+    r = run_case(tmp_path, case, pace="fast", kill_after=KILL_AFTER, frames=150)
     check_case(r, case, tmp_path)
 
 
