@@ -112,6 +112,35 @@ class Inbox:
         return len(self._q)
 
 
+class TimedPublisher:
+    """A zenoh publisher whose ``put`` is timed: the longest put since the last stats (``put_ms_max``)
+    and the puts that took longer than ``SLOW_PUT_MS`` (``slow_puts``, a running count) go into the
+    service's stats as ``pub_<stage>_put_ms_max`` / ``pub_<stage>_slow_puts``. A put that waits is a
+    congested link (docs/deployment.md, "Delivery guarantees per key")."""
+
+    SLOW_PUT_MS = 100.0
+
+    def __init__(self, pub: Any, stage: str) -> None:
+        self.pub, self.stage = pub, stage
+        self.put_ms_max = 0.0
+        self.slow_puts = 0
+
+    def put(self, payload: bytes, **kw: Any) -> None:
+        t0 = time.perf_counter()
+        self.pub.put(payload, **kw)
+        ms = (time.perf_counter() - t0) * 1e3
+        self.put_ms_max = max(self.put_ms_max, ms)
+        self.slow_puts += ms > self.SLOW_PUT_MS
+
+    def take(self) -> dict[str, Any]:
+        out = {f"pub_{self.stage}_put_ms_max": round(self.put_ms_max, 1), f"pub_{self.stage}_slow_puts": self.slow_puts}
+        self.put_ms_max = 0.0
+        return out
+
+    def undeclare(self) -> None:
+        self.pub.undeclare()
+
+
 class ServiceRuntime:
     """One service process's zenoh session and life cycle (use as a context manager)."""
 
@@ -124,6 +153,7 @@ class ServiceRuntime:
         self._inboxes: list[Inbox] = []
         self._subs: list[Any] = []  # keep references: a dropped subscriber is undeclared
         self._pubs: list[Any] = []
+        self._timed: list[TimedPublisher] = []
         self._stats_seq = 0
         self._stats_period = stats_period_s
         self._next_stats = time.monotonic() + stats_period_s
@@ -132,7 +162,7 @@ class ServiceRuntime:
             signal.signal(signal.SIGINT, self._on_signal)
         self.session = zenoh.open(conf)
         self._token = None  # declared by ready(), once the service's subscribers exist
-        self._stats_pub = self.publisher("stats", lossless=False)
+        self._stats_pub = self._declare_publisher("stats")
         # Everything allocated so far (modules, OpenCV/zenoh objects) lives for the whole run:
         # keep it out of the collector's generations so collections stay short.
         gc.freeze()
@@ -146,10 +176,17 @@ class ServiceRuntime:
     # --- endpoints -------------------------------------------------------------------------------
 
     def publisher(self, stage: str, lossless: bool = False, stream: str | None = None,
-                  cache: int = 0) -> zenoh.Publisher | zenoh.ext.AdvancedPublisher:
+                  cache: int = 0) -> TimedPublisher:
         """Publisher on ``quick/@v1/<stream>/<stage>``; ``lossless`` blocks instead of dropping
         when the transport is congested (corrections, end markers). ``cache`` > 0 keeps the last
-        ``cache`` messages for a restarted consumer's history query (:meth:`inbox`)."""
+        ``cache`` messages for a restarted consumer's history query (:meth:`inbox`). Its puts are
+        timed (:class:`TimedPublisher`, in the stats)."""
+        pub = TimedPublisher(self._declare_publisher(stage, lossless, stream, cache), stage)
+        self._timed.append(pub)
+        return pub
+
+    def _declare_publisher(self, stage: str, lossless: bool = False, stream: str | None = None,
+                           cache: int = 0) -> zenoh.Publisher | zenoh.ext.AdvancedPublisher:
         kw = dict(congestion_control=zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP,
                   reliability=zenoh.Reliability.RELIABLE)
         key = keys.key(stream or self.stream, stage)
@@ -342,6 +379,8 @@ class ServiceRuntime:
     def publish_stats(self, values: dict[str, Any]) -> None:
         """Publish a ``stats`` message now (inbox drops are added automatically)."""
         vals = dict(values)
+        for p in self._timed:
+            vals.update(p.take())
         for i, b in enumerate(self._inboxes):
             vals[f"inbox{i}_dropped"] = b.dropped
             vals[f"inbox{i}_invalid"] = b.arrivals.invalid  # failed the check on arrival (not accounted)
