@@ -7,7 +7,13 @@ loops: take messages from its inboxes, call the library stage, publish.
 * **Inbox**: a callback subscriber that appends each payload to a bounded deque.
   When full it drops the *oldest* and counts it (zenoh's ``RingChannel`` drops
   silently; we report drops in the stats). Lossless inboxes are the same with a
-  bound no healthy stream reaches, fed by publishers that block instead of drop.
+  bound no healthy stream reaches. Every inbox recovers what its own link dropped
+  from the lossless publishers' caches (zenoh-ext sample-miss recovery), in order;
+  what the cache no longer held is counted (``inbox<i>_lost``).
+* **Publishers never wait for a subscriber**: all of them drop for a congested link
+  (``CongestionControl.DROP``), so a slow foreign subscriber, peer or client, can only
+  slow itself; the pipeline's own lossless keys are numbered, cached and recovered
+  (docs/deployment.md, "Delivery guarantees per key").
 * **Stop**: SIGTERM and SIGINT set a flag; the loop ends, then the runtime
   undeclares everything and closes the session in ``finally``
   (transport-facts.md: without a handler SIGTERM kills the process before cleanup).
@@ -65,6 +71,7 @@ class Inbox:
         self.received = 0
         self.dropped = 0
         self.skipped = 0
+        self.lost = 0  # messages of a lossless publisher that never arrived and were no longer in its cache
         self.skip_through: int | None = None  # data messages with a seq <= this are not queued (taken over)
         self._newest: int | None = None  # taking over: the newest data seq queued so far
         self.arrivals = ArrivalLedger()
@@ -99,6 +106,10 @@ class Inbox:
             self.received += 1
             self._cond.notify_all()
 
+    def _on_miss(self, miss: Any) -> None:
+        self.lost += miss.nb
+        log.warning("%d messages of publisher %s were lost (no longer in its cache)", miss.nb, miss.source)
+
     def pop(self) -> tuple[str, bytes, int] | None:
         with self._cond:
             if not self._q:
@@ -110,6 +121,10 @@ class Inbox:
 
     def __len__(self) -> int:
         return len(self._q)
+
+
+RECOVERY_CACHE = 150  # messages every lossless publisher keeps for receivers to recover (5 s at 30 fps)
+HEARTBEAT_S = 0.5  # a lossless publisher's heartbeat: a receiver notices a lost last message within it
 
 
 class TimedPublisher:
@@ -177,22 +192,33 @@ class ServiceRuntime:
 
     def publisher(self, stage: str, lossless: bool = False, stream: str | None = None,
                   cache: int = 0) -> TimedPublisher:
-        """Publisher on ``quick/@v1/<stream>/<stage>``; ``lossless`` blocks instead of dropping
-        when the transport is congested (corrections, end markers). ``cache`` > 0 keeps the last
-        ``cache`` messages for a restarted consumer's history query (:meth:`inbox`). Its puts are
-        timed (:class:`TimedPublisher`, in the stats)."""
+        """Publisher on ``quick/@v1/<stream>/<stage>``. Every publisher drops for a congested link
+        instead of waiting for it (``CongestionControl.DROP``: at most zenoh's ``wait_before_drop``,
+        1 ms, per link and message), so no subscriber, the pipeline's or a foreign viewer, can hold a
+        publisher. ``lossless`` (flows, motions, corrections, frames, their end markers): an advanced
+        publisher that numbers its messages, keeps at least ``RECOVERY_CACHE`` of them and sends a
+        heartbeat, so a receiver whose own link dropped some fetches them back from the cache, in
+        order (:meth:`inbox`); only what fell out of the cache is lost, and counted there. ``cache``
+        > 0 also keeps the last ``cache`` messages for a restarted consumer's history query. Its puts
+        are timed (:class:`TimedPublisher`, in the stats)."""
         pub = TimedPublisher(self._declare_publisher(stage, lossless, stream, cache), stage)
         self._timed.append(pub)
         return pub
 
     def _declare_publisher(self, stage: str, lossless: bool = False, stream: str | None = None,
                            cache: int = 0) -> zenoh.Publisher | zenoh.ext.AdvancedPublisher:
-        kw = dict(congestion_control=zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP,
-                  reliability=zenoh.Reliability.RELIABLE)
+        kw = dict(congestion_control=zenoh.CongestionControl.DROP, reliability=zenoh.Reliability.RELIABLE)
         key = keys.key(stream or self.stream, stage)
-        if cache > 0:
-            pub = zenoh.ext.declare_advanced_publisher(self.session, key, cache=zenoh.ext.CacheConfig(cache),
-                                                       publisher_detection=True, **kw)
+        if lossless or cache > 0:
+            # the cache's replies drop for a congested link too: a foreign subscriber that asks for the
+            # history and stops reading must not hold the cache (zenoh replies under its lock, and each
+            # put takes it); a healthy receiver's recovery asks again for what it still misses
+            replies = zenoh.ext.RepliesConfig(congestion_control=zenoh.CongestionControl.DROP)
+            size = max(cache, RECOVERY_CACHE) if lossless else cache
+            detect = zenoh.ext.MissDetectionConfig(heartbeat=HEARTBEAT_S) if lossless else None
+            pub = zenoh.ext.declare_advanced_publisher(
+                self.session, key, cache=zenoh.ext.CacheConfig(size, replies_config=replies),
+                sample_miss_detection=detect, publisher_detection=True, **kw)
         else:
             pub = self.session.declare_publisher(key, **kw)
         self._pubs.append(pub)
@@ -214,13 +240,16 @@ class ServiceRuntime:
         box = Inbox(capacity, self._cond, on_arrival, on_gap)
         box.skip_through = skip_through
         box.capacity = box.catch_up = max(capacity, catch_up)
-        if history:
-            # a publisher this session does not know yet (its declaration arrives after ours) is queried
-            # once seen
-            sub = zenoh.ext.declare_advanced_subscriber(self.session, key_expr, box._on_sample,
-                                                        history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
-        else:
-            sub = self.session.declare_subscriber(key_expr, box._on_sample)
+        # Recovery: messages of a lossless publisher that this session's link dropped (congested: this
+        # process stopped reading for a while) are fetched back from the publisher's cache and handed
+        # on in order; what the cache no longer holds is counted as ``lost``. Messages of other
+        # publishers pass straight through. ``history``: a publisher this session does not know yet
+        # (its declaration arrives after ours) is queried once seen.
+        sub = zenoh.ext.declare_advanced_subscriber(
+            self.session, key_expr, box._on_sample,
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True) if history else None,
+            recovery=zenoh.ext.RecoveryConfig(heartbeat=True))
+        self._subs.append(sub.sample_miss_listener(box._on_miss))
         self._subs.append(sub)
         self._inboxes.append(box)
         return box
@@ -261,7 +290,9 @@ class ServiceRuntime:
                 for (s, stage), seq in box.arrivals.newest().items():
                     if s == stream:
                         newest[stage] = max(seq, newest.get(stage, -1))
-            query.reply(keys.cursor_key(stream, self.service), encode_stats(Stats(self.service, newest), stream, 0))
+            # dropped for a congested link, like every put: the asker asks again (stream_cursor, lagging)
+            query.reply(keys.cursor_key(stream, self.service), encode_stats(Stats(self.service, newest), stream, 0),
+                        congestion_control=zenoh.CongestionControl.DROP)
 
         key = keys.cursor_key("*" if all_streams else self.stream, self.service)
         self._subs.append(self.session.declare_queryable(key, on_query))
@@ -385,6 +416,7 @@ class ServiceRuntime:
             vals[f"inbox{i}_dropped"] = b.dropped
             vals[f"inbox{i}_invalid"] = b.arrivals.invalid  # failed the check on arrival (not accounted)
             vals[f"inbox{i}_queued"] = len(b)
+            vals[f"inbox{i}_lost"] = b.lost
             if b.skip_through is not None:
                 vals[f"inbox{i}_skipped"] = b.skipped
         self._stats_pub.put(encode_stats(Stats(self.service, vals), self.stream, self._stats_seq))

@@ -25,7 +25,7 @@ from quick_stream import keys
 from quick_stream.cli import argtypes as at
 from quick_stream.frame import BadFrame
 from quick_stream.meters import RateMeter
-from quick_stream.runtime import ServiceRuntime, service_main, service_parser
+from quick_stream.runtime import ServiceRuntime, TimedPublisher, service_main, service_parser
 from quick_stream.shedding import ShedLimits, Shedder
 from quick_stream.sources import SourceError, open_source
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
@@ -60,7 +60,8 @@ def build_parser():
                    help="mcap sources: re-encode frames with --color/--depth instead of sending the recorded bytes")
     p.add_argument("--history", type=at.int_in(0), default=150,
                    help="frames kept for a restarted flow or render service to take over from (default 150, "
-                        "5 s at 30 fps, what render holds at most by default; 0: none)")
+                        "5 s at 30 fps, what render holds at most by default; at least 150 are kept for receivers to recover "
+                        "what their link dropped)")
     p.add_argument("--wait-for", type=at.service_names, default="", metavar="S1,S2",
                    help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
     p.add_argument("--wait-timeout", type=at.nonneg_float, default=30.0, help="seconds to wait for them (default 30)")
@@ -252,7 +253,7 @@ class CaptureStats:
                 "credit_waits": self.credit.waits, "shed": self.credit.shedder.shed, **self.meter.take("send")}
 
 
-def send_all(args, rt: ServiceRuntime, pub: zenoh.Publisher, items, credit: OutputCredit, st: CaptureStats,
+def send_all(args, rt: ServiceRuntime, pub: TimedPublisher, items, credit: OutputCredit, st: CaptureStats,
              depth_scale: float) -> str:
     """Pace, encode and publish every frame; returns why it stopped."""
     t_start, ts0 = time.monotonic(), None
