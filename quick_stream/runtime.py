@@ -123,6 +123,7 @@ class Inbox:
         return len(self._q)
 
 
+LOSSLESS_STAGES = ("frame", "flow", "motion", "correction")  # the keys published with ``lossless=True``
 RECOVERY_CACHE = 150  # messages every lossless publisher keeps for receivers to recover (5 s at 30 fps)
 HEARTBEAT_S = 0.5  # a lossless publisher's heartbeat: a receiver notices a lost last message within it
 
@@ -240,17 +241,28 @@ class ServiceRuntime:
         box = Inbox(capacity, self._cond, on_arrival, on_gap)
         box.skip_through = skip_through
         box.capacity = box.catch_up = max(capacity, catch_up)
-        # Recovery: messages of a lossless publisher that this session's link dropped (congested: this
-        # process stopped reading for a while) are fetched back from the publisher's cache and handed
-        # on in order; what the cache no longer holds is counted as ``lost``. Messages of other
-        # publishers pass straight through. ``history``: a publisher this session does not know yet
-        # (its declaration arrives after ours) is queried once seen.
-        sub = zenoh.ext.declare_advanced_subscriber(
-            self.session, key_expr, box._on_sample,
-            history=zenoh.ext.HistoryConfig(detect_late_publishers=True) if history else None,
-            recovery=zenoh.ext.RecoveryConfig(heartbeat=True))
-        self._subs.append(sub.sample_miss_listener(box._on_miss))
-        self._subs.append(sub)
+        # Recovery: messages of a lossless publisher (LOSSLESS_STAGES) that this session's link dropped
+        # (congested: this process stopped reading for a while) are fetched back from the publisher's
+        # cache and handed on in order; what the cache no longer holds is counted as ``lost``. Those
+        # keys get an advanced subscriber each; the others (stabilized, stats) a plain one, as before:
+        # an advanced subscriber also drops a message that is not numbered and whose timestamp is not
+        # newer than the last one delivered from its session (it did so to stabilized frames reordered
+        # while the router restarted). ``history``: a publisher this session does not know yet (its
+        # declaration arrives after ours) is queried once seen.
+        head, _, last = key_expr.rpartition("/")
+        lossless = [key_expr] if last in LOSSLESS_STAGES else [f"{head}/{st}" for st in LOSSLESS_STAGES] if last == "*" else []
+        for k in lossless:
+            sub = zenoh.ext.declare_advanced_subscriber(
+                self.session, k, box._on_sample,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True) if history else None,
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True))
+            self._subs.append(sub.sample_miss_listener(box._on_miss))
+            self._subs.append(sub)
+        if key_expr not in lossless:
+            def others(sample: zenoh.Sample) -> None:
+                if str(sample.key_expr).rpartition("/")[2] not in LOSSLESS_STAGES:
+                    box._on_sample(sample)
+            self._subs.append(self.session.declare_subscriber(key_expr, others))
         self._inboxes.append(box)
         return box
 
