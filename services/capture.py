@@ -222,8 +222,10 @@ def run(args, conf: zenoh.Config) -> int:
             if behind:
                 log.warning("ending the stream although %s have not received frame %d after %.0f s",
                             ", ".join(sorted(behind)), st.last_seq, args.end_wait)
-        rt.session.put(keys.key(args.stream, "frame"), encode_end(EndOfStream(st.last_seq, reason), args.stream),
-                       congestion_control=zenoh.CongestionControl.BLOCK)
+        # through the frames' publisher: numbered after the last frame, so a receiver whose link dropped it
+        # recovers it in order, and no subscriber can hold it (it was a BLOCK put of its own: a viewer that
+        # stopped reading held it, and so the end of the stream, until zenoh closed the viewer's link, 5 s)
+        pub.put(encode_end(EndOfStream(st.last_seq, reason), args.stream))
         rt.publish_stats({**st.values(), "state": "ended"})
         log.info("sent %d frames (%d bad); %s", st.sent, st.bad, reason)
     return 1 if reason.startswith("source failed") else 0
