@@ -10,8 +10,9 @@ Who is who is the client certificate's common name (deploy/tls/make-certs.sh ``-
   stream. It may read its stream (subscribe, receive, ask who is alive), publish its own stages of
   it and its stats, hold its own liveliness token (``<stream>/health/<service>``) and nobody
   else's, answer the stream cursor as itself (``<stream>/cursor/<service>``; capture only asks),
-  ask the cursor, read the history caches of the stages it consumes and serve the cache of the
-  stage it publishes. Nothing of another stream.
+  ask the cursor, read the history caches of the lossless stages it consumes (a restarted service
+  takes over from them; every receiver recovers from them what its own link dropped) and serve the
+  caches of the lossless stages it publishes, with their heartbeats. Nothing of another stream.
 * ``quick-recorder``: a recorder of every stream (``recorder --all-streams``): reads every stream,
   holds the recorder's token and answers the recorder's cursor of every stream, publishes stats.
 * ``quick-monitor``: watches every stream (``up``'s status board, ``bench faults``' monitor):
@@ -30,8 +31,12 @@ from . import keys
 SERVICES = ("capture", "flow", "motion", "render", "recorder")
 PUBLISHES = {"capture": ("frame",), "flow": ("flow",), "motion": ("motion", "correction"),
              "render": ("stabilized",), "recorder": ()}
-CACHE = {"capture": "frame", "flow": "flow", "motion": "correction"}  # the history cache each publisher keeps
-READS_HISTORY = {"flow": ("frame",), "motion": ("flow",), "render": ("frame", "correction")}  # takes over from
+# the caches each publisher keeps (every lossless key: docs/deployment.md, "Delivery guarantees per key"),
+# whose heartbeats it sends on <key>/@adv/**
+CACHE = {"capture": ("frame",), "flow": ("flow",), "motion": ("motion", "correction")}
+LOSSLESS = tuple(st for sts in CACHE.values() for st in sts)
+# the caches each service queries: to take over (a restarted one) and to recover what its link dropped
+READS_HISTORY = {"flow": ("frame",), "motion": ("flow",), "render": ("frame", "correction"), "recorder": LOSSLESS}
 ASKS_CURSOR = ("capture", "flow", "motion", "render")  # a restarted service; capture also before its end marker
 SERVES_CURSOR = ("flow", "motion", "render", "recorder")
 MONITOR = "monitor"
@@ -81,10 +86,12 @@ def access_control(streams: list[str]) -> dict:
                   _rule(f"{s} cursor ask", "ingress", ["query"], [f"{p}/cursor/*"]),
                   _rule(f"{s} cursor answers", "egress", ["reply"], [f"{p}/cursor/*"]),
                   _rule(f"{s} cursor queries", "egress", ["query"], [f"{p}/cursor/*"])]
-        for stage in CACHE.values():
+        for stage in LOSSLESS:
             adv = [f"{p}/{stage}", f"{p}/{stage}/@adv/**"]
             rules += [_rule(f"{s} {stage} history ask", "ingress", ["query"], [f"{p}/{stage}/@adv/**"]),
-                      _rule(f"{s} {stage} history seen", "egress", ["reply", "liveliness_token"], adv),
+                      # heartbeats too (puts on <key>/@adv/**: ** matches no @-chunk, so the stream's
+                      # "receive" does not cover them)
+                      _rule(f"{s} {stage} history seen", "egress", ["reply", "liveliness_token", "put"], adv),
                       _rule(f"{s} {stage} cache", "ingress", ["declare_queryable", "liveliness_token", "reply"], adv),
                       _rule(f"{s} {stage} cache queries", "egress", ["query"], [f"{p}/{stage}/@adv/**"])]
         for svc in SERVICES:
@@ -92,8 +99,10 @@ def access_control(streams: list[str]) -> dict:
             if svc in SERVES_CURSOR:
                 rules.append(_rule(f"{s} {svc} cursor", "ingress", ["declare_queryable", "reply"],
                                    [keys.cursor_key(s, svc)]))
-            if PUBLISHES[svc]:
-                rules.append(_rule(f"{s} {svc} publish", "ingress", ["put"], [keys.key(s, st) for st in PUBLISHES[svc]]))
+            if PUBLISHES[svc]:  # its stages, and the heartbeats of its caches
+                rules.append(_rule(f"{s} {svc} publish", "ingress", ["put"],
+                                   [keys.key(s, st) for st in PUBLISHES[svc]]
+                                   + [f"{keys.key(s, st)}/@adv/**" for st in CACHE.get(svc, ())]))
             granted = ["declarations seen", f"{s} receive", f"{s} subscribe", f"{s} tokens seen", f"{s} stats",
                        f"{s} {svc} token"]
             if svc in ASKS_CURSOR:
@@ -102,8 +111,8 @@ def access_control(streams: list[str]) -> dict:
                 granted += [f"{s} {svc} cursor", f"{s} cursor queries"]
             for stage in READS_HISTORY.get(svc, ()):
                 granted += [f"{s} {stage} history ask", f"{s} {stage} history seen"]
-            if svc in CACHE:
-                granted += [f"{s} {CACHE[svc]} cache", f"{s} {CACHE[svc]} cache queries"]
+            for stage in CACHE.get(svc, ()):
+                granted += [f"{s} {stage} cache", f"{s} {stage} cache queries"]
             if PUBLISHES[svc]:
                 granted.append(f"{s} {svc} publish")
             subject(f"{s} {svc}", common_name(svc, s), granted)
@@ -114,10 +123,14 @@ def access_control(streams: list[str]) -> dict:
               _rule("all recorder token", "ingress", ["liveliness_token"], [f"{every}/health/{ALL_STREAMS_RECORDER}"]),
               _rule("all recorder cursor", "ingress", ["declare_queryable", "reply"],
                     [f"{every}/cursor/{ALL_STREAMS_RECORDER}"]),
-              _rule("all cursor queries", "egress", ["query"], [f"{every}/cursor/*"])]
+              _rule("all cursor queries", "egress", ["query"], [f"{every}/cursor/*"]),
+              _rule("all history ask", "ingress", ["query"], [f"{every}/{st}/@adv/**" for st in LOSSLESS]),
+              _rule("all history seen", "egress", ["reply", "liveliness_token", "put"],
+                    [k for st in LOSSLESS for k in (f"{every}/{st}", f"{every}/{st}/@adv/**")])]
     reading = ["declarations seen", "all receive", "all subscribe", "all tokens seen"]
     subject(f"all {ALL_STREAMS_RECORDER}", common_name(ALL_STREAMS_RECORDER),
-            reading + ["all stats", "all recorder token", "all recorder cursor", "all cursor queries"])
+            reading + ["all stats", "all recorder token", "all recorder cursor", "all cursor queries",
+                       "all history ask", "all history seen"])
     subject(MONITOR, common_name(MONITOR), reading)
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
@@ -132,7 +145,9 @@ HEADER = """\
 //                             stages of it (capture: frame; flow: flow; motion: motion, correction;
 //                             render: stabilized; recorder: nothing) and its stats, holds its own
 //                             liveliness token and answers the stream cursor as itself only, reads
-//                             the history caches of its inputs, serves the cache of its output
+//                             the history caches of its inputs (to take over, and to recover what
+//                             its link dropped), serves the caches of its lossless outputs and
+//                             sends their heartbeats
 //   quick-recorder            a recorder of every stream (recorder --all-streams)
 //   quick-monitor             watches every stream: subscribes and sees liveliness tokens, no more
 // Anything not allowed is denied. Services must be clients of this router (client-tls.json5):

@@ -25,7 +25,7 @@ from quick_stream import keys
 from quick_stream.cli import argtypes as at
 from quick_stream.frame import BadFrame
 from quick_stream.meters import RateMeter
-from quick_stream.runtime import ServiceRuntime, service_main, service_parser
+from quick_stream.runtime import ServiceRuntime, TimedPublisher, service_main, service_parser
 from quick_stream.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
 from quick_stream.sources import SourceError, open_source
 from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
@@ -60,7 +60,8 @@ def build_parser():
                    help="mcap sources: re-encode frames with --color/--depth instead of sending the recorded bytes")
     p.add_argument("--history", type=at.int_in(0), default=150,
                    help="frames kept for a restarted flow or render service to take over from (default 150, "
-                        "5 s at 30 fps, what render holds at most by default; 0: none)")
+                        "5 s at 30 fps, what render holds at most by default; at least 150 are kept for receivers to recover "
+                        "what their link dropped)")
     p.add_argument("--wait-for", type=at.service_names, default="", metavar="S1,S2",
                    help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
     p.add_argument("--wait-timeout", type=at.nonneg_float, default=30.0, help="seconds to wait for them (default 30)")
@@ -220,8 +221,10 @@ def run(args, conf: zenoh.Config) -> int:
             if behind:
                 log.warning("ending the stream although %s have not received frame %d after %.0f s",
                             ", ".join(sorted(behind)), st.last_seq, args.end_wait)
-        rt.session.put(keys.key(args.stream, "frame"), encode_end(EndOfStream(st.last_seq, reason), args.stream),
-                       congestion_control=zenoh.CongestionControl.BLOCK)
+        # through the frames' publisher: numbered after the last frame, so a receiver whose link dropped it
+        # recovers it in order, and no subscriber can hold it (it was a BLOCK put of its own: a viewer that
+        # stopped reading held it, and so the end of the stream, until zenoh closed the viewer's link, 5 s)
+        pub.put(encode_end(EndOfStream(st.last_seq, reason), args.stream))
         rt.publish_stats({**st.values(), "state": "ended"})
         log.info("sent %d frames (%d bad); %s", st.sent, st.bad, reason)
     return 1 if reason.startswith("source failed") else 0
@@ -251,7 +254,7 @@ class CaptureStats:
                 "credit_waits": self.credit.waits, "shed": self.credit.shedder.shed, **self.meter.take("send")}
 
 
-def send_all(args, rt: ServiceRuntime, pub: zenoh.Publisher, items, credit: OutputCredit, st: CaptureStats,
+def send_all(args, rt: ServiceRuntime, pub: TimedPublisher, items, credit: OutputCredit, st: CaptureStats,
              depth_scale: float) -> str:
     """Pace, encode and publish every frame; returns why it stopped."""
     t_start, ts0 = time.monotonic(), None

@@ -4,9 +4,11 @@ Reads frames through a drop-oldest inbox (``--queue``, default 30: if this stage
 falls that far behind, the oldest frames are dropped and counted, and the next
 flow spans the gap), runs :class:`quick_stream.stages.FlowStage` and publishes
 each pair's ``flow`` message (lossless: the motion stage needs every pair it can
-get). Undecodable or out-of-order frames are logged and counted; a stream whose
-numbering restarts lower is followed once a run of frames confirms it (an empty flow
-naming the renumbering: the path restarts there; ``renumberings``). The ``end``
+get; a receiver whose link dropped flows fetches them back from the publisher's
+cache, and no subscriber can make the put wait). Undecodable or out-of-order frames
+are logged and counted; a stream whose numbering restarts lower is followed once a
+run of frames confirms it (an empty flow naming the renumbering: the path restarts
+there; ``renumberings``). The ``end``
 marker is forwarded once the last flow is out.
 """
 from __future__ import annotations
@@ -32,8 +34,9 @@ def build_parser():
     p = service_parser("flow", __doc__)
     p.add_argument("--queue", type=at.positive_int, default=30,
                    help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)")
-    p.add_argument("--history", type=at.int_in(0), default=60,
-                   help="flows kept for a restarted motion service to take over from (default 60; 0: none)")
+    p.add_argument("--history", type=at.int_in(0), default=150,
+                   help="flows kept for a restarted motion service to take over from and for receivers to recover "
+                        "what their link dropped (default 150; at least 150 are kept)")
     p.add_argument("--catch-up", type=at.positive_int, default=150,
                    help="frames held while a restarted flow works through the frames' history (default 150, "
                         "the capture's history)")

@@ -24,7 +24,7 @@ from quick_stream.cli import argtypes as at
 from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
 from quick_stream.path.planner import Correction
 from quick_stream.meters import RateMeter
-from quick_stream.runtime import ServiceRuntime, service_main, service_parser
+from quick_stream.runtime import ServiceRuntime, TimedPublisher, service_main, service_parser
 from quick_stream.stages import MotionStage
 from quick_stream.wire import encode_correction, encode_end, encode_motion
 
@@ -36,7 +36,8 @@ def build_parser():
     p.add_argument("--queue", type=at.positive_int, default=100_000,
                    help="flow messages held (lossless; default 100000)")
     p.add_argument("--history", type=at.int_in(0), default=300,
-                   help="corrections kept for a restarted render service to take over from (default 300; 0: none)")
+                   help="corrections kept for a restarted render service to take over from (default 300; at least 150 "
+                        "are kept for receivers to recover what their link dropped)")
     add_stabilizer_args(p)
     return p
 
@@ -44,7 +45,7 @@ def build_parser():
 class Releaser:
     """Publishes correction batches with their release id."""
 
-    def __init__(self, pub: zenoh.Publisher, stream: str) -> None:
+    def __init__(self, pub: TimedPublisher, stream: str) -> None:
         self.pub, self.stream, self.release, self.sent = pub, stream, 0, 0
 
     def __call__(self, batches: list[list[Correction]]) -> None:

@@ -174,12 +174,17 @@ def test_access_control_gives_each_certificate_what_its_service_needs_and_no_mor
                 assert acl.allows(cn, "ingress", message, keys.cursor_key("cam0", other)) == serves, (cn, other)
                 assert not acl.allows(cn, "ingress", message, keys.cursor_key("cam1", other))
         assert acl.allows(cn, "ingress", "query", keys.cursor_key("cam0")) == (svc != "recorder")
-        # history caches: served by the stage's publisher, read by its consumers
-        for stage, (server, readers) in {"frame": ("capture", {"flow", "render"}), "flow": ("flow", {"motion"}),
-                                         "correction": ("motion", {"render"})}.items():
+        # history caches (every lossless key): served by the stage's publisher, which alone sends their
+        # heartbeats; read by its consumers (to take over and to recover what their link dropped)
+        for stage, (server, readers) in {"frame": ("capture", {"flow", "render", "recorder"}),
+                                         "flow": ("flow", {"motion", "recorder"}),
+                                         "motion": ("motion", {"recorder"}),
+                                         "correction": ("motion", {"render", "recorder"})}.items():
             adv = f"{keys.key('cam0', stage)}/@adv/pub/z/1/_"
             assert acl.allows(cn, "ingress", "declare_queryable", adv) == (svc == server), (cn, stage)
             assert acl.allows(cn, "ingress", "reply", keys.key("cam0", stage)) == (svc == server), (cn, stage)
+            assert acl.allows(cn, "ingress", "put", adv) == (svc == server), (cn, stage)  # the heartbeat
+            assert acl.allows(cn, "egress", "put", adv) == (svc in readers), (cn, stage)  # heard by its readers
             assert acl.allows(cn, "ingress", "query", adv) == (svc in readers), (cn, stage)
             assert not acl.allows(cn, "ingress", "query", f"{keys.key('cam1', stage)}/@adv/pub/z/1/_")
     # the monitor watches every stream: subscribes, receives, sees tokens; declares and publishes nothing
@@ -197,6 +202,7 @@ def test_access_control_gives_each_certificate_what_its_service_needs_and_no_mor
     assert acl.allows("quick-recorder", "ingress", "declare_queryable", keys.cursor_key("*", "recorder"))
     assert not acl.allows("quick-recorder", "ingress", "declare_queryable", keys.cursor_key("*", "flow"))
     assert acl.allows("quick-recorder", "ingress", "liveliness_token", keys.health_key("cam1", "recorder"))
+    assert acl.allows("quick-recorder", "ingress", "query", f"{keys.key('cam1', 'flow')}/@adv/pub/z/1/_")
     assert not acl.allows("quick-recorder", "ingress", "liveliness_token", keys.health_key("cam1", "flow"))
     assert not acl.allows("quick-recorder", "ingress", "put", keys.key("cam0", "frame"))
 

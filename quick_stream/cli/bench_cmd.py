@@ -98,6 +98,27 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="folder for recordings and logs")
     pl.add_argument("--json", type=at.output_file("--json"), default=None, metavar="FILE",
                     help="also write the reports as JSON here")
+    sv = b.add_parser("slow-viewer", help="a slow foreign subscriber (peer or client) beside a live pipeline: "
+                      "publishers' longest puts, drops, flagged frames, output pauses")
+    sv.add_argument("--viewer", choices=("peer", "client", "none"), default="peer",
+                    help="the viewer's zenoh mode (peer: listens, so gossip links it to the services directly)")
+    sv.add_argument("--handler", choices=("fifo", "callback"), default="fifo",
+                    help="fifo: a bounded FifoChannel read slowly (default); callback: a callback that sleeps")
+    sv.add_argument("--key", default="quick/@v1/{stream}/**", help="what the viewer subscribes to")
+    sv.add_argument("--sleep", type=at.nonneg_float, default=1.0, help="seconds the viewer spends per sample")
+    sv.add_argument("--frames", type=at.positive_int, default=450, help="frames the capture sends (default 450)")
+    sv.add_argument("--fps", type=at.positive_float, default=30.0)
+    sv.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
+    sv.add_argument("--stream", type=at.stream_id, default="cam0")
+    sv.add_argument("--services-mode", choices=("peer", "client"), default=None,
+                    help="the services' zenoh mode (default: peer, as `quick-stream up`)")
+    sv.add_argument("--services-cfg", action="append", default=[], metavar="KEY:VALUE",
+                    help="a zenoh setting for every service and the router (repeatable)")
+    sv.add_argument("--pause", default=None, metavar="SERVICE:SECONDS",
+                    help="also stop a healthy service (SIGSTOP) for SECONDS mid-stream, e.g. motion:2")
+    sv.add_argument("--pause-at", type=at.nonneg_float, default=8.0, help="seconds after the start (default 8)")
+    sv.add_argument("--out", type=at.output_dir("--out"), default="out/bench-slow-viewer",
+                    help="folder for the recording and logs")
 
 
 def _shake(text: str) -> tuple[float, float]:
@@ -239,6 +260,11 @@ def _run(args: argparse.Namespace) -> int:
         return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
                              streams=args.streams, size=args.size, render_slow_ms=args.render_slow_ms,
                              replay=args.replay)
+    if args.bench == "slow-viewer":
+        from ..bench import slow_viewer
+
+        print(json.dumps(slow_viewer.run(args)))
+        return 0
     if args.bench == "faults":
         from ..bench import faults
 
