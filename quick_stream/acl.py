@@ -169,7 +169,10 @@ def router_config_text(streams: list[str]) -> str:
             '  mode: "router",\n'
             '  listen: { endpoints: ["tls/0.0.0.0:7447"] },\n'
             "  scouting: { multicast: { enabled: false } },\n"
-            "  transport: {\n    link: {\n      tls: {\n"
+            "  transport: {\n    link: {\n"
+            "      // each link's data queue holds 1 MiB (zenoh's default, 2 batches, does not hold one raw frame)\n"
+            "      tx: { queue: { size: { data: 16 } } },\n"
+            "      tls: {\n"
             '        root_ca_certificate: "/etc/quick-stream/tls/ca.pem",\n'
             '        listen_certificate: "/etc/quick-stream/tls/router.pem",\n'
             '        listen_private_key: "/etc/quick-stream/tls/router.key",\n'

@@ -403,11 +403,13 @@ class ServiceRuntime:
                 best = seq
         return answered, under_way, best
 
-    def lagging(self, stage: str, seq: int, timeout_s: float) -> set[str]:
-        """Wait until every service that has received ``stage`` of this stream reports ``seq`` or a
-        newer one (its inbox's arrivals, :meth:`serve_cursor`), or ``timeout_s`` passes; returns the
-        services still behind (empty: delivered). A publisher asks before it ends the stream and
-        closes, so what it put last is not left in flight."""
+    def lagging(self, stage: str, seq: int, timeout_s: float, required: frozenset[str] = frozenset()) -> set[str]:
+        """Wait until every service that has received ``stage`` of this stream, and every service in
+        ``required`` (received or not), reports ``seq`` or a newer one (its inbox's arrivals,
+        :meth:`serve_cursor`), or ``timeout_s`` passes; returns the services still behind (empty:
+        delivered). A publisher asks before it ends the stream and closes, so what it put last is not
+        left in flight, and after its first message, so every consumer has its start (a receiver
+        recovers a message its link dropped only after the first one it got from that publisher)."""
         deadline = time.monotonic() + timeout_s
         while True:
             behind: set[str] = set()
@@ -424,8 +426,10 @@ class ServiceRuntime:
                 got = values.get(stage)
                 if isinstance(got, int) and not isinstance(got, bool) and got < seq:
                     behind.add(service)
+                elif got is None and service in required:
+                    behind.add(service)
             # a busy service may not answer in time: one that is alive and silent is not known to be done
-            behind |= self.alive() - answered - {self.service}
+            behind |= (self.alive() | required) - answered - {self.service}
             if not behind or time.monotonic() > deadline or self.stop.is_set():
                 return behind
             self.stop.wait(0.05)

@@ -197,6 +197,11 @@ def tls_settings(tls_dir: str, name: str, mode: str) -> dict[str, object]:
     return out
 
 
+DATA_QUEUE_KEY = "transport/link/tx/queue/size/data"
+ZENOH_DEFAULT_DATA_QUEUE = 2  # batches
+DATA_QUEUE_BATCHES = 16  # zenoh's maximum
+
+
 def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None = None) -> zenoh.Config:
     """Build the session configuration; errors name the flag or key at fault (ValueError)."""
     env = os.environ if environ is None else environ
@@ -234,6 +239,13 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
             put("connect/timeout_ms", json.dumps(CLIENT_CONNECT_TIMEOUT_MS), "--connect")
     # publishers with a history cache (a restarted service takes over, runtime.py) need timestamps
     put("timestamping/enabled", "true", "timestamping")
+    # Puts drop for a congested link instead of waiting (runtime.py): a link's data queue of zenoh's
+    # default 2 batches (128 KiB) does not hold one raw 320x240 frame, so on a busy link such a frame
+    # was dropped within the 50 ms a fragmented message may wait, and a receiver's first frame cannot be
+    # recovered (netns TLS test: frame 0 lost, 3 runs in 9). 16 batches (1 MiB) per link, unless a -c
+    # file sets its own.
+    if json.loads(conf.get_json(DATA_QUEUE_KEY)) == ZENOH_DEFAULT_DATA_QUEUE:
+        put(DATA_QUEUE_KEY, str(DATA_QUEUE_BATCHES), "transport")
     # Multicast scouting is off unless asked for (zenoh's default is on: two deployments on one host
     # or network would find each other and mix their streams); a -c file that sets it keeps its choice.
     if getattr(args, "multicast_scouting", False):
