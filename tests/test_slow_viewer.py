@@ -19,7 +19,7 @@ import sys
 
 from helpers import pipeline, recorded, wait_for_log
 
-FRAMES = 240  # 16 s at 15 frames/s: the viewer's links back up within the first seconds
+FRAMES = 150  # 10 s at 15 frames/s: the viewer's links back up within the first seconds
 
 
 def test_slow_peer_viewer_costs_the_pipeline_nothing(tmp_path):
