@@ -434,6 +434,29 @@ class ServiceRuntime:
                 return behind
             self.stop.wait(0.05)
 
+    def until_ended(self, stage: str, timeout_s: float) -> set[str]:
+        """After this publisher's ``end`` of ``stage``: wait until no running service of the stream
+        reports ``stage`` in its cursor any more (a receiver's arrival ledger closes the stage on the
+        ``end``), or ``timeout_s`` passes; returns the services still reporting it. The publisher's
+        cache closes with its session, so a receiver whose link dropped the ``end`` for congestion
+        can recover it only while the publisher waits here."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            still: set[str] = set()
+            replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
+                                       consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
+            for reply in replies:
+                try:
+                    values = decode(reply.ok.payload.to_bytes()).obj.values
+                    service = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                except (WireError, AttributeError, zenoh.ZError):
+                    continue
+                if stage in values:
+                    still.add(service)
+            if not still or time.monotonic() > deadline or self.stop.is_set():
+                return still
+            self.stop.wait(0.05)
+
     # --- liveliness --------------------------------------------------------------------------------
 
     def alive(self, stream: str | None = None) -> set[str]:

@@ -70,7 +70,8 @@ def build_parser():
                         "recorder) have the first frame before sending the next (default 10)")
     p.add_argument("--end-wait", type=at.nonneg_float, default=10.0,
                    help="at the end, seconds to wait until every consumer has received the last frame before "
-                        "sending the end marker (default 10)")
+                        "sending the end marker, and again until they have the end marker before closing "
+                        "(default 10)")
     return p
 
 
@@ -228,6 +229,9 @@ def run(args, conf: zenoh.Config) -> int:
         # recovers it in order, and no subscriber can hold it (it was a BLOCK put of its own: a viewer that
         # stopped reading held it, and so the end of the stream, until zenoh closed the viewer's link, 5 s)
         pub.put(encode_end(EndOfStream(st.last_seq, reason), args.stream))
+        if st.sent and (behind := rt.until_ended("frame", args.end_wait)):
+            log.warning("closing although %s have not received the end of the stream after %.0f s",
+                        ", ".join(sorted(behind)), args.end_wait)
         rt.publish_stats({**st.values(), "state": "ended"})
         log.info("sent %d frames (%d bad); %s", st.sent, st.bad, reason)
     return 1 if reason.startswith("source failed") else 0

@@ -189,6 +189,14 @@ def run(args, conf: zenoh.Config) -> int:
                 n = releases.flush_incomplete()
                 if n:
                     log.warning("end of stream with %d incomplete releases", n)
+                # the corrections' end can overtake frames still on their way (a frame a congested link
+                # dropped comes back later, from its publisher's cache): they get --frame-wait, as in a release
+                render_ready(force=False)
+                deadline = time.monotonic() + args.frame_wait
+                while releases.ready and time.monotonic() < deadline and not rt.stop.is_set():
+                    rt.wait(0.02)
+                    drain_frames()
+                    render_ready(force=False)
                 render_ready(force=True)
                 publish(stage.flush(), None)
                 sink.drain()  # the frames reported written below are on disk when the end is announced

@@ -186,6 +186,24 @@ def router_and_recorder(tmp_path: Path, *recorder_args: str) -> Iterator[tuple[o
         codes.update(sup.stop())
 
 
+def _until_received(session, service: str, stage: str, seq: int, timeout_s: float = 60) -> None:
+    """Until ``service``'s cursor reports ``seq`` of ``stage`` received (what it then writes on a
+    clean stop), instead of a sleep that a loaded machine outlasts."""
+    from quick_stream.wire import decode as wire_decode
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for reply in session.get(f"quick/@v1/cam0/cursor/{service}", timeout=1.0):
+            try:
+                got = wire_decode(reply.ok.payload.to_bytes()).obj.values.get(stage, -1)
+            except Exception:  # noqa: BLE001 - an error reply: ask again
+                continue
+            if got >= seq:
+                return
+        time.sleep(0.05)
+    raise AssertionError(f"{service} never reported {stage} {seq}")
+
+
 def _alive(session) -> set[str]:
     out = set()
     for reply in session.liveliness().get("quick/@v1/cam0/health/*", timeout=1.0):
@@ -240,7 +258,7 @@ def test_recorder_splits_long_runs_into_finished_files_losing_nothing(tmp_path):
         for f in open_source("synthetic:frames=40,width=96,height=72"):  # ~35 KB a message, views included
             pub.put(encode_frame(f, "cam0", color="raw", depth="raw"))
             time.sleep(0.03)
-        time.sleep(1.0)
+        _until_received(session, "recorder", "frame", 39)
     assert codes["recorder"] == 0, codes
     files = sorted(tmp_path.glob("rec*.mcap"), key=lambda p: int(p.stem.partition("-")[2] or 0))
     assert len(files) >= 5, files
