@@ -1,11 +1,12 @@
 """In-process motion pipeline: source -> scene flow -> motion -> camera path.
 
-The same per-stage objects (:class:`~quick_stream.sceneflow.SceneFlow`,
-:class:`~quick_stream.motion.MotionEstimator`) are what the streaming services
-call; this module only chains them and keeps books (timings, failures, errors
-against ground truth) for ``quick-stream motion``.
+The same per-stage objects (:class:`~quick_stream.core.sceneflow.SceneFlow`,
+:class:`~quick_stream.core.motion.MotionEstimator`) are what the streaming services
+call; this module only chains them and keeps books (timings, failures, the ground-truth
+motion of each pair) for ``quick-stream motion``; the errors against ground truth are the
+quality layer's (:func:`quick_stream.quality.evaluation.rpe.pair_error_stats`).
 
-Bad frames (a :class:`~quick_stream.frame.BadFrame` from the source) are
+Bad frames (a :class:`~quick_stream.core.frame.BadFrame` from the source) are
 reported and skipped: the next good frame is paired with the last good one, so
 the camera path stays continuous; a motion that cannot be measured is flagged
 invalid and the path holds still across it.
@@ -14,14 +15,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Iterator
+from typing import Callable, Iterable
 
 import numpy as np
 
-from .evaluation.rpe import ErrorStats, relative_pose_error
 from .frame import BadFrame, RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams
 from .sceneflow import SceneFlow, SceneFlowParams
+from .timing import StageTimer, timed_iter
 
 
 @dataclass
@@ -34,41 +35,6 @@ class PairRecord:
     flow_ms: float
     motion_ms: float
     counts: dict[str, int] = field(default_factory=dict)
-
-
-@dataclass
-class StageTimer:
-    """Per-stage wall-clock samples in milliseconds."""
-
-    samples: dict[str, list[float]] = field(default_factory=dict)
-
-    def add(self, stage: str, ms: float) -> None:
-        self.samples.setdefault(stage, []).append(ms)
-
-    def summary(self) -> dict[str, dict[str, float]]:
-        out = {}
-        for k, v in self.samples.items():
-            a = np.asarray(v)
-            out[k] = {
-                "mean": float(a.mean()),
-                "median": float(np.median(a)),
-                "p95": float(np.percentile(a, 95)),
-                "n": int(a.size),
-            }
-        return out
-
-
-def timed_iter(it: Iterable, timer: StageTimer, stage: str) -> Iterator:
-    """Yield from ``it`` recording how long each item took to produce."""
-    it = iter(it)
-    while True:
-        t0 = time.perf_counter()
-        try:
-            item = next(it)
-        except StopIteration:
-            return
-        timer.add(stage, (time.perf_counter() - t0) * 1e3)
-        yield item
 
 
 class MotionPipeline:
@@ -103,15 +69,6 @@ class MotionRunResult:
     @property
     def camera_motions(self) -> list[np.ndarray]:
         return [p.motion.matrix for p in self.pairs]
-
-    def error_stats(self) -> ErrorStats:
-        rot, tr = [], []
-        for p in self.pairs:
-            if p.truth is not None and p.motion.valid:
-                r, t = relative_pose_error(p.motion.matrix, p.truth)
-                rot.append(r)
-                tr.append(t)
-        return ErrorStats.from_errors(rot, tr)
 
 
 def true_motion(a: RGBDFrame, b: RGBDFrame) -> np.ndarray | None:

@@ -3,8 +3,8 @@
     frames + correction batches -> RenderStage -> StabilizedFrame
 
 :class:`RenderStage` holds frames until their correction batch arrives (a batch is what one
-planner call released, :mod:`quick_stream.stages`), then warps, frames and renders the batch as a
-whole (one zoom track, :func:`~quick_stream.render.segment_zooms`), filling uncovered borders from
+planner call released, :mod:`quick_stream.core.stages`), then warps, frames and renders the batch as a
+whole (one zoom track, :func:`~quick_stream.core.render.segment_zooms`), filling uncovered borders from
 its neighbours. A frame that no correction will ever reach (an *orphan*, skipped upstream) is
 rendered with no correction, flagged, instead of being held forever; a stream renumbered lower
 keeps the old numbering's frames apart from the new one's. :class:`ReleaseGroups` regroups the
@@ -21,12 +21,12 @@ import numpy as np
 
 from .continuity import JumpGuard, published_after, restarts_numbering
 from .frame import RGBDFrame
-from .motion_pipeline import StageTimer
 from .path.planner import Correction
 from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
 from .render.fill import FillSource, covered_zoom, fill_border, ordered_sources, raise_for
 from .render.mapping import render_covered
 from .render.warp import WarpInput, prepare_warp
+from .timing import StageTimer
 
 FrameLoader = Callable[[], RGBDFrame]
 
@@ -70,11 +70,11 @@ class RenderStage:
     counted in ``missing``; a frame that cannot be loaded is reported in ``bad``.
 
     A stream whose numbering goes back (confirmed as the flow stage confirms it,
-    :class:`~quick_stream.continuity.JumpGuard`) is held apart from the frames of the old
+    :class:`~quick_stream.core.continuity.JumpGuard`) is held apart from the frames of the old
     numbering still waiting (``numbering`` counts the renumberings taken, ``renumberings``
     too): the old numbering's corrections still come first, each batch renders against the
     frames of its own numbering, and once the corrections reach the new numbering (the
-    restart correction the renumbering's break made, :func:`~quick_stream.continuity.restarts_numbering`)
+    restart correction the renumbering's break made, :func:`~quick_stream.core.continuity.restarts_numbering`)
     what is left of the old one is rendered uncorrected and flagged (``orphans``) before it.
     """
 
@@ -115,14 +115,14 @@ class RenderStage:
 
     def fresh(self, pub_ns: int | None) -> bool:
         """Whether a frame published at ``pub_ns`` may be newer than the newest frame taken
-        (:func:`~quick_stream.continuity.published_after`): False for a history replay."""
+        (:func:`~quick_stream.core.continuity.published_after`): False for a history replay."""
         return published_after(pub_ns, self._newest_pub)
 
     def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None) -> None:
         """Buffer a frame (or its loader) until its correction arrives. Refused (ValueError): one not
         after the newest taken (unless a run of them confirms that the numbering went back: then
         it is the first frame of a new numbering), and one far ahead of the newest taken that no
-        run of frames confirms (:class:`~quick_stream.continuity.JumpGuard`, as the flow stage
+        run of frames confirms (:class:`~quick_stream.core.continuity.JumpGuard`, as the flow stage
         does). ``pub_ns``: when the frame was published, so a replay never starts a numbering."""
         newest = self.newest
         if newest is not None and seq <= newest:
@@ -338,7 +338,7 @@ class ReleaseGroups:
     of that number (other size, or an index already there) starts a new one.
 
     ``ready`` holds (release, batch, completed at, numbering), in seq order within a numbering:
-    the restart correction of a renumbering's break (:func:`~quick_stream.continuity.restarts_numbering`,
+    the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.restarts_numbering`,
     going back) starts the next numbering, whose releases follow every release of the old one.
     """
 

@@ -1,6 +1,6 @@
 """Dense scene flow: DIS optical flow lifted to 3D with both depth maps.
 
-Design note section 1. For frames t and t+1 with depths Z_t, Z_{t+1} and
+docs/method.md section 1. For frames t and t+1 with depths Z_t, Z_{t+1} and
 intrinsics K_t, K_{t+1}, each sampled pixel p of frame t with flow f(p) gives
 
     x  = K_t^-1 [p, 1] Z_t(p)                       (the point, camera-t coordinates)

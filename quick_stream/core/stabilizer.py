@@ -2,7 +2,7 @@
 
 Frames go in one at a time (:meth:`Stabilizer.push`); stabilized frames come out
 one segment later, when the planner has solved the segment their corrections
-belong to. Stages, each the library object the matching service calls (quick_stream/stages.py):
+belong to. Stages, each the library object the matching service calls (quick_stream/core/stages.py):
 
     FlowStage (scene flow) -> MotionStage (motion, keyframes, optimal path)
         -> RenderStage (content-preserving warp, framing, render)
@@ -20,12 +20,12 @@ from dataclasses import dataclass, field
 from .continuity import ContinuityParams
 from .frame import BadFrame, RGBDFrame
 from .motion import MotionParams
-from .motion_pipeline import StageTimer
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .render import FramingParams, WarpParams
-from .sceneflow import SceneFlowParams
 from .render_stage import RenderStage, StabilizedFrame
+from .sceneflow import SceneFlowParams
 from .stages import FlowStage, MotionStage
+from .timing import StageTimer
 
 __all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]
 

@@ -1,25 +1,25 @@
 """The pipeline's three stateful stages, shared by the in-process stabilizer and the services.
 
     frames -> FlowStage -> SceneFlowResult -> MotionStage -> MotionEstimate + correction batches
-    frames + correction batches -> RenderStage -> StabilizedFrame   (quick_stream/render_stage.py)
+    frames + correction batches -> RenderStage -> StabilizedFrame   (quick_stream/core/render_stage.py)
 
-:class:`~quick_stream.stabilizer.Stabilizer` chains them in one process; the
+:class:`~quick_stream.core.stabilizer.Stabilizer` chains them in one process; the
 ``flow``, ``motion`` and ``render`` services each drive one of them from Zenoh
 messages (docs/architecture.md). Because the services add only transport, a
 stream run through the services gives bit-for-bit the offline result
-(tests/test_services_e2e.py).
+(tests/integration/test_services_e2e.py).
 
 A *correction batch* is what one planner call released (the first frame's
 correction; a closed segment; a segment closed early by an invalid motion plus
 the restart frame). The renderer frames each batch as a whole (one zoom track,
-:func:`~quick_stream.render.segment_zooms`), so the batches travel as batches.
+:func:`~quick_stream.core.render.segment_zooms`), so the batches travel as batches.
 
 Streams with holes: :class:`MotionStage` turns a gap between consecutive flows
 (the flow stage skipped frames or was restarted) into an invalid motion, so the
 path restarts there and the frames are flagged; :class:`RenderStage` renders a
 frame that no correction will ever reach (an *orphan*, skipped upstream) with
 no correction, flagged, instead of holding it forever. A stream renumbered lower
-(confirmed by a run of frames, :class:`~quick_stream.continuity.JumpGuard`) is a break:
+(confirmed by a run of frames, :class:`~quick_stream.core.continuity.JumpGuard`) is a break:
 the flow goes back, :class:`MotionStage` restarts the path there, and
 :class:`RenderStage` keeps the old numbering's frames apart from the new one's.
 """
@@ -30,17 +30,17 @@ import time
 from .continuity import ContinuityCheck, ContinuityParams, published_after, restarts_numbering
 from .frame import RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
-from .motion_pipeline import StageTimer
 from .path.budget import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .render import WarpParams
 from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
+from .timing import StageTimer
 
 
 class FlowStage:
     """Scene flow between each good frame and the previous one (one instance per stream).
 
-    Each frame first passes :class:`~quick_stream.continuity.ContinuityCheck` (counted in
+    Each frame first passes :class:`~quick_stream.core.continuity.ContinuityCheck` (counted in
     ``check.counts``); ``notes`` holds what it reported of the last frame pushed.
     """
 
@@ -55,12 +55,12 @@ class FlowStage:
         """Add the next frame; returns the flow from the previous good frame to it (None for the first).
 
         A frame the check refuses (no valid depth, duplicate, out of order) raises
-        :class:`~quick_stream.continuity.FrameRefused` (a ValueError) and is not used. Across a
+        :class:`~quick_stream.core.continuity.FrameRefused` (a ValueError) and is not used. Across a
         discontinuity (too many missing frames, a timestamp jump, a size change, a confirmed
         renumbering: the flow then goes back, ``seq_next < seq``) the flow is empty and its
         ``problem`` names the discontinuity, so the path restarts there. ``pub_ns``: when the frame
         was published (a frame message's ``pub_ns``), so a history replay of older frames never
-        passes for a new numbering (:func:`~quick_stream.continuity.published_after`).
+        passes for a new numbering (:func:`~quick_stream.core.continuity.published_after`).
         """
         prev = self._prev
         verdict = self.check.inspect(prev, frame, published_after(pub_ns, self._prev_pub))

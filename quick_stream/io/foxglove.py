@@ -30,11 +30,11 @@ from typing import Any, NamedTuple
 import cv2
 import numpy as np
 
-from .frame import Intrinsics
-from .keys import key
+from ..core.frame import Intrinsics
+from ..stream.keys import key
+from ..stream.wire.codec import unpack
 from .recording import Recorder
 from .sources.trajectory import matrix_to_quat
-from .wire.codec import unpack
 
 # --- schemas ------------------------------------------------------------------------------------
 
@@ -270,7 +270,7 @@ def image_from_message(data: bytes, quality: int = 90) -> WireImage:
     """The JPEG of a ``frame`` or ``stabilized`` wire message, without decoding it.
 
     A ``jpeg`` image's bytes are returned as they are; a ``raw`` image is encoded to
-    JPEG (``quality``) with OpenCV. Raises :class:`~quick_stream.wire.WireError` for
+    JPEG (``quality``) with OpenCV. Raises :class:`~quick_stream.stream.wire.WireError` for
     other message types or malformed fields.
     """
     r = unpack(data)

@@ -13,10 +13,10 @@ from collections import OrderedDict
 
 import numpy as np
 
+from ..stream.wire import decode
+from ..stream.wire.codec import unpack
+from ..stream.wire.messages import read_intrinsics
 from . import foxglove
-from .wire import decode
-from .wire.codec import unpack
-from .wire.messages import read_intrinsics
 
 _KEEP = 512  # frames of timestamps/poses kept for matching motions and corrections
 
@@ -67,7 +67,7 @@ class FoxgloveView:
     def convert(self, stage: str, payload: bytes) -> list[tuple[str, bytes]]:
         """Foxglove messages for one wire message of ``stage`` (none for stages without a view).
 
-        Raises :class:`~quick_stream.wire.WireError` for a message that does not decode."""
+        Raises :class:`~quick_stream.stream.wire.WireError` for a message that does not decode."""
         if stage == "frame":
             r = unpack(payload)
             if r.type != "frame":

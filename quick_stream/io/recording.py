@@ -5,7 +5,7 @@
   with a JSON schema for viewers). The MCAP writer keeps the open chunk in
   memory, so :meth:`Recorder.write` closes it (``Writer.flush``) whenever
   ``flush_s`` seconds have passed: a killed process loses at most about that
-  long (transport-facts.md: without flushing, small messages were all lost).
+  long (measured: without flushing, small messages were all lost).
 * :func:`recover` repairs a file left without a footer (a writer killed with
   SIGKILL): it stream-reads records up to the first damaged one and rewrites
   schemas, channels and messages into a new, indexed file.
@@ -18,7 +18,7 @@ length fields of the file, so a damaged length made it allocate up to 2^64 bytes
 ``MemoryError``), and turns whatever the mcap library raises on a damaged record
 (``struct.error``, ``KeyError``, ``UnicodeDecodeError``, zstd/lz4 errors, ...) into
 :class:`RecordingError` naming the file, the message count and byte offset reached and the
-problem in words (:func:`describe_damage`; found by ``quick-stream bench fuzz --target mcap``).
+problem in words (:func:`describe_damage`; found by ``python -m tests.tools.fuzz --target mcap``).
 """
 from __future__ import annotations
 

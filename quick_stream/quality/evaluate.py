@@ -1,4 +1,4 @@
-"""The paper's evaluation protocol on a TUM-layout folder (design note section 7).
+"""The paper's evaluation protocol on a TUM-layout folder.
 
 K random subsequences of L frames (seeded), each stabilized with every group,
 each scored with the quality metrics and the failure rule (a failed sequence
@@ -13,13 +13,13 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .frame import BadFrame, RGBDFrame
+from ..core.frame import BadFrame, RGBDFrame
+from ..core.motion import MotionParams
+from ..core.path.planner import PlannerParams
+from ..core.render import FramingParams
+from ..core.stabilizer import StabilizedFrame, Stabilizer, StabilizerParams
+from ..io.sources.tum import TumSource
 from .metrics import MetricsAccumulator
-from .motion import MotionParams
-from .path.planner import PlannerParams
-from .render import FramingParams
-from .sources.tum import TumSource
-from .stabilizer import StabilizedFrame, Stabilizer, StabilizerParams
 
 GROUPS = ("se3", "sim3", "sa3", "ga3")
 AVERAGED = ("cropping", "distortion", "stability", "jitter_px", "jitter_deg", "input_jitter_px")

@@ -1,6 +1,6 @@
 """Stabilisation quality: cropping, distortion, stability (Liu et al. 2013) and residual jitter.
 
-Design note section 6, with the definitions of CodingFlow (Liu et al. 2017) and
+docs/method.md section 6, with the definitions of CodingFlow (Liu et al. 2017) and
 the conventions of the widely used reimplementations (DIFRINT / StabNet metric
 scripts) where the papers leave a choice open. Every choice is stated here.
 
@@ -68,7 +68,7 @@ the x and y scores, ``stability_pairs_rotation`` the angle's score and
 steadily moving camera are white estimation noise, which scores about
 5 / (L/2) whatever the stabiliser did.
 
-Failure (design note section 6: "a frame mapped out of view"). The sequence
+Failure (docs/method.md section 6: "a frame mapped out of view"). The sequence
 fails when any output frame is essentially empty (more than
 ``max_black_fraction`` of its pixels at or below ``black_level``), or its
 input-output homography cannot be fitted (too few ratio-test matches or RANSAC
@@ -390,7 +390,7 @@ def evaluate_sequence(inputs: list[np.ndarray], outputs: list[np.ndarray], fps: 
                       params: MetricParams | None = None) -> SequenceMetrics:
     """Cropping, distortion, stability and residual jitter of ``outputs`` (stabilised ``inputs``), BGR frames.
 
-    Design note section 6; definitions and choices in the module docstring.
+    docs/method.md section 6; definitions and choices in the module docstring.
     """
     if len(inputs) != len(outputs):
         raise ValueError(f"{len(inputs)} input frames but {len(outputs)} output frames")

@@ -1,6 +1,6 @@
 """Border-free cropping: how much of a stabilised clip survives one static crop that removes every border.
 
-``cropping`` (:mod:`quick_stream.metrics`) measures the zoom of each output frame against its
+``cropping`` (:mod:`quick_stream.quality.metrics`) measures the zoom of each output frame against its
 input; a stabiliser that leaves black borders (no zoom) scores 1 there although a viewer still
 sees the borders. This module measures the borders themselves, from the output frames alone:
 
@@ -29,6 +29,8 @@ from typing import Iterable
 import cv2
 import numpy as np
 
+from ..core.render.framing import scale_from_mask
+
 DEFAULT_LEVEL = 10  # like MetricParams.black_level: a pixel is near-black when every channel is <= this
 
 
@@ -48,18 +50,6 @@ def uncovered_mask(frame: np.ndarray, level: int = DEFAULT_LEVEL) -> np.ndarray:
     if touching.size == 0:
         return np.zeros_like(dark)
     return np.isin(labels, touching)
-
-
-def scale_from_mask(mask: np.ndarray) -> float:
-    """Largest centred, aspect-preserving rectangle free of ``mask`` pixels, as a fraction of the frame (1: empty)."""
-    h, w = mask.shape
-    ys, xs = np.nonzero(mask)
-    if xs.size == 0:
-        return 1.0
-    # distance from the centre to the pixel's nearer edge, in units of the half-size
-    dx = np.maximum(np.abs(xs + 0.5 - w / 2.0) - 0.5, 0.0) * (2.0 / w)
-    dy = np.maximum(np.abs(ys + 0.5 - h / 2.0) - 0.5, 0.0) * (2.0 / h)
-    return float(np.min(np.maximum(dx, dy)))
 
 
 def border_free_scale(frame: np.ndarray, level: int = DEFAULT_LEVEL) -> float:

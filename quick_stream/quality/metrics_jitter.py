@@ -1,8 +1,8 @@
 """Signal side of the quality metrics: per-pair motion, accumulated path, stability ratios, residual jitter.
 
-Design note section 6 (stability, Liu et al. 2013 / CodingFlow 2017, in the
+docs/method.md section 6 (stability, Liu et al. 2013 / CodingFlow 2017, in the
 form of the public DIFRINT / StabNet metric scripts) plus our residual-jitter
-measure; the conventions are documented in :mod:`quick_stream.metrics`. Pure
+measure; the conventions are documented in :mod:`quick_stream.quality.metrics`. Pure
 numpy/scipy, so it can score any motion signal or homography sequence (e.g. a
 stabiliser's own estimated path) without images.
 """

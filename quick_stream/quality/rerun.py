@@ -1,13 +1,13 @@
 """Re-run one stage from a recording's logged inputs and compare with its logged outputs.
 
-The services add only transport to the library stages (:mod:`quick_stream.stages`), so a
+The services add only transport to the library stages (:mod:`quick_stream.core.stages`), so a
 stage re-run from what the recorder logged must reproduce what it logged. ``flow``: each
 logged flow (seq -> seq_next) from exactly the two logged frames it names (the service may
 have dropped frames between). ``motion``: the logged flows in order through one
 ``MotionStage`` (``end``: finish); motions and release-numbered corrections
 (:class:`ReleaseNumbering`), the forwarded ``end`` included, compared in order. Both
 compare bytes. ``render``: corrections grouped into releases as the service does
-(:class:`~quick_stream.render_stage.ReleaseGroups`), rendered by one ``RenderStage`` per stream fed the logged frames
+(:class:`~quick_stream.core.render_stage.ReleaseGroups`), rendered by one ``RenderStage`` per stream fed the logged frames
 each release needs (orphans as the service renders them), each frame encoded as its logged
 message was and compared decoded (seq, t_ns, image, zoom, flags; the bytes carry wall-clock
 latency stamps). ``end`` messages split a channel into stream runs, paired in order across
@@ -24,16 +24,16 @@ from typing import Any
 import numpy as np
 from mcap.reader import make_reader
 
-from . import keys
-from .path.planner import Correction
-from .recording import RecordingError, read_messages
-from .sceneflow import SceneFlow
-from .stabilizer import StabilizerParams
-from .render_stage import ReleaseGroups, RenderStage, StabilizedFrame
-from .stages import MotionStage
-from .wire import StabilizedImage, WireError, decode
-from .wire.codec import unpack
-from .wire.messages import encode_correction, encode_end, encode_flow, encode_motion, encode_stabilized
+from ..core.path.planner import Correction
+from ..core.render_stage import ReleaseGroups, RenderStage, StabilizedFrame
+from ..core.sceneflow import SceneFlow
+from ..core.stabilizer import StabilizerParams
+from ..core.stages import MotionStage
+from ..io.recording import RecordingError, read_messages
+from ..stream import keys
+from ..stream.wire import StabilizedImage, WireError, decode
+from ..stream.wire.codec import unpack
+from ..stream.wire.messages import encode_correction, encode_end, encode_flow, encode_motion, encode_stabilized
 
 STAGES = ("flow", "motion", "render")
 INPUTS = {"flow": ("frame",), "motion": ("flow",), "render": ("frame", "correction")}
@@ -360,7 +360,7 @@ def rerun_stage(path: str | os.PathLike, stage: str, stream: str | None = None,
     """Re-run ``stage`` (flow, motion or render) of ``stream`` from the recording at ``path``.
 
     ``stream`` None: the recording's only stream. ``params`` must be the settings the
-    services ran with (the same flags: :func:`quick_stream.cli.settings.stabilizer_params`).
+    services ran with (the same flags: :func:`quick_stream.stream.stabilizer_flags.stabilizer_params`).
     ``quality`` (JPEG) and ``max_frames`` are the render service's ``--quality`` and
     ``--max-frames``. Raises :class:`RerunError` when the recording is missing or
     unreadable or has no logged inputs or outputs of the stage.

@@ -18,7 +18,7 @@ import os
 from pathlib import Path
 from typing import Callable, Iterable, TypeVar
 
-from .. import keys
+from . import keys
 
 T = TypeVar("T")
 

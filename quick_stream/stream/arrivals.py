@@ -12,14 +12,14 @@ stage are remembered up to ``window`` behind its newest; older ones are final.
 
 A stage whose numbering restarts lower (a camera or capture restarted without the stream's
 cursor) is followed once a run of seqs confirms it, as the stages confirm it
-(:class:`~quick_stream.continuity.JumpGuard`: ``resync`` consecutive seqs at or behind the newest,
+(:class:`~quick_stream.core.continuity.JumpGuard`: ``resync`` consecutive seqs at or behind the newest,
 none of them filling a gap, each following the previous by 1..``step``; a frame published before
 the newest one, a history replay, never counts): the stage's newest becomes the run's last seq,
 the run's seqs are taken back from ``duplicates``, the gaps inside the run are counted, the old
 numbering's missing seqs are final (``renumberings``; logged). So the cursor a restarted service
 resumes from follows the new numbering, and the new numbering is not a flood of duplicates.
 
-Only messages that pass :func:`quick_stream.wire.check` are accounted (every field valid, the
+Only messages that pass :func:`quick_stream.stream.wire.check` are accounted (every field valid, the
 envelope's stream and type those of the key it came on): one malformed message with a huge seq
 must not move a stage's newest seq, which restarted services resume from (the stream cursor).
 """
@@ -28,8 +28,8 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
+from ..core.continuity import JumpGuard, published_after
 from . import keys
-from .continuity import JumpGuard, published_after
 from .wire import WireError, check
 
 log = logging.getLogger(__name__)
@@ -75,7 +75,7 @@ class ArrivalLedger:
 
     def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None] | None:
         """(type, seq, publication time ns or None) of a message that passes
-        :func:`~quick_stream.wire.check` on its key (a frame's ``pub_ns``); None (counted in
+        :func:`~quick_stream.stream.wire.check` on its key (a frame's ``pub_ns``); None (counted in
         ``invalid``, the reason in ``last_error``) for one that does not."""
         try:
             stream, stage = keys.parse(key_expr)

@@ -1,18 +1,21 @@
 """Starting, watching and restarting the service processes of one host (``quick-stream up``).
 
 * :class:`Supervisor` runs each service as a child process (``python -m
-  services.<name>``; never a fork of a process holding a zenoh session,
-  transport-facts.md), writes its output to ``<log_dir>/<name>.log``, restarts
+  quick_stream.services.<name>``; never a fork of a process holding a zenoh
+  session: zenoh's runtime does not survive a fork), writes its output to ``<log_dir>/<name>.log``, restarts
   it when it dies (any exit but a clean one of a service allowed to finish),
   and stops everything in order: SIGTERM, then SIGKILL after a grace period.
 * :class:`StatusBoard` listens to every service's ``stats`` messages and keeps
   the latest per service, for the live status and the final summary.
+* :func:`free_port`, :func:`open_when_up`: a loopback port for a router, and a
+  client session to it once it answers (``up``, the benchmarks, the tests).
 """
 from __future__ import annotations
 
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -180,3 +183,26 @@ class StatusBoard:
 
     def close(self) -> None:
         self._sub.undeclare()
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now (for a router started next)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def open_when_up(endpoint: str, timeout_s: float, tls: tuple[str, str] | None = None) -> zenoh.Session:
+    """A client session to the router at ``endpoint``, retried until it answers or ``timeout_s``;
+    ``tls``: (folder, name) of its certificate."""
+    from .transport import session_config
+
+    conf = session_config(endpoint, "client", *(tls or (None, None)))
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)

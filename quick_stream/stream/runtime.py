@@ -1,8 +1,9 @@
 """What every service process shares: session, liveliness, inboxes, stop signal, stats.
 
-A service is ``main(argv)`` in ``services/``: it parses the standard zenoh flags
-(:mod:`quick_stream.transport`) plus its own, opens a :class:`ServiceRuntime`, and
-loops: take messages from its inboxes, call the library stage, publish.
+A service is ``main(argv)`` in ``quick_stream.services`` (the repo's ``services/``): it
+parses the standard zenoh flags (:mod:`quick_stream.stream.transport`) plus its own, opens a
+:class:`ServiceRuntime`, and loops: take messages from its inboxes, call the library stage,
+publish.
 
 * **Inbox**: a callback subscriber that appends each payload to a bounded deque.
   When full it drops the *oldest* and counts it (zenoh's ``RingChannel`` drops
@@ -16,11 +17,11 @@ loops: take messages from its inboxes, call the library stage, publish.
   (docs/deployment.md, "Delivery guarantees per key").
 * **Stop**: SIGTERM and SIGINT set a flag; the loop ends, then the runtime
   undeclares everything and closes the session in ``finally``
-  (transport-facts.md: without a handler SIGTERM kills the process before cleanup).
+  (measured: without a handler SIGTERM kills the process before cleanup).
 * **Liveliness**: a token on ``quick/@v1/<stream>/health/<service>``, so the
   launcher and other services see who is up (and who went away, in milliseconds).
 * **Stats**: a ``stats`` message about once a second (``values`` the service fills, rates from
-  :mod:`quick_stream.meters`:
+  :mod:`quick_stream.stream.meters`:
   counters, fps, ms per item, drops, errors).
 * **Taking over**: publishers may keep a history cache; every service answers cursor
   queries (newest seq per stage received); a service restarted mid-stream asks how far its
@@ -49,7 +50,7 @@ from .arrivals import ArrivalLedger, Gap
 from .wire import Decoded, Stats, WireError, decode, encode_stats
 from .wire.codec import set_max_image_side
 
-# Set by the supervisor (quick_stream/launcher.py) for a service it restarted: how many times.
+# Set by the supervisor (quick_stream/stream/launcher.py) for a service it restarted: how many times.
 RESTARTED_ENV = "QUICK_STREAM_RESTARTED"
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,7 @@ class Inbox:
     It also keeps ``arrivals``: per (stream, stage) of the key the highest seq of the data
     messages that arrived since that stage's last ``end`` and the seqs skipped on the way
     (read from the envelope on arrival, so a busy service still answers cursor queries
-    exactly; :class:`~quick_stream.arrivals.ArrivalLedger`). ``on_gap`` hears each gap."""
+    exactly; :class:`~quick_stream.stream.arrivals.ArrivalLedger`). ``on_gap`` hears each gap."""
 
     def __init__(self, capacity: int, cond: threading.Condition,
                  on_arrival: Callable[[str, bytes, int], None] | None = None,
@@ -254,7 +255,7 @@ class ServiceRuntime:
         frames of its restart: 45 orphans).
         ``on_arrival(key, payload, arrival_ns)`` runs in zenoh's thread as each message arrives, before it is
         queued (keep it short; it must not raise); ``on_gap(gap)`` before it, when the message skips seqs
-        of its stage (:mod:`quick_stream.arrivals`)."""
+        of its stage (:mod:`quick_stream.stream.arrivals`)."""
         box = Inbox(capacity, self._cond, on_arrival, on_gap)
         box.skip_through = skip_through
         box.capacity = box.catch_up = max(capacity, catch_up)
@@ -566,7 +567,7 @@ MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's -
 
 def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
     """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
-    from .cli.argtypes import stream_id
+    from .argtypes import stream_id
     from .transport import add_zenoh_args
 
     p = argparse.ArgumentParser(prog=f"quick-stream-{service}", description=description,
@@ -635,7 +636,7 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
     ``early`` may answer without a session (e.g. ``--list-devices``) by returning an exit code."""
     import cv2
 
-    from .cli.argtypes import check_outputs
+    from .argtypes import check_outputs
     from .transport import config_from_args, zenoh_message
 
     args = parser.parse_args(argv)

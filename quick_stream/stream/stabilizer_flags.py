@@ -10,15 +10,15 @@ import dataclasses
 import math
 from typing import Callable
 
-from ..lie import GROUPS
-from ..motion import ESTIMATORS, MotionParams
-from ..path.constraints import END_MODES
-from ..path.keyframes import KeyframeParams
-from ..path.optimal import PathParams
-from ..path.budget import BudgetParams
-from ..path.planner import PATH_MODES, PlannerParams
-from ..render import FramingParams
-from ..stabilizer import StabilizerParams
+from ..core.lie import GROUPS
+from ..core.motion import ESTIMATORS, MotionParams
+from ..core.path.budget import BudgetParams
+from ..core.path.constraints import END_MODES
+from ..core.path.keyframes import KeyframeParams
+from ..core.path.optimal import PathParams
+from ..core.path.planner import PATH_MODES, PlannerParams
+from ..core.render import FramingParams
+from ..core.stabilizer import StabilizerParams
 
 
 # --latency presets: (keyframe interval, look-ahead, smoothness); the interval is the longest wait

@@ -3,7 +3,7 @@
 Flags as in the zenoh-python examples: ``-m/--mode``, ``-e/--connect``,
 ``-l/--listen``, ``-c/--config``, ``--no-multicast-scouting``, ``--cfg KEY:VALUE``
 (VALUE is JSON5, e.g. ``--cfg 'transport/shared_memory/enabled:false'``).
-Pitfalls measured here (design/transport-facts.md): peers that only connect to a
+Pitfalls measured on these machines: peers that only connect to a
 router exchange no data unless they also listen, so a peer with ``-e`` and no
 ``-l`` listens on an ephemeral port (``tcp/127.0.0.1:0`` when every endpoint it
 connects to is on loopback, else ``tcp/0.0.0.0:0``, so peers on other hosts can

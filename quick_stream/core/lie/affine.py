@@ -1,6 +1,6 @@
 """SA(3) and GA(3) with the chart ``phi(U) = expm(U^T) expm(U - U^T)``.
 
-quick-paper.tex eq. (phi) and the ``g(xi)`` after it; design note section 3:
+the paper's eq. (phi) and the ``g(xi)`` after it; docs/method.md section 3:
     exp(xi) = [[phi(U), t], [0, 1]],   U = sum_k u_k E~_k,   xi = [t(3), u(n-3)].
 ``phi`` is the Riemannian exponential of the left-invariant metric on GL(3) (Zacur et al. 2014)
 and, unlike ``expm``, is surjective onto GL+(3) and SL(3). ``det phi(U) = e^{tr U}``, so the
@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import so3
-from .expm import expm as _expm
 from .base import LieGroup
+from .expm import expm as _expm
 
 __all__ = ["SA3", "GA3", "phi", "phi_derivative", "phi_inverse"]
 

@@ -1,18 +1,18 @@
 """Generic part of the affine matrix Lie groups used by QuICK.
 
 Every group here is a subgroup of GA(3) = R^3 x| GL+(3), represented by 4x4 matrices
-``g = [[A, t], [0, 0, 0, 1]]`` (quick-paper.tex section 3, "Affine transformations"). A group
+``g = [[A, t], [0, 0, 0, 1]]`` (the paper's section 3, "Affine transformations"). A group
 is defined by its Lie-algebra basis ``E_1..E_n`` (paper eq. (sa_basis)): the first three are the
 translation generators (``e_k`` in the last column), the rest span the linear part. Twist
 coordinates are therefore ``xi = [t(3), u(n-3)]`` (translation first), and ``hat``/``vee`` are
 the paper's identification of ``E_k`` with ``e_k`` (the equation after (Lambda)).
 
 The exponential is the paper's *decoupled* chart ``exp(xi) = [[sigma(u), t], [0, 1]]`` (paper
-eq. (se3_exp), the SIM(3) exponential and eq. (phi); design note section 3), NOT ``expm(hat(xi))``.
+eq. (se3_exp), the SIM(3) exponential and eq. (phi); docs/method.md section 3), NOT ``expm(hat(xi))``.
 Subclasses implement ``_exp``/``_log``/``_exp_derivative`` on flattened batches; everything else
 (``ad``, ``Ad``, Jacobians, actions) is generic and vectorised over leading dimensions.
 
-Structure follows manif/Sophus: one interface, one property-test suite (tests/test_lie_groups.py).
+Structure follows manif/Sophus: one interface, one property-test suite (tests/unit/test_lie_groups.py).
 """
 from __future__ import annotations
 
@@ -113,7 +113,7 @@ class LieGroup(ABC):
     def ad(self, xi: np.ndarray) -> np.ndarray:
         """(..., n) -> (..., n, n): ``[ad(xi)]`` with column k = ``vee([hat(xi), E_k])``.
 
-        Paper eq. after (zeta_dot) / design note section 4 (used in the Euler-Poincare equation).
+        Paper eq. after (zeta_dot) / docs/method.md section 4 (used in the Euler-Poincare equation).
         """
         xi = self._check_twist(xi)
         return np.einsum("...i,ijk->...kj", xi, self._struct)
@@ -138,7 +138,7 @@ class LieGroup(ABC):
         return out
 
     def exp(self, xi: np.ndarray) -> np.ndarray:
-        """(..., n) -> (..., 4, 4): the paper's chart ``[[sigma(u), t], [0, 1]]`` (design note sec. 3)."""
+        """(..., n) -> (..., 4, 4): the paper's chart ``[[sigma(u), t], [0, 1]]`` (docs/method.md section 3)."""
         xi = self._check_twist(xi)
         lead = xi.shape[:-1]
         return self._exp(xi.reshape(-1, self.dim)).reshape(lead + (4, 4))

@@ -3,7 +3,7 @@
 Twist ``xi = [t(3), w(3)]`` (SE(3)) or ``[t(3), w(3), a]`` (SIM(3)); basis: translation
 generators, then ``hat(e_1..3)``, then (SIM(3)) ``I_3``.
 
-Charts (quick-paper.tex eq. (se3_exp) and the SIM(3) exponential; design note section 3):
+Charts (the paper's eq. (se3_exp) and the SIM(3) exponential; docs/method.md section 3):
     SE(3):  exp(xi) = [[expm(hat w), t], [0, 1]]
     SIM(3): exp(xi) = [[e^a expm(hat w), t], [0, 1]]
 i.e. translation is NOT coupled to rotation through the SE(3) V-matrix; log is closed form

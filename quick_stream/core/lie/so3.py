@@ -1,7 +1,7 @@
 """Batched SO(3) primitives: hat/vee, Rodrigues exp, robust log, Jacobians.
 
 These are the rotational building blocks of the paper's decoupled exponentials
-(quick-paper.tex eq. (se3_exp) and the SIM(3) exponential; design note section 3).
+(the paper's eq. (se3_exp) and the SIM(3) exponential; docs/method.md section 3).
 Every function accepts arbitrary leading dimensions ``(...)`` and works in float64.
 
 Conventions (the usual ones, e.g. Sola et al. 2018 "A micro Lie theory", Sophus):

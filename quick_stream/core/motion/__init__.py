@@ -33,7 +33,7 @@ import numpy as np
 
 from ..lie import LieGroup, get_group
 from ..sceneflow import SceneFlowResult
-from .exact import RIGID_FALLBACK, ExactParams, irls_closed_form, observability, refine_reprojection
+from .exact import ExactParams, RIGID_FALLBACK, irls_closed_form, observability, refine_reprojection
 from .induced import estimate_induced
 
 ESTIMATORS = ("exact", "induced")

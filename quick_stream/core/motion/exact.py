@@ -34,7 +34,7 @@ measures the weighted spread of the points against their expected error. GA(3)
 and SA(3) need spread in all three directions (on a plane the out-of-plane
 column of the linear part is not determined); SE(3) and SIM(3) need points that
 are not collinear (else the rotation about their line is not determined). The
-estimator (:class:`~quick_stream.motion.MotionEstimator`) falls back from GA(3)
+estimator (:class:`~quick_stream.core.motion.MotionEstimator`) falls back from GA(3)
 to SIM(3) and from SA(3) to SE(3) when the affine part is unobservable
 (:data:`RIGID_FALLBACK`), and marks the motion invalid when even the rigid part is.
 """

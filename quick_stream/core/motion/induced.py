@@ -1,6 +1,6 @@
 """The paper's estimator: the mean of induced twists (paper eqs. (w), (cam_twist), (induced_twist)).
 
-Design note section 2. For an affine group with basis E_k = [[Et_k, t_k], [0, 0]],
+docs/method.md section 2. For an affine group with basis E_k = [[Et_k, t_k], [0, 0]],
 the induced twist of a point x with displacement v is xi = Ad(h)^-T [v; 0] with
 h = [[I, x/|x|^2], [0, 1]]. Worked out, its translation part is v and its
 linear-part component k is v^T Et_k x / |x|^2. :func:`induced_twists` computes

@@ -189,7 +189,7 @@ class SegmentMeshes:
         """Per model in ``idx`` (F,), correction (F, P, 4, 4) and outer mesh edge: t_e - t_Z (F, P, E).
 
         >= 0 where the budget holds (docs/method.md (10)); t_e from
-        :func:`~quick_stream.render.framing.edge_extents` (the border-free zoom is 1 / min t_e),
+        :func:`~quick_stream.core.render.framing.edge_extents` (the border-free zoom is 1 / min t_e),
         t_Z = 1/Z plus the margin in the same normalised units, Z a number or one per model (F,).
         Times :meth:`half`: pixels.
         """

@@ -1,7 +1,7 @@
 """The zoom the border fill cannot make unnecessary, planned with the path (docs/method.md (10b)).
 
 The crop budget (:mod:`.budget`) lets each frame's own mesh leave a band of the crop uncovered
-for the renderer to fill from neighbouring frames (:mod:`quick_stream.render.fill`). Whether a
+for the renderer to fill from neighbouring frames (:mod:`quick_stream.core.render.fill`). Whether a
 neighbour saw a missing pixel is geometry only: the pixel's ray from the virtual camera, at the
 frame's depth, projected into the neighbour's real camera (docs/method.md (14)). So the planner,
 which holds the window's real and virtual camera poses, can tell per frame the smallest zoom at

@@ -24,7 +24,7 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from ..metrics_border import scale_from_mask
+from .framing import scale_from_mask
 from .mapping import map_points, sample_map, zoom_matrix
 
 

@@ -239,3 +239,18 @@ def segment_zooms(meshes: Sequence[MeshWarp], params: FramingParams | None = Non
     if planned is not None and len(planned) == n and all(z is not None for z in planned):
         return smoother.follow(planned, required)
     return smoother.smooth(required)
+
+
+def scale_from_mask(mask: np.ndarray) -> float:
+    """Largest centred, aspect-preserving rectangle free of ``mask`` pixels, as a fraction of the frame (1: empty).
+
+    The border fill's zoom (:func:`.fill.raise_for`) and the border-free metric
+    (``quality.metrics_border``) both measure an uncovered mask with it."""
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    if xs.size == 0:
+        return 1.0
+    # distance from the centre to the pixel's nearer edge, in units of the half-size
+    dx = np.maximum(np.abs(xs + 0.5 - w / 2.0) - 0.5, 0.0) * (2.0 / w)
+    dy = np.maximum(np.abs(ys + 0.5 - h / 2.0) - 0.5, 0.0) * (2.0 / h)
+    return float(np.min(np.maximum(dx, dy)))

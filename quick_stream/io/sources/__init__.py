@@ -4,7 +4,7 @@ Specs: ``synthetic`` or ``synthetic:key=value,...`` (the embedded default, no
 data needed) and ``tum:PATH`` or ``tum:PATH,key=value,...`` (a TUM-layout
 folder) and ``mcap:FILE`` or ``mcap:FILE,stream=ID`` (replay of a recording's
 ``frame`` messages) and ``depthai[:DEVICE][,key=value,...]`` (a live OAK camera, or
-``fake=...`` for the scripted stand-in; :mod:`~quick_stream.sources.oak`).
+``fake=...`` for the scripted stand-in; :mod:`~quick_stream.io.sources.oak`).
 """
 from __future__ import annotations
 

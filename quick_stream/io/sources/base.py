@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Iterator, Protocol, runtime_checkable
 
-from ..frame import BadFrame, Intrinsics, RGBDFrame
+from ...core.frame import BadFrame, Intrinsics, RGBDFrame
 
 FrameOrGap = RGBDFrame | BadFrame
 
@@ -18,7 +18,7 @@ class Source(Protocol):
 
     Iterating yields frames one at a time in capture order and never loads a whole
     clip into memory. A frame that cannot be delivered is yielded as a
-    :class:`~quick_stream.frame.BadFrame` carrying the reason, and iteration goes on.
+    :class:`~quick_stream.core.frame.BadFrame` carrying the reason, and iteration goes on.
     """
 
     name: str

@@ -1,13 +1,13 @@
 """Replay the ``frame`` messages of an MCAP recording as a frame source.
 
 Spec: ``mcap:FILE`` or ``mcap:FILE,stream=ID``. The source reads the msgpack channel
-``quick/@v1/<stream>/frame`` (the exact wire bytes, see :mod:`quick_stream.recording`)
-and decodes each message with :func:`quick_stream.wire.decode`; frames keep their
+``quick/@v1/<stream>/frame`` (the exact wire bytes, see :mod:`quick_stream.io.recording`)
+and decodes each message with :func:`quick_stream.stream.wire.decode`; frames keep their
 recorded ``seq``, capture timestamp, intrinsics, pose and origin. Without ``stream``
 the recording must hold exactly one stream with frame messages.
 
 * A message that does not decode (or whose frame fails validation) becomes a
-  :class:`~quick_stream.frame.BadFrame` whose error names the file, the message's
+  :class:`~quick_stream.core.frame.BadFrame` whose error names the file, the message's
   index on the channel, its log time and the problem; iteration goes on.
 * An intact (indexed) file is read through its index; ``len`` comes from the
   summary statistics. A file without a footer (a killed writer) or with a damaged
@@ -31,14 +31,14 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
-from ..frame import BadFrame, FrameError, Intrinsics, RGBDFrame
-from ..keys import PREFIX, check_stream, key, parse
+from ...core.frame import BadFrame, FrameError, Intrinsics, RGBDFrame
+from ...stream.keys import PREFIX, check_stream, key, parse
+from ...stream.wire import WireError, decode
+from ...stream.wire.codec import unpack
 from ..recording import RecordingError, describe_damage, open_recording, read_messages
-from ..wire import WireError, decode
-from ..wire.codec import unpack
 from .base import FrameOrGap, SourceError
 
-log = logging.getLogger("quick_stream.sources.mcap_replay")
+log = logging.getLogger("quick_stream.io.sources.mcap_replay")
 
 PROBE_MESSAGES = 100  # frame messages read at open time for fps and ground truth
 DEFAULT_FPS = 30.0  # when fewer than two distinct capture timestamps are known

@@ -4,14 +4,14 @@ Spec: ``depthai`` or ``depthai:DEVICE_ID`` with options ``width``, ``height``, `
 (default 640x400 at 30, native on OAK-D / OAK-D Pro; 640x480 on OAK-D Lite),
 ``tolerance_ms`` (colour/depth pairing by timestamp), ``retries`` (reconnection
 attempts), and ``fake=1`` for the scripted stand-in device of
-:mod:`~quick_stream.sources.oak_fake` (tests and demos without hardware).
+:mod:`~quick_stream.io.sources.oak_fake` (tests and demos without hardware).
 
 Everything that talks to depthai sits behind :class:`CameraBackend`: ``open()``,
 ``read(timeout)`` returning the colour and depth messages that arrived (objects
 with depthai's ``ImgFrame`` API: ``getCvFrame``, ``getTransformation().
 getIntrinsicMatrix()``, ``getTimestamp``, ``getTimestampDevice``,
 ``getSequenceNum``), ``close()``; it raises :class:`DeviceGone` when the device
-drops. The real backend is :mod:`~quick_stream.sources.oak_device` (depthai v3).
+drops. The real backend is :mod:`~quick_stream.io.sources.oak_device` (depthai v3).
 
 This module turns messages into frames:
 
@@ -24,7 +24,7 @@ This module turns messages into frames:
   calibration's are wrong after the device resized or cropped the image),
   device/host timestamps and device sequence numbers in ``RGBDFrame.capture``;
 * **reconnection** (:class:`OakSource`): when the device drops, bounded retries
-  with back-off, logged; the stream goes on with a :class:`~quick_stream.frame.BadFrame`
+  with back-off, logged; the stream goes on with a :class:`~quick_stream.core.frame.BadFrame`
   marking the gap, and sequence numbers stay increasing across connections.
 """
 from __future__ import annotations
@@ -39,9 +39,9 @@ from typing import Any, Iterator, Protocol
 
 import numpy as np
 
-from ..frame import BadFrame, FrameError, Intrinsics, RGBDFrame
+from ...core.frame import BadFrame, FrameError, Intrinsics, RGBDFrame
 
-log = logging.getLogger("quick_stream.sources.oak")
+log = logging.getLogger("quick_stream.io.sources.oak")
 
 EXTRA_HINT = "install the depthai extra: pip install 'quick-stream[depthai]'"
 DEPTH_SCALE = 1000.0  # device depth is uint16 millimetres

@@ -17,9 +17,9 @@ import logging
 import time
 from typing import Any
 
-from .oak import EXTRA_HINT, DeviceGone, NoDevice
+from .oak import DeviceGone, EXTRA_HINT, NoDevice
 
-log = logging.getLogger("quick_stream.sources.oak_device")
+log = logging.getLogger("quick_stream.io.sources.oak_device")
 
 
 def import_depthai() -> Any:

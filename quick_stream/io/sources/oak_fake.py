@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ..frame import quantize_depth
+from ...core.frame import quantize_depth
 from .oak import DeviceGone, NoDevice
 from .synthetic import SyntheticSource
 

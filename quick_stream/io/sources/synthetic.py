@@ -1,7 +1,7 @@
 """The embedded default source: a rendered RGB-D walk through a textured room, with ground truth.
 
 ``SyntheticSource`` needs no data. Each frame is rendered on demand (see
-:mod:`quick_stream.sources.scene`) from a deterministic, seeded camera path: a slow
+:mod:`quick_stream.io.sources.scene`) from a deterministic, seeded camera path: a slow
 intended dolly and pan plus hand-held shake, band-limited noise (sums of 1-12 Hz
 sinusoids with random phases) on rotation about all three axes - roll included -
 and on translation, scaled by ``shake``. An optional zoom varies the focal length;
@@ -20,7 +20,7 @@ from typing import Iterator, Mapping
 
 import numpy as np
 
-from ..frame import Intrinsics, RGBDFrame, dequantize_depth, quantize_depth
+from ...core.frame import Intrinsics, RGBDFrame, dequantize_depth, quantize_depth
 from .scene import Renderer, build_scene
 
 # Intended path (m, deg, s) and shake (rms per axis at shake=1) parameters.

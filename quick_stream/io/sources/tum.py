@@ -31,12 +31,12 @@ from typing import Iterator, Mapping
 import cv2
 import numpy as np
 
-from ..frame import BadFrame, FrameError, Intrinsics, RGBDFrame
-from ..wire.codec import jpeg_size
+from ...core.frame import BadFrame, FrameError, Intrinsics, RGBDFrame
+from ...stream.wire.codec import jpeg_size
 from .base import FrameOrGap, SourceError
 from .trajectory import TrajectoryError, poses_at, read_tum_trajectory
 
-log = logging.getLogger("quick_stream.sources.tum")
+log = logging.getLogger("quick_stream.io.sources.tum")
 
 _INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 _FLOAT_OPTIONS = ("depth_scale", "fx", "fy", "cx", "cy", "max_dt", "fps")

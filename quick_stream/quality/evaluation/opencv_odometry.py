@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..frame import Intrinsics, RGBDFrame
+from ...core.frame import Intrinsics, RGBDFrame
 
 
 class OpenCVOdometry:

@@ -10,8 +10,12 @@ pose error the ground truth can measure).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ...core.motion_pipeline import PairRecord
 
 
 def _nearest_rotation(A: np.ndarray) -> np.ndarray:
@@ -59,3 +63,14 @@ class ErrorStats:
 
     def as_dict(self) -> dict[str, float | int]:
         return dict(self.__dict__)
+
+
+def pair_error_stats(pairs: Iterable[PairRecord]) -> ErrorStats:
+    """Errors of a motion run's valid motions against their ground truth (pairs without one are left out)."""
+    rot, tr = [], []
+    for p in pairs:
+        if p.truth is not None and p.motion.valid:
+            r, t = relative_pose_error(p.motion.matrix, p.truth)
+            rot.append(r)
+            tr.append(t)
+    return ErrorStats.from_errors(rot, tr)

@@ -17,7 +17,7 @@ import msgpack
 import numpy as np
 import zstandard
 
-from ..frame import dequantize_depth, quantize_depth  # noqa: F401 - re-exported
+from ...core.frame import dequantize_depth, quantize_depth  # noqa: F401 - re-exported
 
 FORMAT_VERSION = 1
 MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1.0, 1e6  # raw depth units per metre (mm = 1000, TUM = 5000)

@@ -11,10 +11,10 @@ from typing import Any
 
 import numpy as np
 
-from ..frame import FrameError, Intrinsics, RGBDFrame
-from ..motion import MotionEstimate
-from ..path.planner import Correction
-from ..sceneflow import SceneFlowResult
+from ...core.frame import FrameError, Intrinsics, RGBDFrame
+from ...core.motion import MotionEstimate
+from ...core.path.planner import Correction
+from ...core.sceneflow import SceneFlowResult
 from .codec import (
     DEFAULT_MAX_BYTES,
     FORMAT_VERSION,
