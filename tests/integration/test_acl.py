@@ -1,5 +1,5 @@
-"""The TLS router's access control as zenoh enforces it (quick_stream/acl.py; the rules themselves are
-checked statically in tests/test_deploy_files.py): on loopback, a router with the generated
+"""The TLS router's access control as zenoh enforces it (quick_stream/stream/acl.py; the rules themselves are
+checked statically in tests/unit/test_deploy_files.py): on loopback, a router with the generated
 configuration for streams cam0 and cam1 and sessions holding make-certs.sh certificates.
 
 Each refusal is shown against an allowed message sent after it on the same session: once the
@@ -16,12 +16,12 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from quick_stream import keys
-from quick_stream.acl import SERVICES, access_control, common_name, router_config_text
-from quick_stream.cli.up_cmd import free_port
-from quick_stream.transport import session_config
+from quick_stream.stream import keys
+from quick_stream.stream.acl import SERVICES, access_control, common_name, router_config_text
+from quick_stream.stream.launcher import free_port
+from quick_stream.stream.transport import session_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class Seen:

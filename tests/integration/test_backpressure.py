@@ -1,17 +1,17 @@
 """A deliberately slowed render stage: nothing upstream grows, frames are dropped early and counted
 (by the live capture, which sheds what the pipeline cannot take; with shedding off, by render, which
-drops the oldest frames it holds), and memory stays bounded."""
+drops the oldest frames it holds), and memory stays bounded. The slow render is the test tool
+tests/tools/slow_render.py: the real render service with every frame slowed."""
 from __future__ import annotations
 
 import time
 from pathlib import Path
 
-from helpers import start_router
-
-from quick_stream.cli.up_cmd import free_port
-from quick_stream.launcher import ServiceSpec, Supervisor
-from quick_stream.recording import read_messages
-from quick_stream.wire import decode
+from quick_stream.io.recording import read_messages
+from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port
+from quick_stream.stream.wire import decode
+from tests.helpers import start_router
+from tests.tools import repo_env
 
 FRAMES = 150
 
@@ -27,21 +27,22 @@ def test_a_slow_render_makes_the_live_capture_shed_and_nothing_downstream_drops(
     """The capture sends only what the pipeline takes (shedding, counted), so render drops nothing
     and every frame sent comes out. (Without shedding, --shed off or a publisher that is not ours,
     render drops the oldest frames it holds beyond --max-frames and counts them: the render stage's
-    bound, tests/test_stages.py.)"""
+    bound, tests/unit/test_stages.py.)"""
     ep = f"tcp/127.0.0.1:{free_port()}"
     z = ["-e", ep, "--no-multicast-scouting"]
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting"]),
-             ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(tmp_path / "rec.mcap")]),
-             ServiceSpec("flow", ["-m", "services.flow", *z]),
-             ServiceSpec("motion", ["-m", "services.motion", *z]),
+             ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z,
+                                      "--output", str(tmp_path / "rec.mcap")]),
+             ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z]),
+             ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z]),
              # 120 ms more per frame: at most ~8 frames/s against 15 coming in (15, not 30: flow keeps
              # twice its pace in hand, so a second suite beside this one does not make flow drop frames
              # of its own, which is not what this test is about)
-             ServiceSpec("render", ["-m", "services.render", *z, "--slow-ms", "120"]),
-             ServiceSpec("capture", ["-m", "services.capture", *z, "--source",
+             ServiceSpec("render", ["-m", "tests.tools.slow_render", *z, "--slow-ms", "120"]),
+             ServiceSpec("capture", ["-m", "quick_stream.services.capture", *z, "--source",
                                      f"synthetic:frames={FRAMES},width=320,height=240", "--fps", "15",
                                      "--wait-for", "recorder,flow,motion,render"], may_finish=True)]
-    sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)
+    sup = Supervisor(specs, tmp_path / "logs", max_restarts=0, env=repo_env())
     start_router(sup, ep)
     for s in specs[1:]:
         sup.start(s.name)

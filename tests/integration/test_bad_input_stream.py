@@ -18,14 +18,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from helpers import pipeline, recorded, wait_for_log
+from tests.helpers import pipeline, recorded, wait_for_log
 
-from quick_stream.frame import Intrinsics
-from quick_stream.runtime import ServiceRuntime
-from quick_stream.sources import open_source
-from quick_stream.transport import add_zenoh_args, config_from_args
-from quick_stream.wire import EndOfStream, encode_end, encode_frame
-from quick_stream.wire.codec import DEFAULT_MAX_BYTES
+from quick_stream.core.frame import Intrinsics
+from quick_stream.io.sources import open_source
+from quick_stream.stream.runtime import ServiceRuntime
+from quick_stream.stream.transport import add_zenoh_args, config_from_args
+from quick_stream.stream.wire import EndOfStream, encode_end, encode_frame
+from quick_stream.stream.wire.codec import DEFAULT_MAX_BYTES
 
 N = 80
 

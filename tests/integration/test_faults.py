@@ -1,12 +1,12 @@
 """SIGKILL each process of a running ``quick-stream up`` mid-stream, in turn, repeatedly, and the
-router together with a service; the numbers come from ``quick-stream bench faults``
-(quick_stream/bench/faults.py), which these tests run with the same code, paced by the pipeline
+router together with a service; the numbers come from ``python -m tests.tools.faults``
+(tests/tools/faults.py), which these tests run with the same code, paced by the pipeline
 (``--pace fast``: the capture sends as fast as the stages take frames) instead of a 30 fps live
 camera, so a loaded machine (a second suite beside this one) slows the stream down instead of
-overrunning the stages: what is tested is recovery; live capacity is the benchmark's.
+overrunning the stages: what is tested is recovery; live capacity is the tool's, run by hand.
 
 For every case: the supervisor restarts each killed process and nothing else; everything stops
-cleanly at the end; the killed stage publishes again (how soon is measured by the benchmark,
+cleanly at the end; the killed stage publishes again (how soon is measured by the tool,
 not asserted: wall-clock bounds flake on a loaded machine); every recording is readable, a
 killed recorder's after ``quick-stream recover``; every message of the stream is recorded (a copy
 of it: the one message a killed publisher had in flight may reach the monitor and not the
@@ -15,8 +15,8 @@ could not receive, and nothing it had received more than 1 s before its kill is 
 is lost: a restarted flow, motion or render takes over after the last message its predecessor
 published, from the history its inputs' publishers keep.
 
-Under TLS and the router's access control (``quick-stream bench faults --tls``), a few of the same
-cases with the same assertions, and ``poison``: bad messages published on the frame key mid-stream
+Under TLS and the router's access control (``python -m tests.tools.faults --tls``), a few of the
+same cases with the same assertions, and ``poison``: bad messages published on the frame key mid-stream
 by the capture's certificate reach flow and render, which refuse each (counted), and nothing is
 lost or flagged; the same messages from the monitor's certificate reach nobody.
 """
@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import pytest
 
-from quick_stream.bench.faults import INJECTIONS, KILLS, make_certs, parse_case, run_case
+from tests.tools.faults import INJECTIONS, KILLS, make_certs, parse_case, run_case
 
 KILL_AFTER = 60  # frames sent before the kill (the driver also waits for the first stabilized frame)
 
@@ -35,7 +35,7 @@ def check_case(r: dict, case: str, out) -> None:
     assert r["kills"] == (0 if case in INJECTIONS else repeat)
     assert r["restarts"] == {n: (repeat if n in victims else 0) for n in r["restarts"]}, r
     assert r["clean_stop"], (out / "up.log").read_text()
-    # every killed stage came back (how fast is a benchmark number, `quick-stream bench faults`,
+    # every killed stage came back (how fast is the fault tool's number, `python -m tests.tools.faults`,
     # not asserted here: a loaded machine stretches it); after bad messages the output goes on
     for row in r["per_event"]:
         for v in victims:
@@ -80,7 +80,7 @@ def check_case(r: dict, case: str, out) -> None:
             assert r["refused_reached"] == 0, r
 
 
-# Repeated kills (flow*3, render*3) are `quick-stream bench faults`' cases, not CI's: the suite's time
+# Repeated kills (flow*3, render*3) are `python -m tests.tools.faults`' cases, not CI's: the suite's time
 # is bounded (10 minutes on a 2-core machine), and each repeat is the single case again
 CI_KILLS = [c for c in KILLS if "*" not in c]
 
@@ -109,7 +109,7 @@ def test_under_tls_and_access_control(tmp_path, certs, case):
 
 _SLOW_EXIT = """
 import sys, time
-from quick_stream.runtime import service_main, service_parser
+from quick_stream.stream.runtime import service_main, service_parser
 
 class SlowToDrop:  # stands in for zenoh objects dropped slowly while the interpreter finalises
     def __del__(self):

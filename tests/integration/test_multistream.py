@@ -11,12 +11,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from helpers import offline_images, start_router
+from tests.helpers import offline_images, start_router
 from mcap.reader import make_reader
 
-from quick_stream.cli.up_cmd import free_port
-from quick_stream.launcher import ServiceSpec, Supervisor
-from quick_stream.wire import decode
+from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port
+from quick_stream.stream.wire import decode
 
 SPECS = {"cam0": "synthetic:frames=90,width=320,height=240,seed=1",
          "cam1": "synthetic:frames=90,width=320,height=240,seed=2"}
@@ -26,17 +25,17 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
     ep = f"tcp/127.0.0.1:{free_port()}"
     z = ["-e", ep, "--no-multicast-scouting"]
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting"]),
-             ServiceSpec("recorder", ["-m", "services.recorder", *z, "--all-streams",
+             ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z, "--all-streams",
                                       "--output", str(tmp_path / "rec.mcap")])]
     for cam, spec in SPECS.items():
         s = ["--stream", cam]
-        specs += [ServiceSpec(f"flow-{cam}", ["-m", "services.flow", *z, *s]),
-                  ServiceSpec(f"motion-{cam}", ["-m", "services.motion", *z, *s]),
-                  ServiceSpec(f"render-{cam}", ["-m", "services.render", *z, *s, "--png", str(tmp_path / cam),
-                                                "--color", "raw"])]
+        specs += [ServiceSpec(f"flow-{cam}", ["-m", "quick_stream.services.flow", *z, *s]),
+                  ServiceSpec(f"motion-{cam}", ["-m", "quick_stream.services.motion", *z, *s]),
+                  ServiceSpec(f"render-{cam}", ["-m", "quick_stream.services.render", *z, *s,
+                                                "--png", str(tmp_path / cam), "--color", "raw"])]
     for cam, spec in SPECS.items():
-        specs.append(ServiceSpec(f"capture-{cam}", ["-m", "services.capture", *z, "--stream", cam, "--source", spec,
-                                                    "--color", "raw", "--pace", "fast",
+        specs.append(ServiceSpec(f"capture-{cam}", ["-m", "quick_stream.services.capture", *z, "--stream", cam,
+                                                    "--source", spec, "--color", "raw", "--pace", "fast",
                                                     "--wait-for", "flow,motion,render", "--wait-timeout", "60"],
                                  may_finish=True))
     sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)

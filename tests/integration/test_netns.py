@@ -21,13 +21,13 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers import offline_images
+from tests.helpers import offline_images
 
-from quick_stream.launcher import ServiceSpec, Supervisor
+from quick_stream.stream.launcher import ServiceSpec, Supervisor
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SPEC = "synthetic:frames=60,width=320,height=240"
-PROBE = str(ROOT / "tests" / "netns_probe.py")
+PROBE = str(ROOT / "tests" / "tools" / "netns_probe.py")
 
 
 def sh(*cmd: str) -> None:
@@ -87,7 +87,7 @@ def hosts():
 
 @pytest.fixture(scope="module")
 def single_host() -> dict[int, np.ndarray]:
-    """The single-host result (equal, bit for bit, to the services on one host: tests/test_services_e2e.py)."""
+    """The single-host result (equal, bit for bit, to the services on one host: tests/integration/test_services_e2e.py)."""
     return offline_images(SPEC)
 
 
@@ -95,14 +95,16 @@ def run_pipeline(h: Hosts, out: Path, router: list[str], zflags: dict[str, list[
     """Router on hub, capture on cam, flow + motion on compute, render + recorder on view."""
     specs = [
         ServiceSpec("router", ["-m", "quick_stream", "router", *router], prefix=h.prefix("hub")),
-        ServiceSpec("recorder", ["-m", "services.recorder", *zflags["recorder"], "--output", str(out / "rec.mcap")],
+        ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *zflags["recorder"],
+                                 "--output", str(out / "rec.mcap")],
                     prefix=h.prefix("view")),
-        ServiceSpec("render", ["-m", "services.render", *zflags["render"], "--png", str(out / "png"), "--color", "raw"],
+        ServiceSpec("render", ["-m", "quick_stream.services.render", *zflags["render"], "--png", str(out / "png"),
+                               "--color", "raw"],
                     prefix=h.prefix("view")),
-        ServiceSpec("flow", ["-m", "services.flow", *zflags["flow"]], prefix=h.prefix("compute")),
-        ServiceSpec("motion", ["-m", "services.motion", *zflags["motion"]], prefix=h.prefix("compute")),
-        ServiceSpec("capture", ["-m", "services.capture", *zflags["capture"], "--source", SPEC, "--color", "raw",
-                                "--pace", "fast", "--wait-for", "recorder,render,flow,motion", "--wait-timeout", "60"],
+        ServiceSpec("flow", ["-m", "quick_stream.services.flow", *zflags["flow"]], prefix=h.prefix("compute")),
+        ServiceSpec("motion", ["-m", "quick_stream.services.motion", *zflags["motion"]], prefix=h.prefix("compute")),
+        ServiceSpec("capture", ["-m", "quick_stream.services.capture", *zflags["capture"], "--source", SPEC,
+                                "--color", "raw", "--pace", "fast", "--wait-for", "recorder,render,flow,motion", "--wait-timeout", "60"],
                     prefix=h.prefix("cam"), may_finish=True),
     ]
     sup = Supervisor(specs, out / "logs", max_restarts=0)
@@ -175,7 +177,7 @@ def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path
         rogue = hosts.probe("cam", "pub", ep, key, "1.0", str(certs / "rogue" / "cam9" / "capture"), "capture")
         assert not rogue["opened"] or rogue["sent"] == 0, rogue
         # valid certificates publishing where their name is not allowed get nothing through: the monitor, a
-        # capture on another stage, a flow on frames (another stream's capture: tests/test_acl.py)
+        # capture on another stage, a flow on frames (another stream's capture: tests/integration/test_acl.py)
         for who, where in (("monitor", key), ("cam9/capture", "quick/@v1/cam9/correction"), ("cam9/flow", key)):
             listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, where, "4",
                                        f"{good}/monitor", "monitor"], stdout=subprocess.PIPE, text=True)

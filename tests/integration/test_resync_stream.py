@@ -15,15 +15,15 @@ from pathlib import Path
 
 import pytest
 
-from helpers import pipeline, recorded, wait_for_log
+from tests.helpers import pipeline, recorded, wait_for_log
 
-from quick_stream import keys
-from quick_stream.continuity import RENUMBERED, ContinuityParams
-from quick_stream.runtime import ServiceRuntime
-from quick_stream.sources import open_source
-from quick_stream.transport import add_zenoh_args, config_from_args
-from quick_stream.wire import EndOfStream, encode_end, encode_frame
-from quick_stream.wire.codec import peek
+from quick_stream.core.continuity import ContinuityParams, RENUMBERED
+from quick_stream.io.sources import open_source
+from quick_stream.stream import keys
+from quick_stream.stream.runtime import ServiceRuntime
+from quick_stream.stream.transport import add_zenoh_args, config_from_args
+from quick_stream.stream.wire import EndOfStream, encode_end, encode_frame
+from quick_stream.stream.wire.codec import peek
 
 OLD, NEW = 40, 45
 FIRST = ContinuityParams().resync - 1  # the new numbering's first frame taken (0..13 are refused)

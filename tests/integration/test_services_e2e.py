@@ -1,7 +1,7 @@
 """End to end: the services as separate processes over Zenoh on loopback (issue 4).
 
 * ``quick-stream up`` on a synthetic clip gives stabilized frames bit-identical to
-  the in-process :class:`~quick_stream.stabilizer.Stabilizer` with the same settings;
+  the in-process :class:`~quick_stream.core.stabilizer.Stabilizer` with the same settings;
 * replaying its recording (``--source mcap:FILE``) gives them again;
 * the recording opens with the ``mcap`` reader and its Foxglove channels are valid;
 * a flow service killed mid-stream is restarted, the stream recovers within 2 s,
@@ -22,10 +22,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 import pytest
-from helpers import UP, offline_images, sent, up_and_kill, wait_for_status
+from tests.helpers import UP, offline_images, sent, up_and_kill, wait_for_status
 from mcap.reader import make_reader
 
-from quick_stream.wire import decode
+from quick_stream.stream.wire import decode
 
 SPEC = "synthetic:frames=75,width=320,height=240"
 
@@ -114,7 +114,7 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
     assert st["services"]["flow"]["restarts"] == 1
     assert any(e["service"] == "flow" and "restarted" in e["event"] for e in st["events"])
     assert "exit codes" not in text  # every service stopped cleanly on SIGTERM
-    # recovery: flow publishes again after the kill (how soon: `quick-stream bench faults`)
+    # recovery: flow publishes again after the kill (how soon: `python -m tests.tools.faults`)
     times = np.array(_flow_log_times(out / "recording.mcap"))
     after = times[times > killed_at]
     assert after.size > 0, "no flow after the kill"
@@ -136,8 +136,8 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
 def test_recorder_killed_with_sigkill_leaves_a_recoverable_file(tmp_path):
     """SIGKILL the recorder mid-stream: `quick-stream recover` repairs the file and keeps every
     message logged more than ~1 s (the flush period) before the kill."""
-    from quick_stream.recording import RecordingError, read_messages
-    from quick_stream.wire import Stats, encode_stats
+    from quick_stream.io.recording import RecordingError, read_messages
+    from quick_stream.stream.wire import Stats, encode_stats
 
     rec_path = tmp_path / "rec.mcap"
     with router_and_recorder(tmp_path, "--output", str(rec_path)) as (sup, session, _):
@@ -165,13 +165,13 @@ def test_recorder_killed_with_sigkill_leaves_a_recoverable_file(tmp_path):
 def router_and_recorder(tmp_path: Path, *recorder_args: str) -> Iterator[tuple[object, object, dict]]:
     """A router and a recorder (not restarted) plus a session of the test's own, once the recorder
     is up; yields (supervisor, session, exit codes filled in on leaving)."""
-    from quick_stream.cli.up_cmd import free_port, open_when_up
-    from quick_stream.launcher import ServiceSpec, Supervisor
+    from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port, open_when_up
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     sup = Supervisor([ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint]),
-                      ServiceSpec("recorder", ["-m", "services.recorder", "-e", endpoint, "--no-multicast-scouting",
-                                               *recorder_args], restart=False)], tmp_path / "logs")
+                      ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", "-e", endpoint,
+                                               "--no-multicast-scouting", *recorder_args], restart=False)],
+                     tmp_path / "logs")
     sup.start("router")
     session = open_when_up(endpoint, 20)
     codes: dict = {}
@@ -230,9 +230,9 @@ def test_ctrl_c_stops_every_process_and_leaves_a_complete_recording(tmp_path):
 def test_recorder_splits_long_runs_into_finished_files_losing_nothing(tmp_path):
     """``--split-mb``: each file is finished (readable through its footer), the next keeps the
     Foxglove channels, and every frame is in exactly one file, in order."""
-    from quick_stream.recording import read_messages
-    from quick_stream.sources import open_source
-    from quick_stream.wire import encode_frame
+    from quick_stream.io.recording import read_messages
+    from quick_stream.io.sources import open_source
+    from quick_stream.stream.wire import encode_frame
 
     split = ("--output", str(tmp_path / "rec.mcap"), "--split-mb", "0.1")
     with router_and_recorder(tmp_path, *split) as (_, session, codes):

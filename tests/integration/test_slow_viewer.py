@@ -6,7 +6,7 @@ through a bounded ``FifoChannel`` and then stops reading: zenoh's receive path f
 links back up. Before, flow's lossless (``CongestionControl.BLOCK``) publisher then waited for that
 link for zenoh's ``wait_before_close`` (5 s) until the link was closed: flow's inbox overflowed
 (36-45 frames dropped at 15 frames/s), the path restarted there (those frames flagged) and the
-output paused ~6 s (``quick-stream bench slow-viewer``, docs/reliability.md). Now the pipeline's
+output paused ~6 s (``python -m tests.tools.slow_viewer``, docs/reliability.md). Now the pipeline's
 lossless publishers drop for a congested link only, and the healthy receivers recover what their
 own link missed from the publishers' caches: every frame sent comes out, none flagged, nothing
 dropped or lost anywhere in the pipeline. Counts only, no clocks.
@@ -17,7 +17,8 @@ import json
 import subprocess
 import sys
 
-from helpers import pipeline, recorded, wait_for_log
+from tests.helpers import pipeline, recorded, wait_for_log
+from tests.tools import repo_env
 
 FRAMES = 150  # 10 s at 15 frames/s: the viewer's links back up within the first seconds
 
@@ -26,8 +27,8 @@ def test_slow_peer_viewer_costs_the_pipeline_nothing(tmp_path):
     capture = ["--source", f"synthetic:frames={FRAMES},width=320,height=240", "--fps", "15"]
     sup, ep = pipeline(tmp_path, capture=capture)
     # a foreign peer reading a FifoChannel(4) of quick/@v1/cam0/** one sample per 1000 s: it stops reading
-    viewer = subprocess.Popen([sys.executable, "-m", "quick_stream.bench.slow_viewer", ep, "peer",
-                               "quick/@v1/cam0/**", "fifo", "1000"], stdout=subprocess.PIPE, text=True)
+    viewer = subprocess.Popen([sys.executable, "-m", "tests.tools.slow_viewer", "viewer", ep, "peer",
+                               "quick/@v1/cam0/**", "fifo", "1000"], stdout=subprocess.PIPE, text=True, env=repo_env())
     try:
         wait_for_log(sup, tmp_path / "logs" / "render.log", "end of stream")
     finally:

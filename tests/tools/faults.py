@@ -1,4 +1,4 @@
-"""``quick-stream bench faults``: SIGKILL processes of a running ``quick-stream up`` and measure recovery.
+"""``python -m tests.tools.faults``: SIGKILL processes of a running ``quick-stream up`` and measure recovery.
 
 Each case runs ``up`` on a synthetic stream and watches it from a monitor session of its
 own (a peer, so it keeps seeing the services when the router dies): every message of the
@@ -32,6 +32,7 @@ them, and those seen more than ``accept_s`` (1 s) before a kill of the recorder.
 """
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
@@ -48,11 +49,11 @@ import msgpack
 import numpy as np
 import zenoh
 
-from .. import keys
-from ..recording import RecordingError, read_messages, recover
-from ..sources import open_source
-from ..wire import WireError, encode_frame
-from ..wire.codec import peek, unpack
+from quick_stream.io.recording import RecordingError, read_messages, recover
+from quick_stream.io.sources import open_source
+from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream.wire import WireError, encode_frame
+from quick_stream.stream.wire.codec import peek, unpack
 
 OUTPUT = {"capture": "frame", "flow": "flow", "motion": "motion", "render": "stabilized"}
 STREAM_CAP = 100_000  # the synthetic source's length: the driver ends the stream (run_case)
@@ -125,7 +126,7 @@ class StreamMonitor:
 def make_certs(folder: Path) -> Path:
     """Certificates for stream cam0 (deploy/tls/make-certs.sh), once per run: ``folder``."""
     if not MAKE_CERTS.is_file():
-        raise FileNotFoundError(f"{MAKE_CERTS}: bench faults --tls runs from the source tree (deploy/)")
+        raise FileNotFoundError(f"{MAKE_CERTS}: tests.tools.faults --tls runs from the source tree (deploy/)")
     if folder.exists():
         shutil.rmtree(folder)
     subprocess.run(["bash", str(MAKE_CERTS), "--streams", STREAM, str(folder)], check=True, capture_output=True)
@@ -134,7 +135,7 @@ def make_certs(folder: Path) -> Path:
 
 def _config(endpoint: str, tls: Path | None, party: str, mode: str = "client") -> zenoh.Config:
     """A session of the driver's: ``party``'s certificate under TLS (monitor, or a service of cam0)."""
-    from ..transport import session_config
+    from quick_stream.stream.transport import session_config
 
     if tls is None:
         return session_config(endpoint, mode)
@@ -209,10 +210,10 @@ def run_case(out: Path, case: str, frames: int = 240, fps: float = 30.0, size: s
              pace: str = "realtime", tls: Path | None = None) -> dict:
     """Run one fault case (see the module doc); returns its report. ``pace="fast"``: the capture sends as
     fast as the pipeline takes frames (its output credit), so a machine too loaded for ``fps`` drops
-    nothing and what is measured is recovery alone (the tests); realtime is a live camera (the bench).
+    nothing and what is measured is recovery alone (the tests); realtime is a live camera (the tool run by hand).
     ``tls``: the folder deploy/tls/make-certs.sh wrote (:func:`make_certs`): router on
     deploy/zenoh/router-tls.json5, every process a TLS client with its own certificate."""
-    from ..cli.up_cmd import free_port
+    from quick_stream.stream.launcher import free_port
 
     victims, repeat = parse_case(case)
     w, h = size.split("x")
@@ -476,12 +477,13 @@ def format_report(r: dict) -> str:
     return "\n".join(lines)
 
 
-def main(cases: list[str], out: str, json_path: str | None, tls: bool = False, **kw) -> int:
+def run_cases(cases: list[str], out: str, json_path: str | None, tls: bool = False, **kw) -> int:
+    """Every case in turn, each report printed as it ends (and all of them as JSON in ``json_path``)."""
     reports = []
     certs = make_certs(Path(out) / "certs") if tls else None  # once per run, in the run's folder
     how = (f"mutual TLS and access control ({ROUTER_TLS.relative_to(DEPLOY.parent)}), every process a TLS client "
            f"with its own certificate ({certs})" if tls else "plain TCP, the services are peers")
-    print(f"bench faults: {how}", flush=True)
+    print(f"faults: {how}", flush=True)
     for case in cases:
         r = run_case(Path(out) / case.replace("*", "x").replace("+", "-"), case, tls=certs, **kw)
         reports.append(r)
@@ -489,3 +491,34 @@ def main(cases: list[str], out: str, json_path: str | None, tls: bool = False, *
     if json_path:
         Path(json_path).write_text(json.dumps(reports, indent=1))
     return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m tests.tools.faults", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", default="all", help="comma-separated: a service (flow), repeated (render*3), "
+                   "together (router+flow), bad messages on the frame key (poison, future-seq); default all "
+                   "(every service, flow*3, render*3, router+flow, poison, future-seq)")
+    p.add_argument("--frames", type=int, default=240, help="frames each case sends at least; the stream ends once "
+                   "every successor is back (default 240)")
+    p.add_argument("--fps", type=float, default=30.0)
+    p.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
+    p.add_argument("--kill-after", type=int, default=60, help="frames sent before the first kill (default 60)")
+    p.add_argument("--out", default=None, help="folder for each case's recordings and logs (default "
+                   "out/bench-faults, with --tls out/bench-faults-tls)")
+    p.add_argument("--tls", action="store_true", help="the router on deploy/zenoh/router-tls.json5 (mutual TLS, "
+                   "access control), every process a TLS client with its own certificate (made in OUT/certs)")
+    p.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    cases = list(CASES) if args.cases == "all" else args.cases.split(",")
+    out = args.out or ("out/bench-faults-tls" if args.tls else "out/bench-faults")
+    return run_cases(cases, out, args.json, tls=args.tls, frames=args.frames, fps=args.fps, size=args.size,
+                     kill_after=args.kill_after)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,20 +1,22 @@
-"""``quick-stream bench fuzz``: the wire decoder against malformed input, deterministically.
+"""``python -m tests.tools.fuzz``: the wire decoder against malformed input, deterministically.
 
 Seeds are valid messages of every type (small images so each decode is cheap); each
 input is one seed mutated by one of: bit flips, byte overwrites, truncation,
 insertion or deletion of bytes, structured field changes (a field of the msgpack map
 replaced by a value of another type, NaN/inf, a huge or negative number, a long
 string, a deep nesting, a wrong version), or plain random bytes. The only acceptable
-outcomes are a decoded message or :class:`~quick_stream.wire.WireError`; any other
+outcomes are a decoded message or :class:`~quick_stream.stream.wire.WireError`; any other
 exception is a crash, and a decode slower than ``hang_ms`` is a hang. Prints counts per
 mutator, the slowest decode and every crash (with the input, hex, for a reproduction).
 
 Other engines and targets share :class:`FuzzReport`, :func:`check` and :func:`format_report`:
 ``--engine hypothesis`` (:mod:`.fuzz_hypothesis`, Hypothesis strategies) and ``--target mcap``
-(:mod:`.fuzz_mcap`, corrupted recordings through every reader entry point).
+(:mod:`.fuzz_mcap`, corrupted recordings through every reader entry point); :func:`main` runs
+any of them (exit 0 when nothing but the named errors came out, 1 on any crash or hang).
 """
 from __future__ import annotations
 
+import argparse
 import contextlib
 import logging
 import os
@@ -27,11 +29,13 @@ from typing import Any, Callable, Iterator
 import msgpack
 import numpy as np
 
-from ..frame import Intrinsics, RGBDFrame
-from ..motion import MotionEstimate
-from ..path.planner import Correction
-from ..sceneflow import SceneFlowResult
-from ..wire import EndOfStream, StabilizedImage, Stats, WireError, decode, encode, encode_frame, encode_stabilized
+from quick_stream.core.frame import Intrinsics, RGBDFrame
+from quick_stream.core.motion import MotionEstimate
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.sceneflow import SceneFlowResult
+from quick_stream.stream import argtypes as at
+from quick_stream.stream.wire import (EndOfStream, StabilizedImage, Stats, WireError, decode, encode, encode_frame,
+                                      encode_stabilized)
 
 
 def seeds() -> list[bytes]:
@@ -214,8 +218,61 @@ def format_report(r: FuzzReport) -> str:
     for name, p in r.per_mutator.items():
         lines.append(f"  {name:<17} {p['inputs']:>7} inputs  {p['rejected']:>7} rejected  {p['accepted']:>7} decoded")
     for c in r.crashes[:10]:
-        lines.append(f"  CRASH ({c['mutator']}): {c['error']}\n    reproduce: quick_stream.wire.decode(bytes.fromhex("
+        lines.append(f"  CRASH ({c['mutator']}): {c['error']}\n    reproduce: quick_stream.stream.wire.decode(bytes.fromhex("
                      f"'{c['input_hex']}'))")
     if len(r.crashes) > 10:
         lines.append(f"  ... and {len(r.crashes) - 10} more crashes")
     return "\n".join(lines)
+
+
+def build_parser(prog: str = "python -m tests.tools.fuzz") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="The wire decoder (or MCAP readers) against malformed "
+                                "input: crashes, hangs.")
+    p.add_argument("--n", type=at.positive_int, default=None,
+                   help="inputs (default 100000; --target mcap: 10000 damaged recordings)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--engine", choices=("mutate", "hypothesis"), default="mutate",
+                   help="wire target: 'mutate' (hand-written mutators, default) or 'hypothesis' (Hypothesis "
+                        "strategies: message-shaped maps with wrong fields, byte edits of valid messages; "
+                        "needs pip install 'quick-stream[test]')")
+    p.add_argument("--target", choices=("wire", "mcap"), default="wire",
+                   help="'wire' (wire.decode, default) or 'mcap' (damaged recordings through read_messages, "
+                        "recover and the mcap: source)")
+    p.add_argument("--keep", default="out/fuzz-mcap", metavar="DIR",
+                   help="--target mcap: where recordings that find a bug are kept (default out/fuzz-mcap)")
+    return p
+
+
+def main(argv: list[str] | None = None, prog: str = "python -m tests.tools.fuzz") -> int:
+    """Exit 0 when nothing but the named errors came out, 1 on any crash or hang, 2 on a usage error."""
+    args = build_parser(prog).parse_args(argv)
+    if args.target == "mcap":
+        if args.engine != "mutate":
+            print(f"{prog}: --target mcap mutates recordings itself; --engine applies to the wire target only",
+                  file=sys.stderr)
+            return 2
+        from . import fuzz_mcap
+
+        with muted():
+            m = fuzz_mcap.run(args.n or 10_000, args.seed, keep=args.keep)
+        print(fuzz_mcap.format_report(m))
+        return 1 if m.crashes else 0
+    if args.engine == "hypothesis":
+        try:
+            from . import fuzz_hypothesis as engine
+        except ImportError as e:
+            if not (e.name or "").startswith("hypothesis"):
+                raise
+            print(f"{prog} --engine hypothesis needs hypothesis (a test dependency): "
+                  "pip install 'quick-stream[test]'", file=sys.stderr)
+            return 2
+    else:
+        engine = sys.modules[__name__]
+    with muted():
+        r = engine.run(args.n or 100_000, args.seed)
+    print(format_report(r))
+    return 1 if r.crashes or r.hangs else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,11 +1,12 @@
-"""``quick-stream bench fuzz --engine hypothesis``: the wire decoder against Hypothesis-built input.
+"""``python -m tests.tools.fuzz_hypothesis`` (= ``python -m tests.tools.fuzz --engine hypothesis``): the
+wire decoder against Hypothesis-built input.
 
 Three strategy families, drawn 60/30/10 % (:data:`FAMILY_WEIGHTS`):
 
 * ``fields:<type>``: msgpack maps shaped like each message type (envelope ``v``/``type``/
   ``stream``/``seq`` and every field by name, with valid values: small JPEG or raw images,
   raw or zstd depth, float32 arrays of one row count, finite matrices), built fresh or taken
-  from :func:`~quick_stream.bench.fuzz.seeds`, then 0-3 corruptions at any depth: a field
+  from :func:`~tests.tools.fuzz.seeds`, then 0-3 corruptions at any depth: a field
   deleted or replaced by an arbitrary msgpack value (nested containers, NaN/inf, huge ints,
   long strings, deep nesting), retyped (int <-> float, str <-> bin, ...), resized (bin blobs
   and lists longer or shorter than their dtype x shape), given a boundary number, a wrong
@@ -24,6 +25,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
+import sys
 import time
 from typing import Any
 
@@ -34,7 +36,7 @@ import zstandard
 from hypothesis import HealthCheck, Phase, given, settings, strategies as st
 from hypothesis import seed as hypothesis_seed
 
-from ..wire.messages import GROUP_DIMS
+from quick_stream.stream.wire.messages import GROUP_DIMS
 from .fuzz import FuzzReport, check, seeds
 
 BATCH = 5_000  # examples per Hypothesis run; bounds the memory of its example tree
@@ -338,3 +340,15 @@ def run(n: int = 100_000, seed: int = 0, hang_ms: float = 1000.0, batch: int = B
         b += 1
     rep.seconds = time.perf_counter() - t_start
     return rep
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tests.tools.fuzz --engine hypothesis`` with ``argv`` (--n, --seed)."""
+    from .fuzz import main as fuzz_main
+
+    return fuzz_main(["--engine", "hypothesis", *(sys.argv[1:] if argv is None else argv)],
+                     prog="python -m tests.tools.fuzz_hypothesis")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,4 +1,5 @@
-"""``quick-stream bench fuzz --target mcap``: damaged recordings through every reader entry point.
+"""``python -m tests.tools.fuzz_mcap`` (= ``python -m tests.tools.fuzz --target mcap``): damaged
+recordings through every reader entry point.
 
 Three small valid recordings (chunk compression none, zstd and lz4; 6 synthetic 32x24 frame
 messages in JPEG+zstd and raw+raw alternately, the Foxglove channels, an ``end`` message,
@@ -10,8 +11,8 @@ a boundary value, record lengths set huge, garbage files and empty or magic-only
 
 Every file goes through the three entry points that read recordings:
 
-* ``quick_stream.recording.read_messages`` (all messages): success or :class:`RecordingError`;
-* ``quick_stream.recording.recover`` (to a temporary output): a report, whose output must read
+* ``quick_stream.io.recording.read_messages`` (all messages): success or :class:`RecordingError`;
+* ``quick_stream.io.recording.recover`` (to a temporary output): a report, whose output must read
   back with exactly the messages it claims, or :class:`RecordingError`;
 * ``open_source("mcap:FILE")`` then iteration: :class:`SourceError` at open, else frames and
   :class:`BadFrame` items whose error names the file and the message index; iteration never
@@ -29,6 +30,7 @@ import random
 import re
 import resource
 import signal
+import sys
 import tempfile
 import threading
 import time
@@ -37,13 +39,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
-from .. import foxglove
-from ..foxglove_view import FoxgloveView
-from ..frame import BadFrame
-from ..keys import key
-from ..recording import MAGIC, Recorder, RecordingError, read_messages, recover
-from ..sources import SourceError, open_source
-from ..wire import EndOfStream, encode, encode_frame
+from quick_stream.core.frame import BadFrame
+from quick_stream.io import foxglove
+from quick_stream.io.foxglove_view import FoxgloveView
+from quick_stream.io.recording import MAGIC, Recorder, RecordingError, read_messages, recover
+from quick_stream.io.sources import SourceError, open_source
+from quick_stream.stream.keys import key
+from quick_stream.stream.wire import EndOfStream, encode, encode_frame
 
 FRAMES_SPEC = "synthetic:frames=6,width=32,height=24"
 COMPRESSIONS = ("none", "zstd", "lz4")
@@ -449,3 +451,15 @@ def format_report(r: McapFuzzReport, top: int = 8) -> str:
         lines.append(f"  {c['kind'].upper()} in {c['entry']} (input {c['input']}, mutator {c['mutator']}, base "
                      f"{c['base']}, --seed {c['seed']}): {c['error']} {c.get('at', '')} {c.get('file', '')}")
     return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tests.tools.fuzz --target mcap`` with ``argv`` (--n, --seed, --keep)."""
+    from .fuzz import main as fuzz_main
+
+    return fuzz_main(["--target", "mcap", *(sys.argv[1:] if argv is None else argv)],
+                     prog="python -m tests.tools.fuzz_mcap")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,8 +1,8 @@
 """A zenoh session that subscribes or publishes for a while, run inside a network namespace by
-tests/test_netns.py. Prints one JSON line: {"opened": bool, "received": n, "sent": n, "error": str}
+tests/integration/test_netns.py. Prints one JSON line: {"opened": bool, "received": n, "sent": n, "error": str}
 (a subscriber first prints {"subscribed": true} once its subscriber is declared).
 
-    python tests/netns_probe.py sub|pub|cache|history ENDPOINT KEY SECONDS [TLS_DIR TLS_NAME]
+    python tests/tools/netns_probe.py sub|pub|cache|history ENDPOINT KEY SECONDS [TLS_DIR TLS_NAME]
 
 ``cache``: an advanced publisher with a 20-message history cache puts 20 messages, prints
 {"published": 20}, then stays SECONDS; ``history``: an advanced subscriber that asks the

@@ -1,4 +1,4 @@
-"""``quick-stream bench slow-viewer``: what a slow foreign subscriber costs the pipeline.
+"""``python -m tests.tools.slow_viewer``: what a slow foreign subscriber costs the pipeline.
 
 Runs router, recorder, flow, motion, render and a live capture (``--pace realtime``, synthetic
 frames) on loopback, plus a *viewer*: a separate process, not part of the pipeline, that opens its
@@ -29,15 +29,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..launcher import ServiceSpec, Supervisor
-from ..recording import read_messages
-from ..wire import WireError, decode
+from quick_stream.io.recording import read_messages
+from quick_stream.stream import argtypes as at
+from quick_stream.stream.launcher import ServiceSpec, Supervisor
+from quick_stream.stream.wire import WireError, decode
+
+from . import repo_env
 
 VIEWER_FIFO = 4  # samples the viewer's FifoChannel holds before zenoh's receive path waits for it
 
 
 def viewer_main(argv: list[str]) -> int:
-    """The slow viewer process: ``python -m quick_stream.bench.slow_viewer ENDPOINT MODE KEY HANDLER SLEEP``.
+    """The slow viewer process: ``python -m tests.tools.slow_viewer viewer ENDPOINT MODE KEY HANDLER SLEEP``.
     Prints one JSON line (samples received, peers it had direct links to) when it gets SIGTERM."""
 
     import zenoh
@@ -81,7 +84,7 @@ def viewer_main(argv: list[str]) -> int:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    from ..cli.up_cmd import free_port, open_when_up
+    from quick_stream.stream.launcher import free_port, open_when_up
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -96,11 +99,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         z += ["-m", args.services_mode]
     w, h = args.size.split("x")
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting", *cfg]),
-             ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(rec)]),
-             ServiceSpec("flow", ["-m", "services.flow", *z]),
-             ServiceSpec("motion", ["-m", "services.motion", *z]),
-             ServiceSpec("render", ["-m", "services.render", *z]),
-             ServiceSpec("capture", ["-m", "services.capture", *z, "--source",
+             ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z, "--output", str(rec)]),
+             ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z]),
+             ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z]),
+             ServiceSpec("render", ["-m", "quick_stream.services.render", *z]),
+             ServiceSpec("capture", ["-m", "quick_stream.services.capture", *z, "--source",
                                      f"synthetic:frames={args.frames},width={w},height={h}", "--fps", str(args.fps),
                                      "--wait-for", "recorder,flow,motion,render"], may_finish=True)]
     sup = Supervisor(specs, out / "logs", max_restarts=0)
@@ -111,8 +114,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     key = args.key.replace("{stream}", args.stream)
     viewer = None
     if args.viewer != "none":
-        viewer = subprocess.Popen([sys.executable, "-m", "quick_stream.bench.slow_viewer", ep, args.viewer, key,
-                                   args.handler, str(args.sleep)], stdout=subprocess.PIPE, text=True)
+        viewer = subprocess.Popen([sys.executable, "-m", "tests.tools.slow_viewer", "viewer", ep, args.viewer, key,
+                                   args.handler, str(args.sleep)], stdout=subprocess.PIPE, text=True, env=repo_env())
     if viewer is not None:
         time.sleep(1.0)  # the viewer's session is up before the services start
     watch = session.declare_subscriber(f"quick/@v1/{args.stream}/stabilized", lambda _s: arrivals.append(time.monotonic()))
@@ -185,5 +188,45 @@ def summarize(rec: Path, arrivals: list[float]) -> dict[str, Any]:
             "put_ms_max": {k: round(v) for k, v in sorted(worst.items())}, "slow_puts": slow}
 
 
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m tests.tools.slow_viewer", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--viewer", choices=("peer", "client", "none"), default="peer",
+                   help="the viewer's zenoh mode (peer: listens, so gossip links it to the services directly)")
+    p.add_argument("--handler", choices=("fifo", "callback"), default="fifo",
+                   help="fifo: a bounded FifoChannel read slowly (default); callback: a callback that sleeps")
+    p.add_argument("--key", default="quick/@v1/{stream}/**", help="what the viewer subscribes to")
+    p.add_argument("--sleep", type=at.nonneg_float, default=1.0, help="seconds the viewer spends per sample")
+    p.add_argument("--frames", type=at.positive_int, default=450, help="frames the capture sends (default 450)")
+    p.add_argument("--fps", type=at.positive_float, default=30.0)
+    p.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
+    p.add_argument("--stream", type=at.stream_id, default="cam0")
+    p.add_argument("--services-mode", choices=("peer", "client"), default=None,
+                   help="the services' zenoh mode (default: peer, as `quick-stream up`)")
+    p.add_argument("--services-cfg", action="append", default=[], metavar="KEY:VALUE",
+                   help="a zenoh setting for every service and the router (repeatable)")
+    p.add_argument("--pause", default=None, metavar="SERVICE:SECONDS",
+                   help="also stop a healthy service (SIGSTOP) for SECONDS mid-stream, e.g. motion:2")
+    p.add_argument("--pause-at", type=at.nonneg_float, default=8.0, help="seconds after the start (default 8)")
+    p.add_argument("--out", type=at.output_dir("--out"), default="out/bench-slow-viewer",
+                   help="folder for the recording and logs")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The driver (prints its report as one JSON line); ``viewer ...``: the viewer process itself."""
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["viewer"]:
+        return viewer_main(argv[1:])
+    args = build_parser().parse_args(argv)
+    try:
+        at.check_outputs(args)
+    except ValueError as e:
+        print(f"slow_viewer: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(run(args)))
+    return 0
+
+
 if __name__ == "__main__":
-    sys.exit(viewer_main(sys.argv[1:]))
+    sys.exit(main())

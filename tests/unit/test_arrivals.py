@@ -1,13 +1,13 @@
-"""The recorder's account of seqs that never arrived (quick_stream/arrivals.py)."""
+"""The recorder's account of seqs that never arrived (quick_stream/stream/arrivals.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from quick_stream.arrivals import ArrivalLedger
-from quick_stream.sources.synthetic import SyntheticSource
-from quick_stream.wire import EndOfStream, StabilizedImage, Stats, encode_end, encode_frame, encode_stabilized, encode_stats
-from quick_stream.wire.codec import pack
+from quick_stream.stream.arrivals import ArrivalLedger
+from quick_stream.io.sources.synthetic import SyntheticSource
+from quick_stream.stream.wire import EndOfStream, StabilizedImage, Stats, encode_end, encode_frame, encode_stabilized, encode_stats
+from quick_stream.stream.wire.codec import pack
 
 KEY = "quick/@v1/cam0/stabilized"
 _FRAME = next(iter(SyntheticSource(width=64, height=48, frames=1)))

@@ -23,9 +23,9 @@ from quick_stream.bench import lk_average, peers, quality
 from quick_stream.bench.shake_clips import (ShakeSpec, is_cached, make_clip, parse_amplitudes, read_corrections,
                                             rotation_part, seconds_text, write_corrections)
 from quick_stream.cli import main
-from quick_stream.metrics import evaluate_sequence
+from quick_stream.quality.metrics import evaluate_sequence
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
+SHARED = Path(__file__).resolve().parents[3] / "shared"
 W, H = 256, 192
 
 
@@ -184,7 +184,7 @@ def test_made_clips_are_cached_by_parameters(tmp_path):
 
 def test_default_settings_are_those_of_stabilize_without_flags():
     from quick_stream.cli import build_parser
-    from quick_stream.cli.settings import stabilizer_params
+    from quick_stream.stream.stabilizer_flags import stabilizer_params
 
     args = build_parser().parse_args(["stabilize"])
     assert quality.default_settings().params == stabilizer_params(args)
@@ -288,7 +288,7 @@ def test_correction_file_is_read_by_score_rotation(tmp_path):
 
 
 def test_run_clip_end_to_end(tmp_path):
-    from test_cli_motion import write_tum_clip
+    from tests.unit.test_cli_motion import write_tum_clip
 
     root = tmp_path / "clip"
     write_tum_clip(root, n=12)

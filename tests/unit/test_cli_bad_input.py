@@ -1,14 +1,15 @@
 """Bad input at the command-line and config-file boundary (issue 7), table-driven.
 
-Every entry point (the ``quick-stream`` sub-commands and the five services) is run with bad
+Every entry point (the ``quick-stream`` sub-commands, the five services and the test tools) is run with bad
 flags, config files, environment variables, source specs and output paths. Each must exit
 non-zero (2 for usage and config errors, as argparse does) with a message that names what
 was wrong, print no traceback, not hang, and stop before any real work: no zenoh session is
 opened and no process is started (both are patched to fail the test if reached).
 
-Most rows run in-process through ``main(argv)`` (fast, and the same code path as the
-console script); a few run as real processes to check the exit code and output as a user
-sees them, including a listen endpoint already in use, which only zenoh can find.
+The rows run in-process through ``main(argv)`` (fast, and the same code path as the
+console script); tests/integration/test_cli_processes.py runs a few as real processes to check
+the exit code and output as a user sees them, including a listen endpoint already in use,
+which only zenoh can find.
 """
 from __future__ import annotations
 
@@ -17,10 +18,6 @@ import logging
 import os
 import shlex
 import signal
-import socket
-import subprocess
-import sys
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
@@ -28,16 +25,16 @@ from typing import Callable, Iterator
 import pytest
 
 import quick_stream.cli
-import services.recorder as recorder_service
-from quick_stream.bench.fuzz_mcap import watchdog
-from quick_stream.cli import argtypes
-from quick_stream.keys import key
-from quick_stream.recording import Recorder
-from quick_stream.sources import open_source
-from quick_stream.transport import ENV, check_endpoint, config_from_args
-from quick_stream.wire import encode_frame
+import quick_stream.services.recorder as recorder_service
+from quick_stream.io.recording import Recorder
+from quick_stream.io.sources import open_source
+from quick_stream.stream import argtypes
+from quick_stream.stream.keys import key
+from quick_stream.stream.transport import ENV, check_endpoint, config_from_args
+from quick_stream.stream.wire import encode_frame
+from tests.tools.fuzz_mcap import watchdog
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SERVICES = ("capture", "flow", "motion", "render", "recorder")
 CASE_TIMEOUT_S = 10.0  # a hang becomes a failure, not a stuck test run
 
@@ -56,11 +53,9 @@ CONFIGS = {
 }
 
 
-@pytest.fixture(scope="module")
-def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A folder of bad (and a few good) inputs: config files, a non-MCAP file, a recording of stream
-    cam0, a regular file where a folder should be, TUM folders without their index."""
-    root = tmp_path_factory.mktemp("bad_input")
+def bad_inputs(root: Path) -> Path:
+    """``root`` filled with bad (and a few good) inputs: config files, a non-MCAP file, a recording of
+    stream cam0, a regular file where a folder should be, TUM folders without their index."""
     for name, text in CONFIGS.items():
         (root / name).write_text(text)
     (root / "file.txt").write_text("a regular file in the way of a folder\n")
@@ -75,11 +70,17 @@ def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return root
 
 
+@pytest.fixture(scope="module")
+def d(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder of bad inputs (:func:`bad_inputs`)."""
+    return bad_inputs(tmp_path_factory.mktemp("bad_input"))
+
+
 # ---------------------------------------------------------------- the table
 
 @dataclass(frozen=True)
 class Case:
-    entry: str  # a service name, or "qs" for the quick-stream command
+    entry: str  # a service name, "qs" for the quick-stream command, or tools.NAME for a test tool
     argv: str  # shell words; {d} is the inputs folder
     names: tuple[str, ...]  # what the message must contain (the flag, file, key or value at fault)
     env: dict[str, str] = field(default_factory=dict)
@@ -206,7 +207,8 @@ RENDER_RECORDER_QUEUES = [
     *(c("render", f"--quality {v}", "--quality", f"'{v}'") for v in ("0", "101")),
     *(c("render", f"--max-frames {v}", "--max-frames", f"'{v}'") for v in ("0", "-1")),
     *(c("render", f"--frame-wait {v}", "--frame-wait", f"'{v}'") for v in ("-1", "nan")),
-    *(c("render", f"--slow-ms {v}", "--slow-ms", f"'{v}'") for v in ("-1", "nan", "inf")),
+    *(c("tools.slow_render", f"--slow-ms {v}", "--slow-ms", f"'{v}'") for v in ("-1", "nan", "inf")),
+    c("tools.slow_render", "--slow-ms 5 --max-frames 0", "--max-frames", "'0'"),  # the render service's own flags
     c("render", "--output {d}/file.txt/out.mp4", "--output", "file.txt", "not a directory"),
     c("render", "--output {d}/out.txt", "--output", "out.txt", ".mp4"),
     c("render", "--png {d}/file.txt", "--png", "file.txt", "not a directory"),
@@ -250,14 +252,18 @@ COMMANDS = [
     c("qs", "evaluate {d}/tum_norgb --groups so3", "--groups", "'so3'"),
     c("qs", "evaluate {d}/tum_norgb --seed -1", "--seed", "'-1'"),
     c("qs", "evaluate {d}/tum_norgb --json {d}/file.txt/r.json", "--json", "file.txt"),
-    *(c("qs", f"bench fuzz --n {v}", "--n", f"'{v}'") for v in ("0", "-1")),
+    *(c("tools.fuzz", f"--n {v}", "--n", f"'{v}'") for v in ("0", "-1")),
+    c("tools.fuzz", "--target mcap --engine hypothesis", "--target mcap", "--engine"),
+    c("tools.faults", "--size 640", "--size", "'640'"),
+    c("tools.slow_viewer", "--frames 0", "--frames", "'0'"),
+    c("tools.slow_viewer", "--out {d}/file.txt", "--out", "file.txt"),
     c("qs", "bench speed --pairs 0", "--pairs", "'0'"),
     c("qs", "bench speed --width -5", "--width", "'-5'"),
     c("qs", "bench speed --group bogus", "--group", "'bogus'"),
     *(c("qs", f"bench pipeline --fps {v}", "--fps", f"'{v}'") for v in ("0", "abc", "nan")),
     c("qs", "bench pipeline --fps 30,-1", "--fps", "'-1'"),
     c("qs", "bench pipeline --seconds -1", "--seconds", "'-1'"),
-    c("qs", "bench pipeline --render-slow-ms -5", "--render-slow-ms", "'-5'"),
+    c("qs", "bench pipeline --render-slow-ms 5", "--render-slow-ms"),  # a test tool's now (tests.tools.slow_render)
     *(c("qs", f"bench pipeline --size {v}", "--size", f"'{v}'") for v in ("640", "0x480", "640x480x3")),
     c("qs", "bench pipeline --streams 0", "--streams", "'0'"),
     c("qs", "bench pipeline --out {d}/file.txt", "--out", "file.txt"),
@@ -323,8 +329,8 @@ def no_work(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[None]:
     signal handlers a command installs before failing do not outlive the row."""
     import zenoh
 
-    from quick_stream import launcher, runtime
     from quick_stream.bench import pipeline
+    from quick_stream.stream import launcher, runtime
 
     monkeypatch.setattr(runtime.ServiceRuntime, "__init__", _reached("a service session (ServiceRuntime)"))
     monkeypatch.setattr(recorder_service, "lower_priority", lambda _niceness: None)  # not this test process
@@ -342,7 +348,11 @@ def no_work(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[None]:
 
 
 def entry_main(entry: str) -> Callable[[list[str]], int]:
-    return quick_stream.cli.main if entry == "qs" else importlib.import_module(f"services.{entry}").main
+    """``qs``: the quick-stream command; ``tools.NAME``: a test tool (tests/tools); else a service."""
+    if entry == "qs":
+        return quick_stream.cli.main
+    module = f"tests.{entry}" if entry.startswith("tools.") else f"quick_stream.services.{entry}"
+    return importlib.import_module(module).main
 
 
 def run_in_process(entry: str, argv: list[str]) -> int:
@@ -378,7 +388,8 @@ GOOD = [  # boundary values that make sense: the validators must not refuse them
     ("capture", "--window 0 --wait-timeout 0 --quality 1 --fps 0.5 --speed 4 --frames 1 --wait-for ''"),
     ("capture", "--quality 100 --wait-for flow,motion,render,recorder --stream cam_0-B"),
     ("capture", "--source mcap:{d}/rec.mcap,stream=cam0"),
-    ("render", "--frame-wait 0 --slow-ms 0 --max-frames 1 --output {d}/new/out.mp4 --png {d}/new/png"),
+    ("render", "--frame-wait 0 --max-frames 1 --output {d}/new/out.mp4 --png {d}/new/png"),
+    ("tools.slow_render", "--slow-ms 0 --frame-wait 0 --max-frames 1"),
     ("render", "--output '' --png '' --lowpass-sigma 0 --crop-zoom 1 --keyframe-interval 2"),
     ("recorder", "--nice 0 --flush 0.01 --queue 1 --output {d}/new/rec.mcap"),
     ("recorder", "--nice 19 --output {d}/rec.mcap"),
@@ -401,7 +412,7 @@ def test_sensible_values_reach_the_session(entry: str, argv: str, d: Path, no_wo
 def test_deployment_configs_pass_the_checks(path: Path) -> None:
     import argparse
 
-    from quick_stream.transport import add_zenoh_args
+    from quick_stream.stream.transport import add_zenoh_args
 
     p = argparse.ArgumentParser()
     add_zenoh_args(p)
@@ -428,73 +439,3 @@ def test_output_check_names_the_flag(tmp_path: Path) -> None:
         with pytest.raises(ValueError) as e:
             argtypes.check_output(argtypes.OutputPath(str(tmp_path / rel), flag, directory=is_dir))
         assert str(e.value).startswith(f"{flag} ") and words in str(e.value)
-
-
-# ---------------------------------------------------------------- as real processes
-
-@contextmanager
-def processes() -> Iterator[Callable[..., subprocess.Popen]]:
-    """``launch(args, env)`` runs ``python -m args``; whatever is still running at the end is killed,
-    whether the test passed or not (a bad input that was accepted would keep running)."""
-    started: list[subprocess.Popen] = []
-    clean = {k: v for k, v in os.environ.items() if not k.startswith(ENV)}
-
-    def launch(args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
-        started.append(subprocess.Popen([sys.executable, "-m", *args], cwd=REPO, env={**clean, **(env or {})},
-                                        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
-        return started[-1]
-
-    try:
-        yield launch
-    finally:
-        for p in started:
-            if p.poll() is None:
-                p.kill()
-            p.communicate()
-
-
-def finish(p: subprocess.Popen, timeout: float = 30.0) -> tuple[int, str]:
-    """Exit code and output of ``p``; a process still running after ``timeout`` fails the test."""
-    try:
-        out, _ = p.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"{shlex.join(p.args)} still running after {timeout:g} s")
-    return p.returncode, out
-
-
-def test_processes_refuse_bad_input_quickly(d: Path, tmp_path: Path) -> None:
-    """One row per entry point as the user runs it, all at once: exit 2, named, no traceback."""
-    rows = [
-        (["services.flow", "--queue", "0"], {}, ["--queue", "'0'"]),
-        (["services.capture", "--source", "synthetic:width=abc"], {}, ["width", "'abc'"]),
-        (["services.render", "--output", f"{d}/file.txt/out.mp4"], {}, ["--output", "file.txt"]),
-        (["services.recorder", "-c", f"{d}/invalid.json5", "--output", f"{tmp_path}/r.mcap"], {}, ["invalid.json5"]),
-        (["services.motion", "--stream", "a/b"], {}, ["--stream", "'a/b'"]),
-        (["services.flow"], {ENV + "MODE": "bogus"}, [ENV + "MODE", "'bogus'"]),
-        (["services.flow", "-e", "tcp/nohost"], {}, ["--connect", "'tcp/nohost'"]),
-        (["quick_stream", "stabilize", "--frames", "0"], {}, ["--frames", "'0'"]),
-        (["quick_stream", "up", "--source", "bogus:x", "--out", str(tmp_path / "up")], {}, ["--source", "'bogus'"]),
-        (["quick_stream", "router", "-l", "tcp/nohost"], {}, ["--listen", "'tcp/nohost'"]),
-    ]
-    with processes() as launch:
-        procs = [(launch(args, env), names) for args, env, names in rows]
-        for p, names in procs:
-            code, out = finish(p)
-            assert code == 2 and "Traceback" not in out, f"{shlex.join(p.args)}: exit {code}\n{out}"
-            for name in names:
-                assert name in out, f"{shlex.join(p.args)}: {name!r} not named in:\n{out}"
-    assert not (tmp_path / "up").exists(), "up started something before refusing its source"
-
-
-def test_listen_endpoint_in_use_is_named_not_a_traceback() -> None:
-    """Only zenoh can find this one (when it binds): the service and the router say so and exit 2."""
-    with socket.socket() as s, processes() as launch:
-        s.bind(("127.0.0.1", 0))
-        s.listen()
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-        procs = [launch(["services.flow", "-l", endpoint, "--no-multicast-scouting"]),
-                 launch(["quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
-        for p in procs:
-            code, out = finish(p)
-            assert code == 2 and "Traceback" not in out, f"{shlex.join(p.args)}: exit {code}\n{out}"
-            assert endpoint in out and "in use" in out, out

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 
 from quick_stream.cli import main
-from quick_stream.sources.synthetic import SyntheticSource
-from quick_stream.sources.trajectory import matrix_to_quat, read_tum_trajectory
+from quick_stream.io.sources.synthetic import SyntheticSource
+from quick_stream.io.sources.trajectory import matrix_to_quat, read_tum_trajectory
 
 
 def run_json(capsys, *argv) -> dict:

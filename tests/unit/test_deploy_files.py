@@ -4,7 +4,7 @@ No Docker engine or cluster runs where the tests run, so the compose files, the 
 manifests, the Dockerfile and the systemd units are checked statically:
 
 * they parse (``yaml.safe_load_all``; the units line by line);
-* every command they run exists in the CLI with those flags: ``services.X`` is parsed with that
+* every command they run exists in the CLI with those flags: ``quick_stream.services.X`` is parsed with that
   service's ``build_parser()``, ``quick_stream router`` with ``quick_stream.cli.build_parser()``,
   the eclipse/zenoh router's arguments with the zenohd flags used here; then the zenoh
   configuration is built from the parsed flags and the container's environment, as the
@@ -37,11 +37,11 @@ import pytest
 import yaml
 import zenoh
 
-from quick_stream import keys
-from quick_stream.acl import common_name
-from quick_stream.transport import config_from_args
+from quick_stream.stream import keys
+from quick_stream.stream.acl import common_name
+from quick_stream.stream.transport import config_from_args
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
 ZENOH_DIR = DEPLOY / "zenoh"
 ZENOH_FILES = sorted(p.name for p in ZENOH_DIR.glob("*.json5"))
@@ -117,7 +117,7 @@ def acl_common_names() -> set[str]:
 
 def test_router_tls_is_the_generated_access_control():
     """router-tls.json5 is `quick-stream acl --streams cam0` (regenerated, never edited by hand)."""
-    from quick_stream.acl import router_config_text
+    from quick_stream.stream.acl import router_config_text
 
     assert (ZENOH_DIR / "router-tls.json5").read_text() == router_config_text(["cam0"]), \
         "regenerate: quick-stream acl --streams cam0 --output deploy/zenoh/router-tls.json5"
@@ -146,7 +146,7 @@ class Acl:
 
 
 def test_access_control_gives_each_certificate_what_its_service_needs_and_no_more():
-    from quick_stream.acl import access_control
+    from quick_stream.stream.acl import access_control
 
     acl = Acl(access_control(["cam0", "cam1"]))
     assert Acl(zget(zconf("router-tls.json5"), "access_control")).by_cn.keys() == \
@@ -438,8 +438,8 @@ def parse_ours(argv: list[str], where: str) -> tuple[str, argparse.Namespace]:
         args = parse(build_parser(), argv[1:], where)
         assert args.command == "router", f"{where}: only `quick_stream router` belongs in a deployment"
         return "router", args
-    assert module.startswith("services."), f"{where}: {module} is not a service module"
-    service = module.removeprefix("services.")
+    assert module.startswith("quick_stream.services."), f"{where}: {module} is not a service module"
+    service = module.removeprefix("quick_stream.services.")
     assert service in SERVICES, f"{where}: no services/{service}.py"
     return service, parse(importlib.import_module(module).build_parser(), argv[1:], where)
 
@@ -650,8 +650,10 @@ def test_dockerfile():
     assert ["deploy/zenoh", CONFIG_DIR] in copies, "the zenoh configs are baked in at " + CONFIG_DIR
     copied = {PurePosixPath(s).parts[0] for *sources, _ in copies for s in sources}
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    packages = {p.rstrip("*") for p in pyproject["tool"]["setuptools"]["packages"]["find"]["include"]}
-    assert packages <= copied and "pyproject.toml" in copied and pyproject["project"]["readme"] in copied
+    setup = pyproject["tool"]["setuptools"]
+    folders = {setup["package-dir"].get(p, p.replace(".", "/")).split("/")[0] for p in setup["packages"]}
+    assert folders == {"quick_stream", "services"}, folders
+    assert folders <= copied and "pyproject.toml" in copied and pyproject["project"]["readme"] in copied
     assert any(i == "RUN" and "pip install" in r for i, r in instrs)
     users = [r for i, r in instrs if i == "USER"]
     assert users and users[-1] not in ("root", "0"), "the services run as a normal user"

@@ -4,9 +4,9 @@ import json
 import pytest
 
 from quick_stream.cli import main
-from quick_stream.evaluate import EvaluateParams, pick_starts
+from quick_stream.quality.evaluate import EvaluateParams, pick_starts
 
-from test_cli_motion import write_tum_clip
+from tests.unit.test_cli_motion import write_tum_clip
 
 
 def test_subsequence_starts_are_seeded_and_in_range():

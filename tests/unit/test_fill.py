@@ -9,17 +9,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from helpers import stabilize
+from tests.helpers import stabilize
 
-from quick_stream.lie import get_group
-from quick_stream.metrics_border import uncovered_mask
-from quick_stream.motion import MotionEstimate
-from quick_stream.path.budget import BudgetParams
-from quick_stream.path.planner import PathPlanner, PlannerParams
-from quick_stream.render.fill import FillSource, covered_zoom, fill_border, nearest_depth, ordered_sources
-from quick_stream.sources.synthetic import SyntheticSource
 from quick_stream.bench.quality import parse_settings
-from quick_stream.wire import decode, encode_correction
+from quick_stream.core.lie import get_group
+from quick_stream.core.motion import MotionEstimate
+from quick_stream.core.path.budget import BudgetParams
+from quick_stream.core.path.planner import PathPlanner, PlannerParams
+from quick_stream.core.render.fill import FillSource, covered_zoom, fill_border, nearest_depth, ordered_sources
+from quick_stream.io.sources.synthetic import SyntheticSource
+from quick_stream.quality.metrics_border import uncovered_mask
+from quick_stream.stream.wire import decode, encode_correction
 
 SE3 = get_group("se3")
 
@@ -120,7 +120,7 @@ def test_corrections_carry_the_camera_pose_and_its_chain_on_the_wire():
 def test_convex_exit_distance_agrees_with_the_general_one():
     """The planner's fast ray/quad test (docs/method.md (10b)) against the general polygon one, on
     perspective images of a rectangle of both orientations, with the centre inside and outside."""
-    from quick_stream.path.coverage import convex_exit_distance, exit_distance, rim
+    from quick_stream.core.path.coverage import convex_exit_distance, exit_distance, rim
 
     rng = np.random.default_rng(3)
     corners = np.array([[0, 0, 1], [640, 0, 1], [640, 480, 1], [0, 480, 1]], float).T

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from quick_stream import foxglove as fx
-from quick_stream.frame import Intrinsics
-from quick_stream.keys import key
-from quick_stream.recording import Recorder
-from quick_stream.sources import open_source
-from quick_stream.sources.trajectory import quat_to_matrix
-from quick_stream.wire import (
+from quick_stream.core.frame import Intrinsics
+from quick_stream.io import foxglove as fx
+from quick_stream.io.recording import Recorder
+from quick_stream.io.sources import open_source
+from quick_stream.io.sources.trajectory import quat_to_matrix
+from quick_stream.stream.keys import key
+from quick_stream.stream.wire import (
     StabilizedImage,
     WireError,
     encode_frame,
@@ -137,7 +137,7 @@ def test_compressed_images_decode_to_the_frame_size(recording, frames):
 
 
 def test_image_from_message_rejects_other_types(frames):
-    from quick_stream.motion import MotionEstimate
+    from quick_stream.core.motion import MotionEstimate
 
     m = MotionEstimate(0, 1, "se3", "exact", np.eye(4), np.zeros(6), True, "", 10, 1.0, 0.1, None)
     with pytest.raises(WireError, match="no image"):

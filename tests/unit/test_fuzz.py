@@ -1,15 +1,16 @@
-"""The fuzzers (quick_stream/bench/fuzz*.py) at CI size, and the MCAP reader bugs they found.
+"""The fuzzers (tests/tools/fuzz*.py) at CI size, and the MCAP reader bugs they found.
 
 CI: 20,000 mutated wire messages, 3,000 Hypothesis-built ones, 1,300 damaged recordings through
-every reader entry point; the benchmark (`quick-stream bench fuzz`) runs 100,000 / 100,000 / 10,000+.
+every reader entry point; the tool run by hand (`python -m tests.tools.fuzz`) runs 100,000 / 100,000 /
+10,000+.
 """
 import pytest
 
-from quick_stream.bench import fuzz, fuzz_hypothesis, fuzz_mcap
-from quick_stream.frame import BadFrame
-from quick_stream.recording import RecordingError, read_messages, recover
-from quick_stream.sources import SourceError, open_source
-from quick_stream.wire import MESSAGE_TYPES, decode
+from quick_stream.core.frame import BadFrame
+from quick_stream.io.recording import RecordingError, read_messages, recover
+from quick_stream.io.sources import SourceError, open_source
+from quick_stream.stream.wire import MESSAGE_TYPES, decode
+from tests.tools import fuzz, fuzz_hypothesis, fuzz_mcap
 
 
 def test_seeds_are_valid_messages_of_every_type():

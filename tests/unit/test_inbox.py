@@ -2,11 +2,11 @@
 import threading
 from types import SimpleNamespace
 
-from quick_stream.runtime import Inbox
-from quick_stream.sources.synthetic import SyntheticSource
-from quick_stream.wire import encode_end, encode_frame
-from quick_stream.wire.codec import pack, peek
-from quick_stream.wire.messages import EndOfStream
+from quick_stream.io.sources.synthetic import SyntheticSource
+from quick_stream.stream.runtime import Inbox
+from quick_stream.stream.wire import encode_end, encode_frame
+from quick_stream.stream.wire.codec import pack, peek
+from quick_stream.stream.wire.messages import EndOfStream
 
 FRAME = next(iter(SyntheticSource(width=64, height=48, frames=1)))
 
@@ -95,8 +95,8 @@ def test_a_message_that_fails_the_check_is_queued_but_never_skipped_or_accounted
 
 
 def test_the_status_board_counts_bad_stats_messages_and_keeps_only_good_ones():
-    from quick_stream.launcher import StatusBoard
-    from quick_stream.wire import Stats, encode_stats
+    from quick_stream.stream.launcher import StatusBoard
+    from quick_stream.stream.wire import Stats, encode_stats
 
     subs = []
     board = StatusBoard(SimpleNamespace(declare_subscriber=lambda key, cb: subs.append(cb) or SimpleNamespace()))

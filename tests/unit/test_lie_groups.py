@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from quick_stream.lie import GA3, GROUPS, SA3, SE3, SIM3, LieGroup, get_group, so3
-from quick_stream.lie.affine import phi
+from quick_stream.core.lie import GA3, GROUPS, LieGroup, SA3, SE3, SIM3, get_group, so3
+from quick_stream.core.lie.affine import phi
 
 ALL = pytest.mark.parametrize("G", list(GROUPS.values()), ids=list(GROUPS))
 PHI = pytest.mark.parametrize("G", [GROUPS["sa3"], GROUPS["ga3"]], ids=["sa3", "ga3"])
@@ -395,7 +395,7 @@ def test_phi_log_large_elements(G: LieGroup, rng: np.random.Generator) -> None:
 @PHI
 def test_phi_log_continuation_fallback(G: LieGroup, rng: np.random.Generator, monkeypatch) -> None:
     """With a useless (overflowing) initial guess the damped Newton fails; the continuation fallback must rescue it."""
-    import quick_stream.lie.affine as affine
+    import quick_stream.core.lie.affine as affine
 
     monkeypatch.setattr(affine, "_initial_guess", lambda A: np.tile(np.diag([800.0, -800.0, 0.0]), (A.shape[0], 1, 1)))
     xi = twists(G, rng, (2,), 0.5)

@@ -4,12 +4,12 @@ import logging
 import numpy as np
 import pytest
 
-from quick_stream.frame import BadFrame, RGBDFrame
-from quick_stream.keys import key
-from quick_stream.recording import Recorder
-from quick_stream.sources import SOURCE_KINDS, Source, SourceError, open_source
-from quick_stream.sources.mcap_replay import McapSource, recorded_streams
-from quick_stream.wire import decode, encode_frame
+from quick_stream.core.frame import BadFrame, RGBDFrame
+from quick_stream.io.recording import Recorder
+from quick_stream.io.sources import SOURCE_KINDS, Source, SourceError, open_source
+from quick_stream.io.sources.mcap_replay import McapSource, recorded_streams
+from quick_stream.stream.keys import key
+from quick_stream.stream.wire import decode, encode_frame
 
 SPEC = "synthetic:frames=5,width=160,height=120"
 

@@ -1,4 +1,4 @@
-"""Quality metrics (design note section 6) on synthetic textured sequences, and the FFmpeg baseline runner."""
+"""Quality metrics (docs/method.md section 6) on synthetic textured sequences, and the FFmpeg baseline runner."""
 from __future__ import annotations
 
 import math
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from quick_stream.bench.ffmpeg_baselines import ensure_ffmpeg, run_baselines
-from quick_stream.metrics import MetricParams, evaluate_sequence
-from quick_stream.metrics_jitter import (
+from quick_stream.quality.metrics import MetricParams, evaluate_sequence
+from quick_stream.quality.metrics_jitter import (
     accumulate_path, low_frequency_ratio, path_low_frequency_ratio, path_signals, path_stability, to_pixel_origin,
     trajectory_jitter,
 )

@@ -1,4 +1,4 @@
-"""Border-free cropping (quick_stream.metrics_border) on synthetic frames with known borders."""
+"""Border-free cropping (quick_stream.quality.metrics_border) on synthetic frames with known borders."""
 from __future__ import annotations
 
 import math
@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from quick_stream.metrics_border import (BorderFreeAccumulator, border_free_cropping, border_free_scale,
+from quick_stream.quality.metrics_border import (BorderFreeAccumulator, border_free_cropping, border_free_scale,
                                          scale_from_mask, sequence_border_free_scale, uncovered_mask)
 
 W, H = 200, 150

@@ -2,19 +2,19 @@
 import numpy as np
 import pytest
 
-from quick_stream.frame import Intrinsics
-from quick_stream.lie import GROUPS, get_group
-from quick_stream.motion import MotionEstimator, MotionParams, ExactParams, integrate_path
-from quick_stream.motion.induced import (
+from quick_stream.core.frame import Intrinsics
+from quick_stream.core.lie import GROUPS, get_group
+from quick_stream.core.motion import ExactParams, MotionEstimator, MotionParams, integrate_path
+from quick_stream.core.motion.induced import (
     closed_form_twists, estimate_induced, induced_twist_paper, induced_twists,
 )
-from quick_stream.sceneflow import SceneFlowResult
+from quick_stream.core.sceneflow import SceneFlowResult
 
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 
 
 def scene_points(rng, n=4000):
-    """Points seen by a VGA camera, 1-4 m in front (the design note's test scene)."""
+    """Points seen by a VGA camera, 1-4 m in front (a typical indoor scene)."""
     u = rng.uniform(0, 640, n)
     v = rng.uniform(0, 480, n)
     z = rng.uniform(1.0, 4.0, n)
@@ -57,7 +57,7 @@ def test_closed_forms_spell_out_the_paper():
 
 
 def test_induced_estimator_underestimates_pure_roll():
-    """Design note section 2: a 0.01 rad roll comes back as ~0.0015 rad (15 %)."""
+    """docs/method.md section 2: a 0.01 rad roll comes back as ~0.0015 rad (15 %)."""
     rng = np.random.default_rng(2)
     x = scene_points(rng)
     roll = get_group("se3").exp(np.array([0, 0, 0, 0, 0, 0.01]))  # point motion: roll about z
@@ -154,7 +154,7 @@ def test_exact_converges_past_an_object_covering_45_percent_of_the_points():
 
 
 def test_exact_is_deterministic_and_stops_when_converged():
-    from quick_stream.motion.exact import irls_closed_form, refine_reprojection
+    from quick_stream.core.motion.exact import irls_closed_form, refine_reprojection
 
     flow, _ = moving_object_flow(0)
     a, b = (MotionEstimator(MotionParams()).estimate(flow) for _ in range(2))

@@ -8,12 +8,12 @@ Such motions must not be reported as valid fits of the requested group.
 import numpy as np
 import pytest
 
-from quick_stream.evaluation.rpe import relative_pose_error
-from quick_stream.frame import Intrinsics
-from quick_stream.lie import get_group
-from quick_stream.motion import MotionEstimator, MotionParams
-from quick_stream.motion.exact import ExactParams
-from quick_stream.sceneflow import SceneFlowResult
+from quick_stream.core.frame import Intrinsics
+from quick_stream.core.lie import get_group
+from quick_stream.core.motion import MotionEstimator, MotionParams
+from quick_stream.core.motion.exact import ExactParams
+from quick_stream.core.sceneflow import SceneFlowResult
+from quick_stream.quality.evaluation.rpe import relative_pose_error
 
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 SIGMA_PX, DEPTH_NOISE = 0.5, 0.0015  # ExactParams' noise model
@@ -136,7 +136,7 @@ def test_too_few_distinct_points_give_an_invalid_motion():
 
 def test_spread_test_is_in_units_of_the_point_noise():
     """docs/method.md (3b): rho = eig(C) / s^2 and eps(r) = 1/r + 1/sqrt(n_eff r)."""
-    from quick_stream.motion.exact import RIGID_FALLBACK, observability
+    from quick_stream.core.motion.exact import RIGID_FALLBACK, observability
 
     assert RIGID_FALLBACK == FALLBACK
     p = ExactParams()

@@ -2,13 +2,13 @@
 import numpy as np
 import pytest
 
-from quick_stream.evaluation.shake import shake
-from quick_stream.lie import get_group
-from quick_stream.motion import MotionEstimate, invalid_motion
-from quick_stream.path.keyframes import KeyframeDetector, KeyframeParams
-from quick_stream.path.optimal import PathParams
-from quick_stream.path.planner import PathPlanner, PlannerParams
-from quick_stream.sources.synthetic import SyntheticSource
+from quick_stream.core.lie import get_group
+from quick_stream.core.motion import MotionEstimate, invalid_motion
+from quick_stream.core.path.keyframes import KeyframeDetector, KeyframeParams
+from quick_stream.core.path.optimal import PathParams
+from quick_stream.core.path.planner import PathPlanner, PlannerParams
+from quick_stream.io.sources.synthetic import SyntheticSource
+from quick_stream.quality.evaluation.shake import shake
 
 SE3 = get_group("se3")
 

@@ -4,11 +4,11 @@ import pytest
 from scipy.optimize import NonlinearConstraint, minimize
 
 from quick_stream.bench.path_speed import stress_segment
-from quick_stream.lie import GROUPS, get_group, so3
-from quick_stream.motion import MotionEstimate
-from quick_stream.path import PathParams, integrate, path_cost, solve_segment, zeta_bar
-from quick_stream.path.planner import PathPlanner, PlannerParams
-from quick_stream.sources.synthetic import SyntheticSource
+from quick_stream.core.lie import GROUPS, get_group, so3
+from quick_stream.core.motion import MotionEstimate
+from quick_stream.core.path import PathParams, integrate, path_cost, solve_segment, zeta_bar
+from quick_stream.core.path.planner import PathPlanner, PlannerParams
+from quick_stream.io.sources.synthetic import SyntheticSource
 
 
 def random_segment(group, rng, n_frames=12, rot=0.03, trans=0.01):

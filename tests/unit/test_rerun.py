@@ -14,15 +14,15 @@ from pathlib import Path
 import cv2
 import pytest
 
-from quick_stream import keys
 from quick_stream.cli import main
-from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
-from quick_stream.recording import Recorder, read_messages
-from quick_stream.rerun import RerunError, rerun_stage
-from quick_stream.sources import open_source
-from quick_stream.render_stage import RenderStage
-from quick_stream.stages import FlowStage, MotionStage
-from quick_stream.wire import (
+from quick_stream.core.render_stage import RenderStage
+from quick_stream.core.stages import FlowStage, MotionStage
+from quick_stream.io.recording import Recorder, read_messages
+from quick_stream.io.sources import open_source
+from quick_stream.quality.rerun import RerunError, rerun_stage
+from quick_stream.stream import keys
+from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.stream.wire import (
     EndOfStream,
     StabilizedImage,
     decode,

@@ -3,7 +3,7 @@ cursor) is followed once a run of frames confirms it, by every stage that refuse
 messages: flow, motion, render and the arrival ledger (docs/reliability.md, "Renumbered stream").
 
 Before this, every later frame was refused as out of order and the stream halted for good. The
-rule (quick_stream/continuity.py, ``JumpGuard.renumbered``): ``resync`` (15) frames in a row at or
+rule (quick_stream/core/continuity.py, ``JumpGuard.renumbered``): ``resync`` (15) frames in a row at or
 behind the newest accepted one, each following the previous by 1..step, none published before it.
 """
 from __future__ import annotations
@@ -11,15 +11,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from quick_stream.arrivals import ArrivalLedger
-from quick_stream.continuity import RENUMBERED, ContinuityParams, FrameRefused, JumpGuard
-from quick_stream.path.planner import Correction
-from quick_stream.sources import open_source
-from quick_stream.sources.synthetic import SyntheticSource
-from quick_stream.stabilizer import Stabilizer
-from quick_stream.render_stage import STALE, ReleaseGroups, RenderStage
-from quick_stream.stages import FlowStage, MotionStage
-from quick_stream.wire import encode_frame
+from quick_stream.core.continuity import ContinuityParams, FrameRefused, JumpGuard, RENUMBERED
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.render_stage import ReleaseGroups, RenderStage, STALE
+from quick_stream.core.stabilizer import Stabilizer
+from quick_stream.core.stages import FlowStage, MotionStage
+from quick_stream.io.sources import open_source
+from quick_stream.io.sources.synthetic import SyntheticSource
+from quick_stream.stream.arrivals import ArrivalLedger
+from quick_stream.stream.wire import encode_frame
 
 RESYNC = ContinuityParams().resync
 OLD, NEW = 40, 30  # frames 0..39, then the source renumbered 0..29
@@ -252,7 +252,7 @@ def test_a_service_taking_over_skips_the_replay_but_not_a_live_renumbered_stream
 
     from types import SimpleNamespace
 
-    from quick_stream.runtime import Inbox
+    from quick_stream.stream.runtime import Inbox
 
     def sample(seq: int, pub_ns: int):
         data = encode_frame(_F.with_(seq=seq), "cam0", pub_ns=pub_ns)

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from quick_stream.frame import RGBDFrame
-from quick_stream.sceneflow import SceneFlow, SceneFlowParams, sample_depth
-from quick_stream.sources.synthetic import SyntheticSource
+from quick_stream.core.frame import RGBDFrame
+from quick_stream.core.sceneflow import SceneFlow, SceneFlowParams, sample_depth
+from quick_stream.io.sources.synthetic import SyntheticSource
 
 
 @pytest.fixture(scope="module")

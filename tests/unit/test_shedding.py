@@ -1,4 +1,4 @@
-"""Load shedding at a live capture (quick_stream/shedding.py), on a simulated clock."""
+"""Load shedding at a live capture (quick_stream/core/shedding.py), on a simulated clock."""
 from __future__ import annotations
 
 from collections import deque
@@ -6,7 +6,7 @@ from collections import deque
 import numpy as np
 import pytest
 
-from quick_stream.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
+from quick_stream.core.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
 
 MOTION, OUTPUT = DEFAULT_LIMITS["motion"], DEFAULT_LIMITS["stabilized"]
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from quick_stream.sinks import BackgroundSink, VideoSink
+from quick_stream.io.sinks import BackgroundSink, VideoSink
 
 
 class GatedSink(VideoSink):

@@ -4,13 +4,13 @@ import json
 import cv2
 import numpy as np
 
-from helpers import stabilize
+from tests.helpers import stabilize
 
 from quick_stream.cli import main
-from quick_stream.frame import BadFrame
-from quick_stream.render import FramingParams
-from quick_stream.sources.synthetic import SyntheticSource
-from quick_stream.stabilizer import StabilizerParams
+from quick_stream.core.frame import BadFrame
+from quick_stream.core.render import FramingParams
+from quick_stream.core.stabilizer import StabilizerParams
+from quick_stream.io.sources.synthetic import SyntheticSource
 
 
 def test_same_input_and_settings_give_bit_identical_frames():

@@ -1,13 +1,13 @@
-"""The pipeline stages the services drive: gaps, orphans, order and bounds (quick_stream/stages.py, render_stage.py)."""
+"""The pipeline stages the services drive: gaps, orphans, order and bounds (quick_stream/core/stages.py, render_stage.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from quick_stream.path.planner import Correction
-from quick_stream.sources import open_source
-from quick_stream.render_stage import RenderStage
-from quick_stream.stages import FlowStage, MotionStage
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.render_stage import RenderStage
+from quick_stream.core.stages import FlowStage, MotionStage
+from quick_stream.io.sources import open_source
 
 
 @pytest.fixture(scope="module")
@@ -126,8 +126,8 @@ def test_render_stage_reports_a_frame_that_cannot_be_loaded(frames):
 def test_release_groups_hand_over_releases_whose_sender_died():
     import numpy as np
 
-    from quick_stream.path.planner import Correction
-    from quick_stream.render_stage import ReleaseGroups
+    from quick_stream.core.path.planner import Correction
+    from quick_stream.core.render_stage import ReleaseGroups
 
     def c(seq):
         return Correction(seq, np.eye(4), 0, False)
@@ -147,8 +147,8 @@ def test_release_groups_hand_over_releases_whose_sender_died():
 
 
 def test_render_refuses_one_far_future_frame_and_follows_a_confirmed_renumbering():
-    from quick_stream.render_stage import RenderStage
-    from quick_stream.sources.synthetic import SyntheticSource
+    from quick_stream.core.render_stage import RenderStage
+    from quick_stream.io.sources.synthetic import SyntheticSource
 
     fr = next(iter(SyntheticSource(width=64, height=48, frames=1)))
     st = RenderStage()
@@ -166,8 +166,8 @@ def test_render_refuses_one_far_future_frame_and_follows_a_confirmed_renumbering
 def test_flow_refuses_one_far_future_frame_and_breaks_at_a_confirmed_renumbering():
     """One frame from the far future used to become the previous frame, so every later one was
     refused as out of order and the stream halted for good."""
-    from quick_stream.continuity import FrameRefused
-    from quick_stream.sources.synthetic import SyntheticSource
+    from quick_stream.core.continuity import FrameRefused
+    from quick_stream.io.sources.synthetic import SyntheticSource
 
     frames = list(SyntheticSource(width=64, height=48, frames=12))
     st = FlowStage()

@@ -9,15 +9,15 @@ import cv2
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:  # allow running pytest without installing the package
     sys.path.insert(0, str(REPO))
 
-from quick_stream.frame import RGBDFrame  # noqa: E402
-from quick_stream.sources import SourceError, open_source  # noqa: E402
-from quick_stream.sources.base import Source  # noqa: E402
-from quick_stream.sources.scene import Renderer, build_scene  # noqa: E402
-from quick_stream.sources.synthetic import SyntheticSource, _rotations  # noqa: E402
+from quick_stream.core.frame import RGBDFrame  # noqa: E402
+from quick_stream.io.sources import SourceError, open_source  # noqa: E402
+from quick_stream.io.sources.base import Source  # noqa: E402
+from quick_stream.io.sources.scene import Renderer, build_scene  # noqa: E402
+from quick_stream.io.sources.synthetic import SyntheticSource, _rotations  # noqa: E402
 
 
 def rotvecs(R: np.ndarray) -> np.ndarray:
@@ -239,7 +239,7 @@ def test_from_spec_and_open_source():
 
 def test_renderer_clips_faces_crossing_the_camera_plane(monkeypatch):
     """Camera placed at the room's open front edge, turned: walls cross the camera plane."""
-    from quick_stream.sources import scene
+    from quick_stream.io.sources import scene
 
     clipped = []
     clip = scene._clip_near

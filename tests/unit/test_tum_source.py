@@ -12,13 +12,13 @@ import cv2
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:  # allow running pytest without installing the package
     sys.path.insert(0, str(REPO))
 
-from quick_stream.frame import BadFrame, Intrinsics, RGBDFrame  # noqa: E402
-from quick_stream.sources.base import Source, SourceError  # noqa: E402
-from quick_stream.sources.trajectory import (  # noqa: E402
+from quick_stream.core.frame import BadFrame, Intrinsics, RGBDFrame  # noqa: E402
+from quick_stream.io.sources.base import Source, SourceError  # noqa: E402
+from quick_stream.io.sources.trajectory import (  # noqa: E402
     interpolate_pose,
     matrix_to_quat,
     poses_at,
@@ -27,15 +27,15 @@ from quick_stream.sources.trajectory import (  # noqa: E402
     slerp,
     write_tum_trajectory,
 )
-from quick_stream.sources.tum import TumSource, associate  # noqa: E402
+from quick_stream.io.sources.tum import TumSource, associate  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 KITCHEN = DATA / "7scenes_redkitchen"
 PAIR = DATA / "jointvosf_pairs" / "person_standing"
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"no test data folder {DATA}")
 
 W, H = 8, 6
-LOGGER = "quick_stream.sources.tum"
+LOGGER = "quick_stream.io.sources.tum"
 
 
 # ---------------------------------------------------------------- synthetic folders

@@ -9,11 +9,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from quick_stream.frame import Intrinsics, RGBDFrame
-from quick_stream.motion import MotionEstimate, invalid_motion
-from quick_stream.path.planner import Correction
-from quick_stream.sceneflow import SceneFlowResult
-from quick_stream.wire import (
+from quick_stream.core.frame import Intrinsics, RGBDFrame
+from quick_stream.core.motion import MotionEstimate, invalid_motion
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.sceneflow import SceneFlowResult
+from quick_stream.stream.wire import (
     FORMAT_VERSION,
     Decoded,
     StabilizedImage,
@@ -367,7 +367,7 @@ def test_fuzz_mutations(i, data):
 def test_a_frame_larger_than_the_maximum_is_refused_from_its_header(monkeypatch):
     """An 8192x8192 JPEG in a small message (it pushed flow and render to ~1.1 GB): refused from the
     declared shape before anything is decoded; the maximum is configurable per process."""
-    from quick_stream.wire import codec
+    from quick_stream.stream.wire import codec
 
     d = raw(encode_frame(make_frame(), "cam0"))
     d["color"]["shape"] = [8192, 8192, 3]
