@@ -1,8 +1,19 @@
 """quick-stream: online QuICK 3D video stabilization for RGB-D cameras.
 
-The library holds every algorithm (scene flow, Lie groups, motion, path,
-rendering), the wire format and the transport/logging helpers; the processes in
-``services/`` only add transport around it.
+Layers, each importing only its own or lower ones (docs/architecture.md,
+"Modules and layers"; tests/unit/test_layers.py checks it):
+
+* ``core``: every algorithm (frames, Lie groups, scene flow, motion, path,
+  rendering) and the stages that chain them; pure, no zenoh, files or CLI;
+* ``stream``: the wire format, keys, zenoh transport, a service's runtime, the
+  launcher and the flags every service shares;
+* ``io``: sources, sinks, MCAP recordings, the Foxglove view, plots;
+* ``quality``: metrics and evaluation against ground truth, stage re-runs;
+* ``bench``: the benchmarks that print numbers;
+* ``cli``: the ``quick-stream`` command, one module per sub-command.
+
+The processes (``quick_stream.services``, the repo's ``services/`` folder)
+import only core, stream and io, and add transport around them.
 
 Threading: every stage runs on one core (a service per stage). The linear
 algebra here is on tiny matrices (3x3 .. 12x12, a few thousand rows), where

@@ -1,6 +1,7 @@
-"""The streaming processes (capture, flow, motion, render), one thin module each.
+"""The streaming processes (capture, flow, motion, render, recorder), one thin module each.
 
-Each service subscribes, calls the library (``quick_stream``), publishes and logs;
-no algorithm lives here. They arrive with the streaming-service issue; until
-then every stage runs in-process through the library (``quick-stream motion``).
+This folder installs as ``quick_stream.services`` (pyproject.toml maps it into the package):
+run one with ``python -m quick_stream.services.flow`` or its console script ``quick-stream-flow``.
+Each service subscribes, calls the library (core, stream, io only), publishes and logs; no
+algorithm lives here.
 """

@@ -21,16 +21,15 @@ import time
 
 import zenoh
 
-from quick_stream import keys
-from quick_stream.cli import argtypes as at
-from quick_stream.frame import BadFrame
-from quick_stream.meters import RateMeter
-from quick_stream.runtime import ServiceRuntime, TimedPublisher, service_main, service_parser
-from quick_stream.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
-from quick_stream.sources import SourceError, open_source
-from quick_stream.wire import EndOfStream, WireError, encode_end, encode_frame
-from quick_stream.wire.codec import unpack
-from quick_stream.wire.messages import restamp_frame
+from quick_stream.core.frame import BadFrame
+from quick_stream.core.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
+from quick_stream.io.sources import SourceError, open_source
+from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream.meters import RateMeter
+from quick_stream.stream.runtime import ServiceRuntime, TimedPublisher, service_main, service_parser
+from quick_stream.stream.wire import EndOfStream, WireError, encode_end, encode_frame
+from quick_stream.stream.wire.codec import unpack
+from quick_stream.stream.wire.messages import restamp_frame
 
 log = logging.getLogger("capture")
 
@@ -88,7 +87,7 @@ class OutputCredit:
     realtime pace.
 
     ``--pace realtime`` (:meth:`admit`): a live source cannot wait, so frames offered faster than the
-    pipeline takes them are shed before they are encoded (:class:`quick_stream.shedding.Shedder`).
+    pipeline takes them are shed before they are encoded (:class:`quick_stream.core.shedding.Shedder`).
     """
 
     def __init__(self, rt: ServiceRuntime, stream: str, window: int, stall_s: float = 10.0,
@@ -154,7 +153,7 @@ class OutputCredit:
 
 
 def list_devices() -> int:
-    from quick_stream.sources.oak_device import list_devices as devices
+    from quick_stream.io.sources.oak_device import list_devices as devices
 
     try:
         found = devices()

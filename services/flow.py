@@ -2,7 +2,7 @@
 
 Reads frames through a drop-oldest inbox (``--queue``, default 30: if this stage
 falls that far behind, the oldest frames are dropped and counted, and the next
-flow spans the gap), runs :class:`quick_stream.stages.FlowStage` and publishes
+flow spans the gap), runs :class:`quick_stream.core.stages.FlowStage` and publishes
 each pair's ``flow`` message (lossless: the motion stage needs every pair it can
 get; a receiver whose link dropped flows fetches them back from the publisher's
 cache, and no subscriber can make the put wait). Undecodable or out-of-order frames
@@ -19,13 +19,12 @@ import time
 
 import zenoh
 
-from quick_stream import keys
-from quick_stream.cli import argtypes as at
-from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
-from quick_stream.meters import RateMeter
-from quick_stream.runtime import ServiceRuntime, service_main, service_parser
-from quick_stream.stages import FlowStage
-from quick_stream.wire import encode_end, encode_flow
+from quick_stream.core.stages import FlowStage
+from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream.meters import RateMeter
+from quick_stream.stream.runtime import ServiceRuntime, service_main, service_parser
+from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.stream.wire import encode_end, encode_flow
 
 log = logging.getLogger("flow")
 

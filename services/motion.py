@@ -1,6 +1,6 @@
 """``motion``: camera motion, keyframes and the optimal path, ``flow`` -> ``motion`` + ``correction``.
 
-Runs :class:`quick_stream.stages.MotionStage` on every flow (lossless inbox and
+Runs :class:`quick_stream.core.stages.MotionStage` on every flow (lossless inbox and
 publishers: a lost correction would leave frames unrendered). Publishes each
 pair's ``motion`` and, one segment late, the ``correction`` of every frame of a
 closed segment, tagged with its planner release (``batch``) so the renderer
@@ -19,14 +19,13 @@ import time
 
 import zenoh
 
-from quick_stream import keys
-from quick_stream.cli import argtypes as at
-from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
-from quick_stream.path.planner import Correction
-from quick_stream.meters import RateMeter
-from quick_stream.runtime import ServiceRuntime, TimedPublisher, service_main, service_parser
-from quick_stream.stages import MotionStage
-from quick_stream.wire import encode_correction, encode_end, encode_motion
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.stages import MotionStage
+from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream.meters import RateMeter
+from quick_stream.stream.runtime import ServiceRuntime, TimedPublisher, service_main, service_parser
+from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.stream.wire import encode_correction, encode_end, encode_motion
 
 log = logging.getLogger("motion")
 

@@ -4,7 +4,7 @@ Subscribes ``quick/@v1/<stream>/*`` (``--all-streams``: ``quick/@v1/*/*``) and
 logs each message's exact bytes on a msgpack channel named after its key (exact
 replay: ``capture --source mcap:FILE``, ``quick-stream rerun``), plus the
 Foxglove-viewable channels derived from them (images, calibration, camera and
-stabilized poses; :mod:`quick_stream.foxglove_view`).
+stabilized poses; :mod:`quick_stream.io.foxglove_view`).
 
 Nothing accepted is lost to a kill: each message's wire bytes go into the file's open
 chunk as it arrives (in zenoh's thread, not behind a queue), and the chunk is written out
@@ -22,7 +22,7 @@ index (one entry per chunk, kept for the footer: about 1 MB a minute at 640x480,
 
 No loss upstream is silent: the seqs of each stage that never arrived (dropped by a stage,
 lost in transport) are logged and counted in the stats (``unreceived``, per stage
-``unreceived_<stage>``; :mod:`quick_stream.arrivals`).
+``unreceived_<stage>``; :mod:`quick_stream.stream.arrivals`).
 """
 from __future__ import annotations
 
@@ -33,15 +33,15 @@ import time
 
 import zenoh
 
-from quick_stream import foxglove, keys
-from quick_stream.arrivals import Gap
-from quick_stream.cli import argtypes as at
-from quick_stream.foxglove_view import FoxgloveView
-from quick_stream.recording import SplitRecorder, fresh_path, load_recorded, recorded_path, save_recorded
-from quick_stream.meters import RateMeter
-from quick_stream.runtime import ServiceRuntime, lower_priority, service_main, service_parser
-from quick_stream.wire import WireError
-from quick_stream.wire.codec import peek
+from quick_stream.io import foxglove
+from quick_stream.io.foxglove_view import FoxgloveView
+from quick_stream.io.recording import SplitRecorder, fresh_path, load_recorded, recorded_path, save_recorded
+from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream.arrivals import Gap
+from quick_stream.stream.meters import RateMeter
+from quick_stream.stream.runtime import ServiceRuntime, lower_priority, service_main, service_parser
+from quick_stream.stream.wire import WireError
+from quick_stream.stream.wire.codec import peek
 
 log = logging.getLogger("recorder")
 

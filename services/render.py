@@ -2,7 +2,7 @@
 
 Frames are decoded as they arrive and held until their correction arrives, one segment later; corrections are collected per planner
 release and each release is warped, framed and rendered as a whole by
-:class:`quick_stream.render_stage.RenderStage`. A release is rendered once all its
+:class:`quick_stream.core.render_stage.RenderStage`. A release is rendered once all its
 frames are here, or a newer frame has arrived (a missing one is lost: counted),
 or after ``--frame-wait`` seconds. Frames that no correction will reach (skipped
 upstream) are rendered uncorrected and flagged. A stream whose numbering restarts lower is
@@ -24,14 +24,13 @@ from collections.abc import Iterable
 
 import zenoh
 
-from quick_stream import keys
-from quick_stream.cli import argtypes as at
-from quick_stream.cli.settings import add_stabilizer_args, stabilizer_params
-from quick_stream.meters import Percentiles, RateMeter
-from quick_stream.runtime import ServiceRuntime, service_main, service_parser
-from quick_stream.sinks import BackgroundSink, VideoSink
-from quick_stream.render_stage import ReleaseGroups, RenderStage, StabilizedFrame
-from quick_stream.wire import StabilizedImage, encode_end, encode_stabilized
+from quick_stream.core.render_stage import ReleaseGroups, RenderStage, StabilizedFrame
+from quick_stream.io.sinks import BackgroundSink, VideoSink
+from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream.meters import Percentiles, RateMeter
+from quick_stream.stream.runtime import ServiceRuntime, service_main, service_parser
+from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.stream.wire import StabilizedImage, encode_end, encode_stabilized
 
 log = logging.getLogger("render")
 
@@ -49,8 +48,6 @@ def build_parser():
                    help="frames held for corrections (default 150, 5 s at 30 fps)")
     p.add_argument("--frame-wait", type=at.nonneg_float, default=1.0,
                    help="seconds a complete release waits for missing frames (default 1)")
-    p.add_argument("--slow-ms", type=at.nonneg_float, default=0.0,
-                   help="fault injection: spend this much longer on every frame (backpressure tests)")
     add_stabilizer_args(p)
     return p
 
@@ -96,9 +93,6 @@ def run(args, conf: zenoh.Config) -> int:
             nonlocal flagged
             for sf in out:
                 t0 = time.perf_counter()
-                if args.slow_ms > 0:
-                    time.sleep(args.slow_ms / 1e3)
-                    drain_frames()
                 src = pub_ns.pop((sf.numbering, sf.seq), None)
                 ready_ns = pub_ns.get(ready, src) if ready is not None else src
                 pub.put(encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags),

@@ -14,13 +14,12 @@ import cv2
 import numpy as np
 
 from quick_stream.cli import build_parser
-from quick_stream.cli.settings import stabilizer_params
-from quick_stream.cli.up_cmd import free_port, open_when_up
-from quick_stream.launcher import ServiceSpec, Supervisor
-from quick_stream.recording import read_messages
-from quick_stream.sources import open_source
-from quick_stream.stabilizer import Stabilizer
-from quick_stream.wire import WireError, decode
+from quick_stream.core.stabilizer import Stabilizer
+from quick_stream.io.recording import read_messages
+from quick_stream.io.sources import open_source
+from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port, open_when_up
+from quick_stream.stream.stabilizer_flags import stabilizer_params
+from quick_stream.stream.wire import WireError, decode
 
 UP = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
 
@@ -95,12 +94,14 @@ def pipeline(tmp: Path, render: list[str] = (), record: bool = True, capture: li
     z = ["-e", ep, "--no-multicast-scouting"]
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting"])]
     if record:
-        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(tmp / "rec.mcap")]))
-    specs += [ServiceSpec("flow", ["-m", "services.flow", *z]), ServiceSpec("motion", ["-m", "services.motion", *z]),
-              ServiceSpec("render", ["-m", "services.render", *z, *render])]
+        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z,
+                                              "--output", str(tmp / "rec.mcap")]))
+    specs += [ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z]),
+              ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z]),
+              ServiceSpec("render", ["-m", "quick_stream.services.render", *z, *render])]
     if capture is not None:
         wait = ",".join(s.name for s in specs[1:])
-        specs.append(ServiceSpec("capture", ["-m", "services.capture", *z, *capture, "--wait-for", wait],
+        specs.append(ServiceSpec("capture", ["-m", "quick_stream.services.capture", *z, *capture, "--wait-for", wait],
                                  may_finish=True))
     sup = Supervisor(specs, tmp / "logs", max_restarts=max_restarts)
     start_router(sup, ep)

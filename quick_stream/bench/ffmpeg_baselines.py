@@ -1,6 +1,6 @@
 """FFmpeg baselines: two-pass vid.stab and ``deshake``, run on BGR frames, scored with the same metrics.
 
-Design note section 7 (comparison with other stabilisers). Debian's ffmpeg
+The comparison with other stabilisers. Debian's ffmpeg
 (``sudo apt-get install ffmpeg``) is built with libvidstab; nothing here installs it:
 :func:`ensure_ffmpeg` says what is missing and prints that command. The exact command lines
 (``W``x``H``, ``FPS`` and file names filled in; :func:`run_baselines` returns
@@ -71,7 +71,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..metrics import MetricParams, evaluate_sequence
+from ..quality.metrics import MetricParams, evaluate_sequence
 
 REQUIRED_FILTERS = ("vidstabdetect", "vidstabtransform", "deshake")
 QUIET = ["-hide_banner", "-loglevel", "error", "-y"]
@@ -275,7 +275,7 @@ def format_table(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description="vid.stab and deshake baselines scored with quick_stream.metrics")
+    ap = argparse.ArgumentParser(description="vid.stab and deshake baselines scored with quick_stream.quality.metrics")
     ap.add_argument("folder", type=Path, nargs="?", default=Path("../shared/data/7scenes_redkitchen"))
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--smoothing", type=int, default=BaselineParams.smoothing)

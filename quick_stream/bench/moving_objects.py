@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..evaluation.rpe import relative_pose_error
-from ..motion import ExactParams, MotionEstimator, MotionParams
-from ..sceneflow import SceneFlow, SceneFlowParams
-from ..sources.tum import TumSource
+from ..core.motion import ExactParams, MotionEstimator, MotionParams
+from ..core.sceneflow import SceneFlow, SceneFlowParams
+from ..io.sources.tum import TumSource
+from ..quality.evaluation.rpe import relative_pose_error
 
 # Hand-drawn boxes (x0, y0, x1, y1) in 640x480 pixels around what moves in each pair.
 MOVING_BOXES: dict[str, list[tuple[int, int, int, int]]] = {

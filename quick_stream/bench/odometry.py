@@ -11,13 +11,13 @@ import time
 import cv2
 import numpy as np
 
-from ..evaluation.opencv_odometry import OpenCVOdometry
-from ..evaluation.rpe import ErrorStats, relative_pose_error
-from ..frame import BadFrame
-from ..motion import MotionEstimator, MotionParams
-from ..motion_pipeline import true_motion
-from ..sceneflow import SceneFlow, SceneFlowParams
-from ..sources import open_source
+from ..core.frame import BadFrame
+from ..core.motion import MotionEstimator, MotionParams
+from ..core.motion_pipeline import true_motion
+from ..core.sceneflow import SceneFlow, SceneFlowParams
+from ..io.sources import open_source
+from ..quality.evaluation.opencv_odometry import OpenCVOdometry
+from ..quality.evaluation.rpe import ErrorStats, relative_pose_error
 
 
 def run(source_spec: str, methods: list[tuple[str, str]] | None = None, opencv: bool = True,

@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
-from ..lie import GROUPS, LieGroup, get_group
-from ..path import solve_segment, zeta_bar
-from ..sources.synthetic import SyntheticSource
+from ..core.lie import GROUPS, LieGroup, get_group
+from ..core.path import solve_segment, zeta_bar
+from ..io.sources.synthetic import SyntheticSource
 
 SMOOTH_TRANS_M = 0.02  # stress: per-axis sd of the smooth path's per-frame translation
 SMOOTH_ROT_DEG = 0.3  # and rotation

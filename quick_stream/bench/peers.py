@@ -5,7 +5,7 @@ here and why not. Each runner returns exactly one output frame per input frame, 
 plus its own wall time; both stabilisers keep their defaults.
 
 Alignment (both hand a frame back later than they are given it; checked by feeding frames whose
-index is coded in their brightness, ``tests/test_bench_quality.py``):
+index is coded in their brightness, ``tests/unit/test_bench_quality.py``):
 
 * ``vidstab.VidStab().stabilize_frame(frame, smoothing_window=30)`` (vidstab 1.7, defaults:
   GFTT corners, LK tracks, rigid fit, trajectory averaged over 30 frames, black borders, no

@@ -34,10 +34,10 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from .. import keys
-from ..launcher import StatusBoard, ServiceSpec, Supervisor
-from ..wire import WireError
-from ..wire.codec import unpack
+from ..stream import keys
+from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor
+from ..stream.wire import WireError
+from ..stream.wire.codec import unpack
 
 CLK = os.sysconf("SC_CLK_TCK")
 
@@ -114,9 +114,9 @@ def prerecord(path: Path, spec: str) -> str:
     Replaying it (``capture --source mcap:FILE`` sends the recorded bytes) costs the capture
     almost nothing, like a camera driver handing over frames, so the numbers show the
     pipeline without the synthetic renderer's CPU."""
-    from ..recording import Recorder
-    from ..sources import open_source
-    from ..wire import encode_frame
+    from ..io.recording import Recorder
+    from ..io.sources import open_source
+    from ..stream.wire import encode_frame
 
     src = open_source(spec)
     with Recorder(path) as rec:
@@ -127,14 +127,12 @@ def prerecord(path: Path, spec: str) -> str:
 
 
 def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
-                 record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1,
-                 render_slow_ms: float = 0.0) -> dict:
+                 record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1) -> dict:
     """One measured run; ``fps`` None = capture as fast as possible; ``replay``: the capture sends a
     pre-encoded recording instead of rendering synthetic frames live; ``streams``: that many cameras
     side by side (``cam0``, ``cam1``, ...; each its own capture, flow, motion and render, synthetic
-    seeds 1, 2, ...; one recorder of all); ``render_slow_ms``: render sleeps that long per frame
-    (backpressure). Returns the report dict."""
-    from ..cli.up_cmd import free_port, open_when_up
+    seeds 1, 2, ...; one recorder of all). Returns the report dict."""
+    from ..stream.launcher import free_port, open_when_up
 
     out.mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -143,7 +141,8 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     cams = [f"cam{i}" for i in range(streams)]
     specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
     if record:
-        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z, "--output", str(out / "recording.mcap")]
+        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z,
+                                              "--output", str(out / "recording.mcap")]
                                  + (["--all-streams"] if streams > 1 else [])))
     for i, cam in enumerate(cams):
         # a camera at the rate offered (its frames' capture times follow it), 30 fps for 'fast'
@@ -151,14 +150,13 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         if replay:
             src = prerecord(out / f"source-{cam}.mcap", src)
         s = ["--stream", cam]
-        specs += [ServiceSpec(_name("flow", cam, streams), ["-m", "services.flow", *z, *s]),
-                  ServiceSpec(_name("motion", cam, streams), ["-m", "services.motion", *z, *s]),
-                  ServiceSpec(_name("render", cam, streams), ["-m", "services.render", *z, *s,
-                                                                "--output", str(out / f"stabilized-{cam}.mp4"),
-                                                                "--slow-ms", str(render_slow_ms)])]
+        specs += [ServiceSpec(_name("flow", cam, streams), ["-m", "quick_stream.services.flow", *z, *s]),
+                  ServiceSpec(_name("motion", cam, streams), ["-m", "quick_stream.services.motion", *z, *s]),
+                  ServiceSpec(_name("render", cam, streams), ["-m", "quick_stream.services.render", *z, *s,
+                                                                "--output", str(out / f"stabilized-{cam}.mp4")])]
         # the recorder's liveliness token is under its own stream (cam0), even when it records all
         wait = ",".join(["recorder"] * (record and cam == "cam0") + ["flow", "motion", "render"])
-        cap = ["-m", "services.capture", *z, *s, "--source", src, "--wait-for", wait]
+        cap = ["-m", "quick_stream.services.capture", *z, *s, "--source", src, "--wait-for", wait]
         cap += ["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)]
         specs.append(ServiceSpec(_name("capture", cam, streams), cap, may_finish=True))
     sup = Supervisor(specs, out / "logs")
@@ -206,7 +204,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
               "mean": round(sum(v) / len(v), 1)} for k, v in sorted(queues.items())}
     per = {cam: _report(fps, seconds, warmup_s, width, height, mons[cam], stats, record, cam) for cam in cams}
     capture = "replay of a pre-encoded recording" if replay else "synthetic, rendered live"
-    common = {"processes": procs, "queues": qs, "capture": capture, "render_slow_ms": render_slow_ms}
+    common = {"processes": procs, "queues": qs, "capture": capture}
     if streams == 1:
         return {**per["cam0"], **common}
     return {"streams": per, **common, "size": f"{width}x{height}", "fps_target": fps or "fast",
@@ -307,13 +305,12 @@ def format_report(r: dict) -> str:
 
 
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
-         record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480",
-         render_slow_ms: float = 0.0) -> int:
+         record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480") -> int:
     reports = []
     w, h = (int(x) for x in size.split("x"))
     for fps in fps_list:
         r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, width=w, height=h, record=record,
-                         replay=replay, streams=streams, render_slow_ms=render_slow_ms)
+                         replay=replay, streams=streams)
         reports.append(r)
         print(format_report(r), flush=True)
     if json_path:

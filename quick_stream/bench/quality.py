@@ -1,18 +1,18 @@
 """Quality benchmark: ours against the 2D stabilisers people use, on real and known-shake clips.
 
-Clips (TUM layout, read with :class:`~quick_stream.sources.tum.TumSource`):
+Clips (TUM layout, read with :class:`~quick_stream.io.sources.tum.TumSource`):
 
 * ``DATA/7scenes_redkitchen``, every frame (``frames`` shortens every clip to its first N);
 * known-shake clips made from it by the external shake tool (:mod:`.shake_clips`): per
   ``SEED:FIRST-LAST`` a shaken clip (RMS pitch/yaw/roll, default 0.6/0.6/0.8 deg) and its
   unshaken reference (same seed, frames and crop, no shake), cached under ``WORK/clips``.
 
-Methods, all given the same BGR input frames and all scored by :mod:`quick_stream.metrics`
-(:class:`~quick_stream.metrics.MetricsAccumulator`, one scorer for everyone) plus the
-border-free cropping of :mod:`quick_stream.metrics_border`:
+Methods, all given the same BGR input frames and all scored by :mod:`quick_stream.quality.metrics`
+(:class:`~quick_stream.quality.metrics.MetricsAccumulator`, one scorer for everyone) plus the
+border-free cropping of :mod:`quick_stream.quality.metrics_border`:
 
 * ``ours``: the stabiliser at exactly the settings ``quick-stream stabilize`` uses with no flags
-  (the stabiliser flags of :mod:`quick_stream.cli.settings` parsed from an empty argv, then
+  (the stabiliser flags of :mod:`quick_stream.stream.stabilizer_flags` parsed from an empty argv, then
   ``stabilizer_params``), and every ``--variant NAME='--flag value ...'`` (the same flags);
 * FFmpeg vid.stab (two passes) and deshake (:mod:`.ffmpeg_baselines`);
 * python ``vidstab`` and vidgear's ``Stabilizer`` at their defaults, when importable
@@ -21,7 +21,7 @@ border-free cropping of :mod:`quick_stream.metrics_border`:
 * the unstabilised input.
 
 Columns: residual jitter (px, deg), cropping, border-free cropping, distortion, stability (as
-``quick_stream.metrics`` defines it), the method's own wall time per frame (ours: the
+``quick_stream.quality.metrics`` defines it), the method's own wall time per frame (ours: the
 stabiliser's push/finish, no reading, no scoring; FFmpeg: its passes on the lossless
 intermediate, decoding included; peers: their calls), and failure.
 
@@ -49,13 +49,13 @@ from typing import Callable, Iterable
 import cv2
 import numpy as np
 
-from ..evaluate import run_timed
-from ..frame import BadFrame
-from ..metrics import MetricsAccumulator
-from ..metrics_border import BorderFreeAccumulator, border_free_cropping
-from ..sources import SourceError
-from ..sources.tum import TumSource
-from ..stabilizer import Stabilizer, StabilizerParams
+from ..core.frame import BadFrame
+from ..core.stabilizer import Stabilizer, StabilizerParams
+from ..io.sources import SourceError
+from ..io.sources.tum import TumSource
+from ..quality.evaluate import run_timed
+from ..quality.metrics import MetricsAccumulator
+from ..quality.metrics_border import BorderFreeAccumulator, border_free_cropping
 from . import ffmpeg_baselines, lk_average, peers
 from .shake_clips import DEFAULT_AMPLITUDES, DEFAULT_TOOL, ShakeSpec, make_clip, score_rotation, write_corrections
 
@@ -94,7 +94,7 @@ class Variant:
 
 def parse_settings(argv: list[str], name: str = "ours") -> Variant:
     """Stabiliser flags -> Variant, exactly as ``quick-stream stabilize`` parses them; ValueError if wrong."""
-    from ..cli.settings import add_stabilizer_args, stabilizer_params
+    from ..stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
 
     p = _RaisingParser(prog=name, add_help=False)
     add_stabilizer_args(p)

@@ -27,11 +27,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..lie import get_group
-from ..motion import MotionEstimate
-from ..sources.tum import TumSource
-from ..stabilizer import Stabilizer, StabilizerParams
-from ..stages import FlowStage, MotionStage
+from ..core.lie import get_group
+from ..core.motion import MotionEstimate
+from ..core.stabilizer import Stabilizer, StabilizerParams
+from ..core.stages import FlowStage, MotionStage
+from ..io.sources.tum import TumSource
 from .quality import parse_settings, source_folder
 from .shake_clips import DEFAULT_TOOL, ShakeSpec, make_clip, score_rotation, write_corrections
 

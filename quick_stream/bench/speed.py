@@ -12,9 +12,9 @@ import time
 import cv2
 import numpy as np
 
-from ..motion import MotionEstimator, MotionParams
-from ..sceneflow import SceneFlow, SceneFlowParams, lift_flow
-from ..sources.synthetic import SyntheticSource
+from ..core.motion import MotionEstimator, MotionParams
+from ..core.sceneflow import SceneFlow, SceneFlowParams, lift_flow
+from ..io.sources.synthetic import SyntheticSource
 
 
 def pin_one_core() -> str:

@@ -2,8 +2,10 @@
 
 Sub-commands live in their own modules and register an ``add_parser`` and a
 ``run(args) -> int`` pair here. They are imported when the parser is built, not with
-this package: the services import only :mod:`.settings`, and a restarted service is up
-sooner without the evaluation and benchmark modules (and SciPy's) behind the commands.
+this package, so ``quick-stream router`` and ``up`` start without the evaluation and
+benchmark modules (and SciPy's) behind the other commands. The cli is the top layer: the
+services never import it (their shared flags are :mod:`quick_stream.stream.argtypes` and
+:mod:`quick_stream.stream.stabilizer_flags`).
 """
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ import logging
 import sys
 from types import ModuleType
 
-from .argtypes import check_outputs
+from ..stream.argtypes import check_outputs
 
 COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "router", "up", "acl")
 

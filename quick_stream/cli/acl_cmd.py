@@ -2,7 +2,7 @@
 
 Prints (or writes to ``--output``) a router-tls.json5 whose access control lets each stream's
 certificates (deploy/tls/make-certs.sh ``--streams``, common names ``quick-<service>-<stream>``)
-do what that service needs on that stream and nothing else (quick_stream/acl.py). The router reads
+do what that service needs on that stream and nothing else (quick_stream/stream/acl.py). The router reads
 it once, at start: generate it again, and restart the router, when a stream is added.
 deploy/zenoh/router-tls.json5 is ``quick-stream acl --streams cam0``.
 """
@@ -12,8 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from .. import keys
-from . import argtypes as at
+from ..stream import argtypes as at, keys
 
 
 def _streams(text: str) -> list[str]:
@@ -33,7 +32,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..acl import router_config_text
+    from ..stream.acl import router_config_text
 
     text = router_config_text(args.streams)
     if args.output:

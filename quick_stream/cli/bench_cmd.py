@@ -7,9 +7,9 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..lie import GROUPS
-from ..sources import SourceError
-from . import argtypes as at
+from ..core.lie import GROUPS
+from ..io.sources import SourceError
+from ..stream import argtypes as at
 
 if TYPE_CHECKING:
     from ..bench.quality import Variant
@@ -55,33 +55,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     ps.add_argument("--seed", type=int, default=0, help="--shake: seed of the stress segments (default 0)")
     for q in (s, o, m, ps, ra):
         q.add_argument("--json", action="store_true", help="print one JSON object")
-    fz = b.add_parser("fuzz", help="the wire decoder (or MCAP readers) against malformed input (crashes, hangs)")
-    fz.add_argument("--n", type=at.positive_int, default=None,
-                    help="inputs (default 100000; --target mcap: 10000 damaged recordings)")
-    fz.add_argument("--seed", type=int, default=0)
-    fz.add_argument("--engine", choices=("mutate", "hypothesis"), default="mutate",
-                    help="wire target: 'mutate' (hand-written mutators, default) or 'hypothesis' (Hypothesis "
-                         "strategies: message-shaped maps with wrong fields, byte edits of valid messages; "
-                         "needs pip install 'quick-stream[test]')")
-    fz.add_argument("--target", choices=("wire", "mcap"), default="wire",
-                    help="'wire' (wire.decode, default) or 'mcap' (damaged recordings through read_messages, "
-                         "recover and the mcap: source)")
-    fz.add_argument("--keep", default="out/fuzz-mcap", metavar="DIR",
-                    help="--target mcap: where recordings that find a bug are kept (default out/fuzz-mcap)")
-    fl = b.add_parser("faults", help="SIGKILL services of a running `up` mid-stream: restart, resume, losses")
-    fl.add_argument("--cases", default="all", help="comma-separated: a service (flow), repeated (render*3), "
-                    "together (router+flow), bad messages on the frame key (poison, future-seq); default all "
-                    "(every service, flow*3, render*3, router+flow, poison, future-seq)")
-    fl.add_argument("--frames", type=int, default=240, help="frames each case sends at least; the stream ends once "
-                    "every successor is back (default 240)")
-    fl.add_argument("--fps", type=float, default=30.0)
-    fl.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
-    fl.add_argument("--kill-after", type=int, default=60, help="frames sent before the first kill (default 60)")
-    fl.add_argument("--out", default=None, help="folder for each case's recordings and logs (default "
-                    "out/bench-faults, with --tls out/bench-faults-tls)")
-    fl.add_argument("--tls", action="store_true", help="the router on deploy/zenoh/router-tls.json5 (mutual TLS, "
-                    "access control), every process a TLS client with its own certificate (made in OUT/certs)")
-    fl.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
     pl = b.add_parser("pipeline", help="the services under load: latency, throughput, drops, CPU and memory")
     pl.add_argument("--fps", type=at.rates, default=[30.0],
                     help="comma-separated capture rates; 'fast' = as fast as possible (default 30)")
@@ -90,35 +63,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--streams", type=at.int_in(1, 16), default=1,
                     help="cameras side by side, each with its own capture, flow, motion and render (default 1)")
     pl.add_argument("--size", type=at.frame_size, default="640x480", help="frame size WxH (default 640x480)")
-    pl.add_argument("--render-slow-ms", type=at.nonneg_float, default=0.0, metavar="MS",
-                    help="render sleeps MS per frame: a deliberately slow stage (backpressure; default 0)")
     pl.add_argument("--replay", action="store_true",
                     help="capture replays a pre-encoded recording (camera-like cost) instead of rendering live")
     pl.add_argument("--out", type=at.output_dir("--out"), default="out/bench-pipeline",
                     help="folder for recordings and logs")
     pl.add_argument("--json", type=at.output_file("--json"), default=None, metavar="FILE",
                     help="also write the reports as JSON here")
-    sv = b.add_parser("slow-viewer", help="a slow foreign subscriber (peer or client) beside a live pipeline: "
-                      "publishers' longest puts, drops, flagged frames, output pauses")
-    sv.add_argument("--viewer", choices=("peer", "client", "none"), default="peer",
-                    help="the viewer's zenoh mode (peer: listens, so gossip links it to the services directly)")
-    sv.add_argument("--handler", choices=("fifo", "callback"), default="fifo",
-                    help="fifo: a bounded FifoChannel read slowly (default); callback: a callback that sleeps")
-    sv.add_argument("--key", default="quick/@v1/{stream}/**", help="what the viewer subscribes to")
-    sv.add_argument("--sleep", type=at.nonneg_float, default=1.0, help="seconds the viewer spends per sample")
-    sv.add_argument("--frames", type=at.positive_int, default=450, help="frames the capture sends (default 450)")
-    sv.add_argument("--fps", type=at.positive_float, default=30.0)
-    sv.add_argument("--size", type=at.frame_size, default="320x240", help="frame size WxH (default 320x240)")
-    sv.add_argument("--stream", type=at.stream_id, default="cam0")
-    sv.add_argument("--services-mode", choices=("peer", "client"), default=None,
-                    help="the services' zenoh mode (default: peer, as `quick-stream up`)")
-    sv.add_argument("--services-cfg", action="append", default=[], metavar="KEY:VALUE",
-                    help="a zenoh setting for every service and the router (repeatable)")
-    sv.add_argument("--pause", default=None, metavar="SERVICE:SECONDS",
-                    help="also stop a healthy service (SIGSTOP) for SECONDS mid-stream, e.g. motion:2")
-    sv.add_argument("--pause-at", type=at.nonneg_float, default=8.0, help="seconds after the start (default 8)")
-    sv.add_argument("--out", type=at.output_dir("--out"), default="out/bench-slow-viewer",
-                    help="folder for the recording and logs")
 
 
 def _shake(text: str) -> tuple[float, float]:
@@ -155,7 +105,7 @@ def _add_quality_parser(b: argparse._SubParsersAction) -> None:
     q = b.add_parser("quality", help="ours vs FFmpeg vid.stab/deshake, vidstab, vidgear and an LK baseline, "
                      "on 7scenes_redkitchen and known-shake clips made from it",
                      description="Quality benchmark (quick_stream/bench/quality.py): every method scored by "
-                     "quick_stream.metrics against the same input frames; on the known-shake clips also the "
+                     "quick_stream.quality.metrics against the same input frames; on the known-shake clips also the "
                      "share of the injected rotation ours removed (the shake tool's score_rotation.py).")
     q.add_argument("--data", type=Path, default=DEFAULT_DATA, help=f"folder holding 7scenes_redkitchen "
                    f"(default {DEFAULT_DATA})")
@@ -221,59 +171,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
 
-def _fuzz(args: argparse.Namespace) -> int:
-    """``bench fuzz``: exit 0 when nothing but the named errors came out, 1 on any crash or hang."""
-    from ..bench import fuzz
-
-    if args.target == "mcap":
-        if args.engine != "mutate":
-            print("quick-stream bench fuzz: --target mcap mutates recordings itself; --engine applies to the "
-                  "wire target only", file=sys.stderr)
-            return 2
-        from ..bench import fuzz_mcap
-
-        with fuzz.muted():
-            m = fuzz_mcap.run(args.n or 10_000, args.seed, keep=args.keep)
-        print(fuzz_mcap.format_report(m))
-        return 1 if m.crashes else 0
-    if args.engine == "hypothesis":
-        try:
-            from ..bench import fuzz_hypothesis as engine
-        except ImportError as e:
-            if not (e.name or "").startswith("hypothesis"):
-                raise
-            print("quick-stream bench fuzz --engine hypothesis needs hypothesis (a test dependency): "
-                  "pip install 'quick-stream[test]'", file=sys.stderr)
-            return 2
-    else:
-        engine = fuzz
-    with fuzz.muted():
-        r = engine.run(args.n or 100_000, args.seed)
-    print(fuzz.format_report(r))
-    return 1 if r.crashes or r.hangs else 0
-
-
 def _run(args: argparse.Namespace) -> int:
     if args.bench == "pipeline":
         from ..bench import pipeline
 
         return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
-                             streams=args.streams, size=args.size, render_slow_ms=args.render_slow_ms,
-                             replay=args.replay)
-    if args.bench == "slow-viewer":
-        from ..bench import slow_viewer
-
-        print(json.dumps(slow_viewer.run(args)))
-        return 0
-    if args.bench == "faults":
-        from ..bench import faults
-
-        cases = list(faults.CASES) if args.cases == "all" else args.cases.split(",")
-        out = args.out or ("out/bench-faults-tls" if args.tls else "out/bench-faults")
-        return faults.main(cases, out, args.json, tls=args.tls, frames=args.frames, fps=args.fps, size=args.size,
-                           kill_after=args.kill_after)
-    if args.bench == "fuzz":
-        return _fuzz(args)
+                             streams=args.streams, size=args.size, replay=args.replay)
     if args.bench == "quality":
         return _quality(args)
     if args.bench == "speed":

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import cv2
 
-from ..evaluate import GROUPS, EvaluateParams, evaluate, markdown
-from ..path.constraints import END_MODES
-from ..sources import SourceError
-from . import argtypes as at
+from ..core.path.constraints import END_MODES
+from ..io.sources import SourceError
+from ..quality.evaluate import EvaluateParams, GROUPS, evaluate, markdown
+from ..stream import argtypes as at
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -17,18 +17,18 @@ import time
 import cv2
 import numpy as np
 
-from ..evaluation.opencv_odometry import OpenCVOdometry
-from ..evaluation.rpe import ErrorStats, relative_pose_error
-from ..frame import RGBDFrame
-from ..lie import GROUPS
-from ..motion import ESTIMATORS, MotionParams, integrate_path
-from ..motion_pipeline import MotionPipeline, run_motion, true_motion
-from ..sceneflow import DIS_PRESETS, SceneFlowParams
-from ..sources import SourceError, open_source
-from ..sources.trajectory import write_tum_trajectory
-from . import argtypes as at
+from ..core.frame import RGBDFrame
+from ..core.lie import GROUPS
+from ..core.motion import ESTIMATORS, MotionParams, integrate_path
+from ..core.motion_pipeline import MotionPipeline, run_motion, true_motion
+from ..core.sceneflow import DIS_PRESETS, SceneFlowParams
+from ..io.sources import SourceError, open_source
+from ..io.sources.trajectory import write_tum_trajectory
+from ..quality.evaluation.opencv_odometry import OpenCVOdometry
+from ..quality.evaluation.rpe import ErrorStats, pair_error_stats, relative_pose_error
+from ..stream import argtypes as at
 
-log = logging.getLogger("quick_stream.motion")
+log = logging.getLogger("quick_stream.core.motion")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     timing = result.timer.summary()
     ours_ms = float(np.mean([p.flow_ms + p.motion_ms for p in result.pairs])) if result.pairs else float("nan")
     name = f"{args.estimator} {args.group}"
-    stats = result.error_stats()
+    stats = pair_error_stats(result.pairs)
     invalid = [
         {"seq": p.motion.seq, "seq_next": p.motion.seq_next, "reason": p.motion.reason}
         for p in result.pairs if not p.motion.valid

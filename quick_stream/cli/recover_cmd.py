@@ -5,8 +5,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..recording import RecordingError, recover
-from .argtypes import OutputPath, check_output
+from ..io.recording import RecordingError, recover
+from ..stream.argtypes import OutputPath, check_output
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

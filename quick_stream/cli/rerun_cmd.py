@@ -3,7 +3,7 @@
 Runs the ``flow``, ``motion`` or ``render`` stage offline on the inputs the
 recorder logged (``frame``; ``flow``; ``frame`` + ``correction``) with the given
 stabilizer settings (the flags the services ran with) and compares what it makes
-with the logged outputs (see :mod:`quick_stream.rerun`). Prints a report; exit
+with the logged outputs (see :mod:`quick_stream.quality.rerun`). Prints a report; exit
 code 0 when every logged output is reproduced identically, 1 when any differs,
 2 when the stage cannot be re-run (missing file, no logged inputs, bad flags).
 """
@@ -15,9 +15,9 @@ from pathlib import Path
 
 import cv2
 
-from ..rerun import STAGES, RerunError, RerunResult, rerun_stage
-from .argtypes import stream_id
-from .settings import add_stabilizer_args, stabilizer_params
+from ..quality.rerun import RerunError, RerunResult, STAGES, rerun_stage
+from ..stream.argtypes import stream_id
+from ..stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
 
 SHOWN = 10  # mismatches listed in the report
 

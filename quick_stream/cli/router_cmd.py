@@ -13,7 +13,7 @@ import threading
 
 import zenoh
 
-from ..transport import add_zenoh_args, config_from_args, zenoh_message
+from ..stream.transport import add_zenoh_args, config_from_args, zenoh_message
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 

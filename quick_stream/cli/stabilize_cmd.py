@@ -19,15 +19,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..evaluation.shake import shake
-from ..metrics import MetricsAccumulator
-from ..motion import integrate_path
-from ..plot import path_components, plot_paths
-from ..sinks import VideoSink
-from ..sources import SourceError, open_source
-from ..stabilizer import StabilizedFrame, Stabilizer
-from . import argtypes as at
-from .settings import add_stabilizer_args, path_label, stabilizer_params, stabilizer_settings
+from ..core.motion import integrate_path
+from ..core.stabilizer import StabilizedFrame, Stabilizer
+from ..io.plot import path_components, plot_paths
+from ..io.sinks import VideoSink
+from ..io.sources import SourceError, open_source
+from ..quality.evaluation.shake import shake
+from ..quality.metrics import MetricsAccumulator
+from ..stream import argtypes as at
+from ..stream.stabilizer_flags import add_stabilizer_args, path_label, stabilizer_params, stabilizer_settings
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

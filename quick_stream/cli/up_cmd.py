@@ -15,18 +15,17 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import socket
 import sys
 import time
 from pathlib import Path
 
 import zenoh
 
-from ..launcher import ServiceSpec, StatusBoard, Supervisor
-from ..recording import fresh_path
-from ..sources import SourceError, check_source
-from . import argtypes as at
-from .settings import add_stabilizer_args, settings_argv, stabilizer_params
+from ..io.recording import fresh_path
+from ..io.sources import SourceError, check_source
+from ..stream import argtypes as at
+from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, free_port, open_when_up
+from ..stream.stabilizer_flags import add_stabilizer_args, settings_argv, stabilizer_params
 
 SERVICES = ("recorder", "flow", "motion", "render", "capture")
 
@@ -59,12 +58,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_stabilizer_args(p)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def tls_party(args: argparse.Namespace, name: str) -> tuple[str, str]:
     """(--tls-dir, --tls-name) of party ``name`` (router, monitor, or a service of ``args.stream``) in the
     folder make-certs.sh wrote."""
@@ -78,7 +71,7 @@ def check_tls(args: argparse.Namespace) -> None:
         raise ValueError("--router-config goes with --tls-dir")
     if not args.tls_dir:
         return
-    from ..transport import tls_settings
+    from ..stream.transport import tls_settings
 
     names = ["router", "monitor", *(s for s in SERVICES if s != "recorder" or not args.no_record)]
     for name in names:
@@ -111,17 +104,17 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
         router += ["-c", str(args.router_config), "--tls-dir", d, "--tls-name", n]
     specs = [ServiceSpec("router", router)]
     if not args.no_record:
-        specs.append(ServiceSpec("recorder", ["-m", "services.recorder", *z("recorder"), "--output",
+        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z("recorder"), "--output",
                                               str(args.recording)]))
     specs += [
-        ServiceSpec("flow", ["-m", "services.flow", *z("flow"), *st]),
-        ServiceSpec("motion", ["-m", "services.motion", *z("motion"), *st]),
-        ServiceSpec("render", ["-m", "services.render", *z("render"), *st, "--output", str(out / "stabilized.mp4")]
-                    + (["--png", args.png] if args.png else [])),
+        ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
+        ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
+        ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
+                               "--output", str(out / "stabilized.mp4")] + (["--png", args.png] if args.png else [])),
     ]
     wait = ",".join(s.name for s in specs[1:])
-    cap = ["-m", "services.capture", *z("capture"), "--source", args.source, "--pace", args.pace, "--color",
-           args.color, "--wait-for", wait]
+    cap = ["-m", "quick_stream.services.capture", *z("capture"), "--source", args.source, "--pace", args.pace,
+           "--color", args.color, "--wait-for", wait]
     if args.frames is not None:
         cap += ["--frames", str(args.frames)]
     if args.fps is not None:
@@ -140,22 +133,6 @@ def _first(v: dict, names: tuple[str, ...]) -> str:
         if n in v:
             return f"{v[n]:.1f}" if isinstance(v[n], float) else str(v[n])
     return "-"
-
-
-def open_when_up(endpoint: str, timeout_s: float, tls: tuple[str, str] | None = None) -> zenoh.Session:
-    """A client session to the router at ``endpoint``, retried until it answers or ``timeout_s``;
-    ``tls``: (folder, name) of its certificate."""
-    from ..transport import session_config
-
-    conf = session_config(endpoint, "client", *(tls or (None, None)))
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            return zenoh.open(conf)
-        except zenoh.ZError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)
 
 
 def status_lines(board: StatusBoard, sup: Supervisor, stream: str, t0: float) -> list[str]:
@@ -217,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     before = set(out.glob("recording*.mcap"))
     endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
     if args.tls_dir and not args.router_config:
-        from ..acl import router_config_text
+        from ..stream.acl import router_config_text
 
         (out / "logs").mkdir(exist_ok=True)
         args.router_config = str(out / "logs" / "router-tls.json5")

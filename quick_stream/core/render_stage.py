@@ -1,0 +1,390 @@
+"""The render stage, shared by the in-process stabilizer and the ``render`` service.
+
+    frames + correction batches -> RenderStage -> StabilizedFrame
+
+:class:`RenderStage` holds frames until their correction batch arrives (a batch is what one
+planner call released, :mod:`quick_stream.core.stages`), then warps, frames and renders the batch as a
+whole (one zoom track, :func:`~quick_stream.core.render.segment_zooms`), filling uncovered borders from
+its neighbours. A frame that no correction will ever reach (an *orphan*, skipped upstream) is
+rendered with no correction, flagged, instead of being held forever; a stream renumbered lower
+keeps the old numbering's frames apart from the new one's. :class:`ReleaseGroups` regroups the
+corrections a service receives one message at a time into the planner's releases.
+"""
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .continuity import JumpGuard, published_after, restarts_numbering
+from .frame import RGBDFrame
+from .path.planner import Correction
+from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
+from .render.fill import FillSource, covered_zoom, fill_border, ordered_sources, raise_for
+from .render.mapping import render_covered
+from .render.warp import WarpInput, prepare_warp
+from .timing import StageTimer
+
+FrameLoader = Callable[[], RGBDFrame]
+
+
+@dataclass
+class StabilizedFrame:
+    seq: int
+    timestamp_ns: int
+    image: np.ndarray  # BGR uint8, same size as the input
+    correction: Correction
+    zoom: float
+    mesh: MeshWarp
+    input_image: np.ndarray | None = None  # kept only when the caller asks (metrics)
+    numbering: int = 0  # which of the stream's numberings the render stage took the frame in (see RenderStage)
+
+    @property
+    def flags(self) -> list[str]:
+        out = []
+        if not self.correction.valid:
+            out.append(self.correction.reason)
+        if not self.mesh.ok:
+            out.append(f"warp: {self.mesh.reason}")
+        return out
+
+
+ORPHAN = "no correction: frame skipped upstream"
+STALE = "no correction: the stream's numbering restarted before this frame's correction came"
+
+
+def orphan_correction(seq: int, reason: str = ORPHAN) -> Correction:
+    """What a frame no correction reached is rendered with: none, flagged."""
+    return Correction(seq, np.eye(4), -1, False, False, reason)
+
+
+class RenderStage:
+    """Holds frames until their correction batch arrives, then warps, frames and renders them.
+
+    Frames may be given decoded or as a loader (decoded only when rendered, so a
+    service buffers compressed bytes). At most ``max_frames`` wait; beyond that the
+    oldest is dropped and counted (``dropped``); a correction whose frame is gone is
+    counted in ``missing``; a frame that cannot be loaded is reported in ``bad``.
+
+    A stream whose numbering goes back (confirmed as the flow stage confirms it,
+    :class:`~quick_stream.core.continuity.JumpGuard`) is held apart from the frames of the old
+    numbering still waiting (``numbering`` counts the renumberings taken, ``renumberings``
+    too): the old numbering's corrections still come first, each batch renders against the
+    frames of its own numbering, and once the corrections reach the new numbering (the
+    restart correction the renumbering's break made, :func:`~quick_stream.core.continuity.restarts_numbering`)
+    what is left of the old one is rendered uncorrected and flagged (``orphans``) before it.
+    """
+
+    def __init__(self, warp: WarpParams | None = None, framing: FramingParams | None = None,
+                 max_frames: int = 240, keep_inputs: bool = False) -> None:
+        self.warp = warp or WarpParams()
+        self.framing = framing or FramingParams()
+        self.framing.validate()
+        self.zoom = ZoomSmoother(self.framing)
+        self.max_frames = max_frames
+        self.keep_inputs = keep_inputs
+        self.timer = StageTimer()
+        # held frames per numbering (0, then one more per renumbering), only those the corrections may still reach
+        self._held: dict[int, OrderedDict[int, RGBDFrame | FrameLoader]] = {0: OrderedDict()}
+        self._prepared: dict[tuple[int, int], WarpInput] = {}  # warp inputs of decoded frames, made on arrival
+        self.numbering = 0  # the numbering frames are taken in
+        self._corr = 0  # the numbering the corrections have reached
+        self._newest_in: dict[int, int] = {}  # per numbering held, the newest frame taken in it
+        self._newest_pub: int | None = None  # when the newest frame taken was published (None: unknown)
+        self.renumberings = 0
+        self.dropped = 0
+        self.missing = 0
+        self.orphans = 0
+        self.bad: list[dict] = []
+        self._past: list[FillSource] = []  # the last fill_frames rendered frames the border fill can read
+        self.filled = 0  # frames whose border was filled from neighbours
+        self.fill_raised = 0  # frames zoomed in beyond their plan because fill left a border
+        self.jumps = JumpGuard()  # the flow stage's defaults: what it refuses gets no correction
+
+    @property
+    def buffered(self) -> int:
+        return sum(len(h) for h in self._held.values())
+
+    @property
+    def newest(self) -> int | None:
+        """The newest frame taken (in the numbering frames are taken in), None before the first."""
+        return self._newest_in.get(self.numbering)
+
+    def fresh(self, pub_ns: int | None) -> bool:
+        """Whether a frame published at ``pub_ns`` may be newer than the newest frame taken
+        (:func:`~quick_stream.core.continuity.published_after`): False for a history replay."""
+        return published_after(pub_ns, self._newest_pub)
+
+    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None) -> None:
+        """Buffer a frame (or its loader) until its correction arrives. Refused (ValueError): one not
+        after the newest taken (unless a run of them confirms that the numbering went back: then
+        it is the first frame of a new numbering), and one far ahead of the newest taken that no
+        run of frames confirms (:class:`~quick_stream.core.continuity.JumpGuard`, as the flow stage
+        does). ``pub_ns``: when the frame was published, so a replay never starts a numbering."""
+        newest = self.newest
+        if newest is not None and seq <= newest:
+            if not self.jumps.renumbered(seq, self.fresh(pub_ns)):
+                raise ValueError(f"frame {seq} is not after frame {newest}, the newest taken (out of order or "
+                                 "duplicate)")
+            self.numbering += 1
+            self.renumberings += 1
+            self._held[self.numbering] = OrderedDict()
+        elif not self.jumps.admit(newest, seq):
+            raise ValueError(f"frame {seq} is {seq - newest} frames ahead of frame {newest} "
+                             f"(more than {self.jumps.max_jump}): refused unless frames in a row continue from it")
+        self._newest_in[self.numbering] = seq
+        self._newest_pub = pub_ns
+        self._held[self.numbering][seq] = frame
+        if isinstance(frame, RGBDFrame):
+            self._prepared[(self.numbering, seq)] = prepare_warp(frame, self.warp)
+        while self.buffered > self.max_frames:
+            n = min(k for k, h in self._held.items() if h)
+            old, _ = self._held[n].popitem(last=False)
+            self._prepared.pop((n, old), None)
+            self.dropped += 1
+
+    def _load(self, numbering: int, seq: int) -> RGBDFrame | None:
+        f = self._held.get(numbering, {}).pop(seq, None)
+        if f is None or isinstance(f, RGBDFrame):
+            return f
+        try:
+            return f()
+        except Exception as e:  # noqa: BLE001 - a frame that cannot be decoded is reported, not fatal
+            self.bad.append({"seq": seq, "error": f"{type(e).__name__}: {e}"})
+            return None
+
+    @staticmethod
+    def _restarts(batch: list[Correction]) -> bool:
+        """Whether a batch begins a new numbering: the restart correction of a renumbering's break."""
+        return not batch[0].valid and restarts_numbering(batch[0].reason)
+
+    def numbering_of(self, batch: list[Correction]) -> int:
+        """The numbering a correction batch belongs to. The batch that restarts the path in a new
+        numbering belongs to the next numbering frames were taken in (if the frames have not shown
+        one, this stage never saw the old numbering: the current one); any other batch to the
+        numbering the corrections reached, unless only a later numbering holds any of its frames
+        (the restart batch was lost or rendered before its frames came)."""
+        later = sorted(n for n in self._held if n > self._corr)
+        if self._restarts(batch):
+            return later[0] if later else self._corr
+        seqs = {c.seq for c in batch}
+        for n in [self._corr, *later]:
+            if not seqs.isdisjoint(self._held.get(n, {})):
+                return n
+        return self._corr
+
+    def can_render(self, batch: list[Correction]) -> bool:
+        """Whether a correction batch can be rendered now, before the frames it waits for could come:
+        all its frames are held, or a newer frame of its numbering (or a later numbering) has been
+        taken, so a missing one will never come. A batch that restarts the path in a new numbering
+        waits for its frames while the frames have not shown the renumbering yet."""
+        if not batch:
+            return True
+        n = self.numbering_of(batch)
+        held = self._held.get(n, {})
+        seqs = [c.seq for c in batch]
+        if all(s in held for s in seqs):
+            return True
+        if self._restarts(batch) and n == self._corr:
+            return False
+        newest = self._newest_in.get(n)
+        return n < self.numbering or (newest is not None and newest > max(seqs))
+
+    def render_batch(self, corrections: list[Correction]) -> list[StabilizedFrame]:
+        """Render one correction batch and the orphans it reveals, in seq order (see :meth:`iter_batch`)."""
+        return list(self.iter_batch(corrections))
+
+    def iter_batch(self, corrections: list[Correction]) -> Iterator[StabilizedFrame]:
+        """Render one correction batch and the orphans it reveals, yielding frames in seq order.
+
+        Warps and the batch's zoom track are solved first (cheap); each frame is then
+        rendered only when the caller asks for it, so a service can publish the first
+        frame while the rest of the batch waits. Orphans are held frames older than the
+        batch's newest that the batch does not cover (skipped upstream: no correction
+        will ever come); each is framed on its own, uncorrected and flagged."""
+        if not corrections:
+            return
+        n = self.numbering_of(corrections)
+        stale: list[tuple[Correction, RGBDFrame, MeshWarp, float, int]] = []
+        for old in sorted(k for k in self._held if k < n):  # the corrections moved on: none will reach these
+            for seq in list(self._held[old]):
+                self.orphans += 1
+                stale += [(*p, old) for p in self._plan([orphan_correction(seq, STALE)], old)]
+            del self._held[old]
+            self._newest_in.pop(old, None)
+        self._corr = n
+        held = self._held.get(n, {})
+        last = max(c.seq for c in corrections)
+        covered = {c.seq for c in corrections}
+        plans: list[tuple[Correction, RGBDFrame, MeshWarp, float]] = []
+        for seq in [s for s in held if s < last and s not in covered]:
+            self.orphans += 1
+            plans += self._plan([orphan_correction(seq)], n)
+        plans += self._plan(corrections, n)
+        if len(plans) > len(corrections):
+            plans.sort(key=lambda x: x[0].seq)
+        for c, f, mesh, z, old in stale:  # the old numbering's last frames first, as they are
+            t0 = time.perf_counter()
+            sf = StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
+                                 f.color if self.keep_inputs else None, old)
+            self.timer.add("render", (time.perf_counter() - t0) * 1e3)
+            yield sf
+        ahead = [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K) for c, f, _, _ in plans
+                 if c.camera is not None] if self.framing.fill_frames else []
+        if ahead and self.framing.mode == "auto":
+            plans = self._cover(plans, ahead)
+        for c, f, mesh, z in plans:
+            t0 = time.perf_counter()
+            image, z = self._render(c, f, mesh, z, ahead)
+            sf = StabilizedFrame(c.seq, f.timestamp_ns, image, c, z, mesh, f.color if self.keep_inputs else None, n)
+            self.timer.add("render", (time.perf_counter() - t0) * 1e3)
+            yield sf
+
+    def _sources(self, c: Correction, ahead: list[FillSource]) -> list[FillSource]:
+        if c.camera is None:
+            return []
+        return ordered_sources(c.seq, c.chain, self._past + ahead, self.framing.fill_frames)
+
+    def _cover(self, plans: list, ahead: list[FillSource]) -> list:
+        """Zooms raised, smoothly, where the border fill will not cover what the mesh leaves at the
+        planned zoom (docs/method.md 5.4): estimated before rendering, on every 4th pixel."""
+        t0 = time.perf_counter()
+        need = [covered_zoom(mesh, f.depth, f.intrinsics.K, z, None if c.camera is None else c.camera @ c.matrix,
+                             self._sources(c, ahead)) for c, f, mesh, z in plans]
+        zooms = self.zoom.cover([z for *_, z in plans], need)
+        self.timer.add("framing", (time.perf_counter() - t0) * 1e3 / max(len(plans), 1))
+        return [(c, f, mesh, float(z)) for (c, f, mesh, _), z in zip(plans, zooms)]
+
+    def _render(self, c: Correction, f: RGBDFrame, mesh: MeshWarp, zoom: float,
+                ahead: list[FillSource]) -> tuple[np.ndarray, float]:
+        """One frame at ``zoom``, its border filled from its neighbours (the batch's frames ``ahead``
+        and the last frames rendered before it) when the correction carries a camera pose;
+        what fill leaves uncovered is zoomed away (docs/method.md 5.4). Returns (image, zoom)."""
+        reach = self.framing.fill_frames
+        if not reach:
+            return render(f.color, mesh, zoom), zoom
+        sources = self._sources(c, ahead)
+        virtual = c.camera @ c.matrix if c.camera is not None else None
+        planned, filled = zoom, False
+        for _ in range(3):
+            image, uncovered, depth = render_covered(f.color, f.depth, mesh, zoom)
+            if depth is None:
+                break
+            if sources:
+                uncovered = fill_border(image, uncovered, depth, f.intrinsics.K, zoom, virtual, sources)
+                filled = True
+            if not uncovered.any() or self.framing.mode != "auto" or zoom >= self.framing.fill_zoom_max:
+                break
+            zoom = min(raise_for(uncovered, zoom) * (1.0 + 1e-6), self.framing.fill_zoom_max)
+        self.filled += filled
+        self.fill_raised += zoom > planned
+        if c.camera is not None:
+            self._past = (self._past + [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K)])[-reach:]
+        return image, zoom
+
+    def flush(self) -> list[StabilizedFrame]:
+        """End of stream: render every frame still waiting as an orphan (no correction will come),
+        numbering by numbering."""
+        out: list[StabilizedFrame] = []
+        for n in sorted(self._held):
+            for seq in list(self._held[n]):
+                self.orphans += 1
+                for c, f, mesh, z in self._plan([orphan_correction(seq, STALE if n < self.numbering else ORPHAN)], n):
+                    out.append(StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
+                                               f.color if self.keep_inputs else None, n))
+        return out
+
+    def _plan(self, corrections: list[Correction],
+              numbering: int) -> list[tuple[Correction, RGBDFrame, MeshWarp, float]]:
+        """Load the frames (of ``numbering``), solve their warps and the batch's zoom track."""
+        t0 = time.perf_counter()
+        items = []
+        for c in corrections:
+            f = self._load(numbering, c.seq)
+            if f is None:
+                self.missing += 1
+                continue
+            items.append((c, f, solve_warp(f, c.point_transform, self.warp,
+                                           self._prepared.pop((numbering, c.seq), None))))
+        if not items:
+            return []
+        t1 = time.perf_counter()
+        planned = [c.zoom for c, _, _ in items]
+        if self.framing.fill_frames and self.framing.mode == "auto" and None not in planned:
+            # the plan counted on the border fill (docs/method.md 5.4): rendering zooms further only
+            # where fill leaves a border, not where the frame's own mesh does
+            zooms = np.clip(np.asarray(planned, dtype=np.float64), 1.0, None)
+            self.zoom.last = float(zooms[-1])
+        else:
+            zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom, planned)
+        t2 = time.perf_counter()
+        n = len(items)
+        for _ in range(n):  # per-frame samples (the batch's average)
+            self.timer.add("warp", (t1 - t0) * 1e3 / n)
+            self.timer.add("framing", (t2 - t1) * 1e3 / n)
+        return [(c, f, mesh, float(z)) for (c, f, mesh), z in zip(items, zooms)]
+
+
+class ReleaseGroups:
+    """Corrections grouped by planner release; yields complete releases in order.
+
+    The motion service sends a release's corrections back to back, so a release still
+    incomplete when another one starts arriving lost its sender mid-way (a killed motion
+    service): it is handed over with what arrived (``abandoned``). A restarted motion
+    service numbers releases from 0 again; a correction that does not fit the open release
+    of that number (other size, or an index already there) starts a new one.
+
+    ``ready`` holds (release, batch, completed at, numbering), in seq order within a numbering:
+    the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.restarts_numbering`,
+    going back) starts the next numbering, whose releases follow every release of the old one.
+    """
+
+    def __init__(self) -> None:
+        self._open: dict[int, tuple[int, dict[int, Correction], int]] = {}
+        self.ready: list[tuple[int, list[Correction], float, int]] = []
+        self.unbatched = 0
+        self.abandoned = 0
+        self.numbering = 0  # renumberings the corrections announced
+        self._newest: int | None = None  # the newest correction seq of the current numbering
+
+    def _hand_over(self, rel: int) -> None:
+        _, got, numbering = self._open.pop(rel)
+        self.ready.append((rel, [got[i] for i in sorted(got)], time.monotonic(), numbering))
+        self.ready.sort(key=lambda r: (r[3], r[1][0].seq))
+
+    def _numbering(self, c: Correction) -> int:
+        """The numbering ``c`` belongs to (a restart correction going back starts the next one)."""
+        if not c.valid and restarts_numbering(c.reason) and self._newest is not None and c.seq <= self._newest:
+            self.numbering += 1
+            self._newest = None
+        self._newest = c.seq if self._newest is None else max(self._newest, c.seq)
+        return self.numbering
+
+    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
+        numbering = self._numbering(c)
+        if batch is None:  # a sender without release tags: each correction is its own batch
+            self.unbatched += 1
+            self.ready.append((-1, [c], time.monotonic(), numbering))
+            return
+        rel, idx, size = batch
+        for other in [r for r in self._open if r != rel]:
+            self.abandoned += 1
+            self._hand_over(other)
+        if rel in self._open and (self._open[rel][0] != size or idx in self._open[rel][1]
+                                  or self._open[rel][2] != numbering):
+            self.abandoned += 1
+            self._hand_over(rel)
+        _, got, _ = self._open.setdefault(rel, (size, {}, numbering))
+        got[idx] = c
+        if len(got) == size:
+            self._hand_over(rel)
+
+    def flush_incomplete(self) -> int:
+        """End of stream: hand over partial releases (what arrived of them); returns how many."""
+        n = len(self._open)
+        for rel in sorted(self._open):
+            self._hand_over(rel)
+        return n

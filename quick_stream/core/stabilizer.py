@@ -1,0 +1,104 @@
+"""The whole QuICK stabilizer in one process, shaped like the stream it will become.
+
+Frames go in one at a time (:meth:`Stabilizer.push`); stabilized frames come out
+one segment later, when the planner has solved the segment their corrections
+belong to. Stages, each the library object the matching service calls (quick_stream/core/stages.py):
+
+    FlowStage (scene flow) -> MotionStage (motion, keyframes, optimal path)
+        -> RenderStage (content-preserving warp, framing, render)
+
+Only the frames of the open segment are buffered (at most one keyframe interval).
+Bad frames are skipped and reported; frames whose correction fell back (invalid
+motion, solver failure, failed warp) are still rendered, flagged in their record.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+
+from .continuity import ContinuityParams
+from .frame import BadFrame, RGBDFrame
+from .motion import MotionParams
+from .path.planner import Correction, PathPlanner, PlannerParams
+from .render import FramingParams, WarpParams
+from .render_stage import RenderStage, StabilizedFrame
+from .sceneflow import SceneFlowParams
+from .stages import FlowStage, MotionStage
+from .timing import StageTimer
+
+__all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]
+
+
+@dataclass
+class StabilizerParams:
+    flow: SceneFlowParams = field(default_factory=SceneFlowParams)
+    continuity: ContinuityParams = field(default_factory=ContinuityParams)
+    motion: MotionParams = field(default_factory=MotionParams)
+    planner: PlannerParams = field(default_factory=PlannerParams)
+    warp: WarpParams = field(default_factory=WarpParams)
+    framing: FramingParams = field(default_factory=FramingParams)
+
+    def __post_init__(self) -> None:
+        if self.planner.group != self.motion.group:
+            raise ValueError(f"motion group {self.motion.group!r} and path group {self.planner.group!r} differ")
+
+
+class Stabilizer:
+    """One stream's stabilizer (not thread-safe)."""
+
+    def __init__(self, params: StabilizerParams | None = None, keep_inputs: bool = False,
+                 keep_motions: bool = False) -> None:
+        """``keep_inputs``: attach each input image to its output (metrics); ``keep_motions``:
+        record every motion estimate (reports, plots). Both off, memory stays bounded by one segment."""
+        self.params = p = params or StabilizerParams()
+        self.flow = FlowStage(p.flow, p.continuity)
+        self.motion = MotionStage(p.motion, p.planner, p.warp)
+        self.render = RenderStage(p.warp, p.framing, max_frames=1 << 30, keep_inputs=keep_inputs)
+        self.timer = StageTimer()
+        self.keep_motions = keep_motions
+        self.bad_frames: list[dict] = []
+        self.motions: list = []
+
+    @property
+    def planner(self) -> PathPlanner:
+        return self.motion.planner
+
+    def push(self, frame: RGBDFrame | BadFrame) -> list[StabilizedFrame]:
+        """Add the next frame; returns the frames whose segment just closed (in order)."""
+        if isinstance(frame, BadFrame):
+            self.bad_frames.append({"seq": frame.seq, "origin": frame.origin, "error": frame.error})
+            return []
+        try:
+            t0 = time.perf_counter()
+            flow = self.flow.push(frame)
+            t1 = time.perf_counter()
+        except ValueError as e:
+            self.bad_frames.append({"seq": frame.seq, "origin": frame.origin, "error": str(e)})
+            try:  # as the render service does: a refused frame it can hold is rendered uncorrected, flagged
+                self.render.add_frame(frame.seq, frame)
+            except ValueError:
+                pass  # duplicate or out of order: not rendered twice
+            return []
+        self.render.add_frame(frame.seq, frame)
+        if flow is None:
+            return self._render(self.motion.start(frame.seq))
+        self.timer.add("flow", (t1 - t0) * 1e3)
+        motions, batches = self.motion.push(flow)
+        if self.keep_motions:
+            self.motions.extend(motions)
+        return self._render(*batches)
+
+    def finish(self) -> list[StabilizedFrame]:
+        """End of stream: close the last segment and render what is left."""
+        return self._render(*self.motion.finish())
+
+    def _render(self, *batches: list[Correction]) -> list[StabilizedFrame]:
+        out: list[StabilizedFrame] = []
+        for b in batches:
+            out.extend(self.render.render_batch(b))
+        for stage in (self.motion, self.render):
+            for k, v in stage.timer.samples.items():
+                self.timer.samples.setdefault(k, []).extend(v)
+                v.clear()
+        return out

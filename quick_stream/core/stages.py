@@ -1,0 +1,171 @@
+"""The pipeline's three stateful stages, shared by the in-process stabilizer and the services.
+
+    frames -> FlowStage -> SceneFlowResult -> MotionStage -> MotionEstimate + correction batches
+    frames + correction batches -> RenderStage -> StabilizedFrame   (quick_stream/core/render_stage.py)
+
+:class:`~quick_stream.core.stabilizer.Stabilizer` chains them in one process; the
+``flow``, ``motion`` and ``render`` services each drive one of them from Zenoh
+messages (docs/architecture.md). Because the services add only transport, a
+stream run through the services gives bit-for-bit the offline result
+(tests/integration/test_services_e2e.py).
+
+A *correction batch* is what one planner call released (the first frame's
+correction; a closed segment; a segment closed early by an invalid motion plus
+the restart frame). The renderer frames each batch as a whole (one zoom track,
+:func:`~quick_stream.core.render.segment_zooms`), so the batches travel as batches.
+
+Streams with holes: :class:`MotionStage` turns a gap between consecutive flows
+(the flow stage skipped frames or was restarted) into an invalid motion, so the
+path restarts there and the frames are flagged; :class:`RenderStage` renders a
+frame that no correction will ever reach (an *orphan*, skipped upstream) with
+no correction, flagged, instead of holding it forever. A stream renumbered lower
+(confirmed by a run of frames, :class:`~quick_stream.core.continuity.JumpGuard`) is a break:
+the flow goes back, :class:`MotionStage` restarts the path there, and
+:class:`RenderStage` keeps the old numbering's frames apart from the new one's.
+"""
+from __future__ import annotations
+
+import time
+
+from .continuity import ContinuityCheck, ContinuityParams, published_after, restarts_numbering
+from .frame import RGBDFrame
+from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
+from .path.budget import FrameModel
+from .path.planner import Correction, PathPlanner, PlannerParams
+from .render import WarpParams
+from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
+from .timing import StageTimer
+
+
+class FlowStage:
+    """Scene flow between each good frame and the previous one (one instance per stream).
+
+    Each frame first passes :class:`~quick_stream.core.continuity.ContinuityCheck` (counted in
+    ``check.counts``); ``notes`` holds what it reported of the last frame pushed.
+    """
+
+    def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None) -> None:
+        self.flow = SceneFlow(params)
+        self.check = ContinuityCheck(continuity)
+        self.notes: list[str] = []
+        self._prev: RGBDFrame | None = None
+        self._prev_pub: int | None = None  # when the previous good frame was published (None: unknown)
+
+    def push(self, frame: RGBDFrame, pub_ns: int | None = None) -> SceneFlowResult | None:
+        """Add the next frame; returns the flow from the previous good frame to it (None for the first).
+
+        A frame the check refuses (no valid depth, duplicate, out of order) raises
+        :class:`~quick_stream.core.continuity.FrameRefused` (a ValueError) and is not used. Across a
+        discontinuity (too many missing frames, a timestamp jump, a size change, a confirmed
+        renumbering: the flow then goes back, ``seq_next < seq``) the flow is empty and its
+        ``problem`` names the discontinuity, so the path restarts there. ``pub_ns``: when the frame
+        was published (a frame message's ``pub_ns``), so a history replay of older frames never
+        passes for a new numbering (:func:`~quick_stream.core.continuity.published_after`).
+        """
+        prev = self._prev
+        verdict = self.check.inspect(prev, frame, published_after(pub_ns, self._prev_pub))
+        self.notes = verdict.notes
+        self._prev, self._prev_pub = frame, pub_ns
+        if prev is None:
+            return None
+        if verdict.brk:
+            return SceneFlowResult.empty(prev, frame, verdict.brk)
+        return self.flow.compute(prev, frame)
+
+    def restart(self) -> None:
+        """End of stream: the next frame starts a new chain (the counters go on)."""
+        self._prev = self._prev_pub = None
+
+
+class MotionStage:
+    """Motion estimation plus path planning: flows in, motions and correction batches out."""
+
+    def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None,
+                 warp: WarpParams | None = None) -> None:
+        """``warp``: the render stage's warp parameters (the path's crop budget fits the same mesh)."""
+        self.estimator = MotionEstimator(motion)
+        self.planner = PathPlanner(planner, warp)
+        if self.planner.params.group != self.estimator.params.group:
+            raise ValueError(f"motion group {self.estimator.params.group!r} and path group "
+                             f"{self.planner.params.group!r} differ")
+        self._last: int | None = None  # seq of the newest frame the path has reached
+        self.gaps = 0
+        self.renumberings = 0  # breaks to a new numbering taken (the path restarted at a lower seq)
+        self._break: tuple[int, int] | None = None  # (seq, seq_next) of the last of them
+        self.timer = StageTimer()
+
+    @property
+    def started(self) -> bool:
+        return self._last is not None
+
+    def start(self, seq: int) -> list[Correction]:
+        """First frame of the stream: its correction batch (identity, a keyframe)."""
+        self._last = seq
+        return self.planner.start(seq)
+
+    def push(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[list[Correction]]]:
+        """Add one flow; returns the motions made and the correction batches released, in order.
+
+        Starts the path at ``flow.seq`` if not started. A flow that does not begin
+        at the newest frame reached (frames skipped upstream) first gets an invalid
+        motion across the gap. A flow that ends at or before that frame is refused
+        with ValueError (stale or duplicate), unless it is the flow stage's break to a
+        new numbering (:meth:`renumbers`): the path then restarts at its ``seq_next``, and
+        the corrections of the old numbering and of the new one go out in separate batches.
+        """
+        batches: list[list[Correction]] = []
+        motions: list[MotionEstimate] = []
+        if self._last is None:
+            batches.append(self.start(flow.seq))
+        renumbered = self.renumbers(flow)
+        if flow.seq_next <= self._last and not renumbered:
+            raise ValueError(f"flow {flow.seq}->{flow.seq_next} ends at or before frame {self._last} "
+                             "(stale or duplicate)")
+        if renumbered:
+            self.renumberings += 1
+            self._break = (flow.seq, flow.seq_next)
+        p = self.estimator.params
+        if flow.seq != self._last:
+            self.gaps += 1
+            gap = invalid_motion(self._last, flow.seq, p.group, p.estimator,
+                                 f"no scene flow from frame {self._last} to {flow.seq} (frames skipped upstream)")
+            motions.append(gap)
+            batches.append(self.planner.push(gap))
+        t0 = time.perf_counter()
+        m = self.estimator.estimate(flow)
+        t1 = time.perf_counter()
+        motions.append(m)
+        batches += split_numberings(self.planner.push(m, self.frame_model(flow)))
+        self.timer.add("motion", (t1 - t0) * 1e3)
+        self.timer.add("path", (time.perf_counter() - t1) * 1e3)
+        self._last = flow.seq_next
+        return motions, [b for b in batches if b]
+
+    def renumbers(self, flow: SceneFlowResult) -> bool:
+        """Whether ``flow`` is the flow stage's break to a new numbering: empty, going back
+        (``seq_next <= seq``), its problem naming the renumbering, and starting at or after the newest
+        frame the path reached and not the one already taken (either is a stale copy)."""
+        return (bool(flow.problem) and len(flow) == 0 and flow.seq_next <= flow.seq
+                and restarts_numbering(flow.problem) and (self._last is None or flow.seq >= self._last)
+                and self._break != (flow.seq, flow.seq_next))
+
+    def frame_model(self, flow: SceneFlowResult) -> FrameModel | None:
+        """The 3D points of the flow's second frame (x + v at the pixels the flow reached), for the crop budget."""
+        b = self.planner.params.budget
+        if not (self.planner.params.mode == "smooth" and b.enabled) or flow.problem or len(flow) == 0:
+            return None
+        K = flow.intrinsics_next
+        return FrameModel.from_points(K.width, K.height, K, flow.pixels_next, flow.points + flow.displacements,
+                                      b.model_points)
+
+    def finish(self) -> list[list[Correction]]:
+        """End of stream: the last segment's batch (if any)."""
+        b = self.planner.finish() if self.started else []
+        return [b] if b else []
+
+
+def split_numberings(batch: list[Correction]) -> list[list[Correction]]:
+    """``batch`` cut where its seqs go back (a path closed by a renumbering and restarted in the new
+    numbering), so no correction batch mixes two numberings."""
+    cuts = [i for i in range(1, len(batch)) if batch[i].seq <= batch[i - 1].seq]
+    return [batch[a:b] for a, b in zip([0, *cuts], [*cuts, len(batch)])]

@@ -1,0 +1,176 @@
+"""Which seqs of each stage never arrived: a receiver's view of loss anywhere upstream.
+
+Every stage numbers its messages with the frame's seq, so a receiver that sees seq 229
+follow 208 knows 209-228 did not reach it: dropped by a stage that says so in its own
+stats (render's ``dropped``, flow's ``refused_frames``), or lost without a word (a
+transport that drops under congestion: zenoh's ``CongestionControl.DROP`` gives up on a
+message after ``wait_before_drop``; a publisher killed mid-send). The recorder keeps this
+account of everything it records, so no loss is silent (docs/reliability.md).
+
+A seq that arrives late (after a higher one) fills its gap again. The missing seqs of a
+stage are remembered up to ``window`` behind its newest; older ones are final.
+
+A stage whose numbering restarts lower (a camera or capture restarted without the stream's
+cursor) is followed once a run of seqs confirms it, as the stages confirm it
+(:class:`~quick_stream.core.continuity.JumpGuard`: ``resync`` consecutive seqs at or behind the newest,
+none of them filling a gap, each following the previous by 1..``step``; a frame published before
+the newest one, a history replay, never counts): the stage's newest becomes the run's last seq,
+the run's seqs are taken back from ``duplicates``, the gaps inside the run are counted, the old
+numbering's missing seqs are final (``renumberings``; logged). So the cursor a restarted service
+resumes from follows the new numbering, and the new numbering is not a flood of duplicates.
+
+Only messages that pass :func:`quick_stream.stream.wire.check` are accounted (every field valid, the
+envelope's stream and type those of the key it came on): one malformed message with a huge seq
+must not move a stage's newest seq, which restarted services resume from (the stream cursor).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from ..core.continuity import JumpGuard, published_after
+from . import keys
+from .wire import WireError, check
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _Stage:
+    newest: int = -1
+    first: int = -1  # the first seq accounted (or seeded)
+    missing: set[int] = field(default_factory=set)
+    unreceived: int = 0  # seqs skipped and not (yet) filled: the stage's count
+    jumps: JumpGuard = field(default_factory=JumpGuard)  # a far-future or lower seq moves nothing until confirmed
+    newest_pub: int | None = None  # when the newest was published (frames carry it), None: unknown
+
+
+@dataclass
+class Gap:
+    """Seqs ``first``..``last`` of ``stage`` in ``stream`` skipped by the message that just arrived."""
+
+    stream: str
+    stage: str
+    first: int
+    last: int
+
+    @property
+    def count(self) -> int:
+        return self.last - self.first + 1
+
+
+class ArrivalLedger:
+    """Per (stream, stage): the newest seq received and the seqs skipped on the way."""
+
+    def __init__(self, window: int = 4096) -> None:
+        self.window = window
+        self._stages: dict[tuple[str, str], _Stage] = {}
+        self._ended: dict[str, int] = {}  # unreceived of stages whose stream ended, per stage
+        self.late = 0  # arrived after a higher seq (filled a gap)
+        self.duplicates = 0  # arrived again (a restarted publisher republishing, a replay)
+        self.invalid = 0  # failed the check: not accounted
+        self.jumps = 0  # far ahead of the stage's newest and not (yet) confirmed by a run: not accounted
+        self.renumberings = 0  # a stage's numbering went back, confirmed by a run: followed
+        self.last_error: str | None = None  # why the newest invalid one failed
+
+    def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None] | None:
+        """(type, seq, publication time ns or None) of a message that passes
+        :func:`~quick_stream.stream.wire.check` on its key (a frame's ``pub_ns``); None (counted in
+        ``invalid``, the reason in ``last_error``) for one that does not."""
+        try:
+            stream, stage = keys.parse(key_expr)
+            d = check(payload, stream, stage)
+        except (ValueError, WireError) as e:
+            self.invalid += 1
+            self.last_error = f"{key_expr}: {e}"
+            return None
+        return d.type, d.seq, d.extra.get("pub_ns") if d.extra else None
+
+    def add(self, key_expr: str, payload: bytes) -> Gap | None:
+        """Check and account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any."""
+        env = self.checked(key_expr, payload)
+        return None if env is None else self.account(key_expr, *env)
+
+    def account(self, key_expr: str, mtype: str, seq: int, pub_ns: int | None = None) -> Gap | None:
+        """Account a checked message (:meth:`checked`; ``pub_ns``: when it was published, if known);
+        the gap it reveals, if any. Stats and health (numbered on their own) are not counted; an
+        ``end`` closes the stage's stream (a new one may start again from 0)."""
+        if mtype in ("stats", "health"):
+            return None
+        where = tuple(key_expr.rsplit("/", 2)[-2:])
+        st = self._stages.setdefault(where, _Stage())  # type: ignore[arg-type]
+        if mtype == "end":  # its seq is the stream's last frame, not the stage's last (a flow is
+            # numbered by its pair's first frame): it says nothing about the stage's own seqs
+            ended = self._stages.pop(where)
+            if ended.unreceived:
+                self._ended[where[1]] = self._ended.get(where[1], 0) + ended.unreceived
+            return None
+        if st.newest < 0:  # the first message of this stage we see: nothing before it is ours to miss
+            st.newest = st.first = seq
+            st.newest_pub = pub_ns
+            return None
+        if seq > st.newest and not st.jumps.admit(st.newest, seq):
+            self.jumps += 1  # one far-future seq (a glitch, a stray publisher) is not the stage's newest
+            return None
+        if seq > st.newest:
+            gap = None
+            if seq > st.newest + 1:
+                gap = Gap(where[0], where[1], st.newest + 1, seq - 1)
+                st.missing.update(range(max(st.newest + 1, seq - self.window), seq))
+                st.unreceived += gap.count
+            st.newest = seq
+            st.newest_pub = pub_ns
+            if len(st.missing) > self.window:
+                st.missing = {s for s in st.missing if s > seq - self.window}
+            return gap
+        if seq in st.missing:
+            st.missing.discard(seq)
+            st.unreceived -= 1
+            self.late += 1
+            return None
+        self.duplicates += 1
+        if st.jumps.renumbered(seq, published_after(pub_ns, st.newest_pub)):
+            self._renumber(where, st, pub_ns)
+        return None
+
+    def _renumber(self, where: tuple[str, str], st: _Stage, pub_ns: int | None) -> None:
+        """Follow a stage's confirmed new numbering: its run (:attr:`JumpGuard.run`) was counted as
+        duplicates; it is the new numbering's start, with what is missing inside it."""
+        run = st.jumps.run
+        self.renumberings += 1
+        self.duplicates -= len(run)
+        log.warning("%s/%s: the numbering restarts at seq %d (after %d; confirmed by %d in a row): followed",
+                    where[0], where[1], run[0], st.newest, len(run))
+        st.missing = set()  # the old numbering's: final
+        for a, b in zip(run, run[1:]):
+            st.missing.update(range(a + 1, b))
+        st.unreceived += len(st.missing)
+        st.newest, st.first, st.newest_pub = run[-1], run[0], pub_ns
+
+    def seed(self, stream: str, stage: str, newest: int) -> Gap | None:
+        """Start a stage's account at ``newest`` as if it had been received (a restarted recorder
+        continuing its predecessor's account): the next message reveals what came in between. If
+        messages of the stage already arrived, the hole before the first of them is returned."""
+        where = (stream, stage)
+        st = self._stages.get(where)
+        if st is None:
+            self._stages[where] = _Stage(newest=int(newest), first=int(newest))
+            return None
+        if st.first <= newest + 1:
+            return None
+        gap = Gap(stream, stage, newest + 1, st.first - 1)
+        st.unreceived += gap.count
+        st.first = int(newest)
+        return gap
+
+    def newest(self) -> dict[tuple[str, str], int]:
+        """Per (stream, stage): the highest seq received since that stage's last ``end``."""
+        return {where: st.newest for where, st in list(self._stages.items())}
+
+    def unreceived(self) -> dict[str, int]:
+        """Seqs never received, summed over streams, per stage (stages without any omitted)."""
+        out = dict(self._ended)
+        for (_, stage), st in list(self._stages.items()):  # zenoh's thread may be adding
+            if st.unreceived:
+                out[stage] = out.get(stage, 0) + st.unreceived
+        return out

@@ -1,0 +1,408 @@
+"""Encode/decode of each wire message type (format version 1; docs/wire-format.md).
+
+``encode_<type>(obj, stream, ...) -> bytes`` per type, :func:`encode` dispatching on
+the object's class, and :func:`decode` returning a :class:`Decoded` (type, object,
+envelope, wire-only extras). :func:`decode` raises only :class:`~.codec.WireError`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ...core.frame import FrameError, Intrinsics, RGBDFrame
+from ...core.motion import MotionEstimate
+from ...core.path.planner import Correction
+from ...core.sceneflow import SceneFlowResult
+from .codec import (
+    DEFAULT_MAX_BYTES,
+    FORMAT_VERSION,
+    Reader,
+    WireError,
+    decode_depth,
+    decode_image,
+    encode_array,
+    encode_depth,
+    encode_image,
+    float_list,
+    pack,
+    unpack,
+)
+
+GROUP_DIMS = {"se3": 6, "sim3": 7, "sa3": 11, "ga3": 12}
+MAX_FLOW_POINTS = 10_000_000
+
+
+@dataclass
+class StabilizedImage:
+    """One rendered output frame: BGR uint8 image, the framing zoom used and any flags."""
+
+    seq: int
+    timestamp_ns: int
+    image: np.ndarray
+    zoom: float = 1.0
+    flags: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Stats:
+    """Per-service health/stats: flat dict of numbers, strings, bools or nil."""
+
+    service: str
+    values: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class EndOfStream:
+    """The stream ended (source exhausted or stopped); ``seq`` is its last frame's seq (-1: none).
+
+    Sent in order on the same key as the stage's data, so a receiver sees it after the
+    last data message; each stage forwards it once it has flushed what it held."""
+
+    seq: int
+    reason: str = ""
+
+
+@dataclass
+class Decoded:
+    """A decoded message: ``type``, the object, its envelope and wire-only ``extra`` fields.
+
+    ``extra`` holds what the object has no attribute for: ``zoom`` (correction),
+    ``color_encoding``/``depth_encoding``/``depth_scale`` (frame), ``encoding`` (stabilized).
+    """
+
+    type: str
+    obj: Any
+    stream: str
+    seq: int
+    version: int = FORMAT_VERSION
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# --- helpers ------------------------------------------------------------------------------------
+
+def _intrinsics(k: Intrinsics) -> dict[str, Any]:
+    return {"fx": float(k.fx), "fy": float(k.fy), "cx": float(k.cx), "cy": float(k.cy),
+            "width": int(k.width), "height": int(k.height)}
+
+
+def read_intrinsics(r: Reader, name: str) -> Intrinsics:
+    m = r.map(name)
+    k = Intrinsics(m.float("fx", positive=True), m.float("fy", positive=True), m.float("cx"), m.float("cy"),
+                   m.int("width", min=1), m.int("height", min=1))
+    try:
+        k.validate()
+    except FrameError as e:
+        raise r.error(name, str(e)) from None
+    return k
+
+
+def _str(name: str, s: Any) -> str:
+    if not isinstance(s, str):
+        raise WireError(f"expected str, got {type(s).__name__}", field=name)
+    return s
+
+
+# --- frame --------------------------------------------------------------------------------------
+
+def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality: int = 90,
+                 depth: str = "raw", depth_scale: float = 1000.0, pub_ns: int | None = None) -> bytes:
+    """An RGBDFrame as a ``frame`` message; colour ``jpeg``/``raw``, depth ``raw``/``zstd``;
+    ``pub_ns``: wall-clock time the capture published it (latency accounting)."""
+    f = {
+        "pub_ns": None if pub_ns is None else int(pub_ns),
+        "t_ns": int(frame.timestamp_ns),
+        "intrinsics": _intrinsics(frame.intrinsics),
+        "color": encode_image(frame.color, color, quality),
+        "depth": encode_depth(frame.depth, depth, depth_scale),
+        "pose": None if frame.pose is None else float_list("pose", frame.pose, 16),
+        "origin": _str("origin", frame.origin),
+        "capture": _capture(frame.capture) if frame.capture else None,
+    }
+    return pack(f, "frame", stream, frame.seq)
+
+
+_CAPTURE_TYPES = (int, float, str)
+
+
+def _capture(meta: dict) -> dict:
+    out = {}
+    for k, v in meta.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        if not isinstance(k, str) or isinstance(v, bool) or not isinstance(v, _CAPTURE_TYPES):
+            raise WireError(f"capture metadata must be str -> int/float/str, got {k!r}: {type(v).__name__}",
+                            field=f"capture.{k}")
+        out[k] = v
+    return out
+
+
+def restamp_frame(data: bytes, stream: str, pub_ns: int, seq: int | None = None) -> bytes:
+    """A recorded ``frame`` message re-addressed to ``stream`` with a new ``pub_ns`` (and ``seq``, if
+    given); everything else (the compressed images included) byte for byte as recorded (exact replay)."""
+    r = unpack(data)
+    if r.type != "frame":
+        raise r.error("type", f"expected a 'frame' message, got {r.type!r}")
+    fields = {k: v for k, v in r.d.items() if k not in ("v", "type", "stream", "seq")}
+    fields["pub_ns"] = int(pub_ns)
+    return pack(fields, "frame", stream, r.seq if seq is None else seq)
+
+
+def _decode_frame(r: Reader) -> Decoded:
+    k = read_intrinsics(r, "intrinsics")
+    t_ns = r.int("t_ns")
+    color, cenc = decode_image(r, "color")
+    depth, denc, scale = decode_depth(r, "depth")
+    if color.shape[:2] != (k.height, k.width):
+        raise r.error("color", f"image is {color.shape[1]}x{color.shape[0]} but intrinsics say {k.width}x{k.height}")
+    if depth.shape != (k.height, k.width):
+        raise r.error("depth", f"depth is {depth.shape[1]}x{depth.shape[0]} but intrinsics say {k.width}x{k.height}")
+    pose = r.floats("pose", 16, optional=True)
+    capture = {}
+    if r.has("capture"):
+        cr = r.map("capture")
+        for key_, v in cr.d.items():
+            if not isinstance(key_, str) or isinstance(v, bool) or not isinstance(v, _CAPTURE_TYPES):
+                raise cr.error(str(key_), f"expected int/float/str, got {type(v).__name__}")
+            capture[key_] = v
+    frame = RGBDFrame(color, depth, k, t_ns, r.seq, None if pose is None else pose.reshape(4, 4),
+                      r.str("origin", optional=True) or "", capture=capture)
+    return Decoded("frame", frame, r.stream, r.seq,
+                   extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale,
+                          "pub_ns": r.int("pub_ns", optional=True)})
+
+
+# --- flow ---------------------------------------------------------------------------------------
+
+_FLOW_ARRAYS = (("points", 3), ("displacements", 3), ("weights", None), ("pixels", 2), ("pixels_next", 2))
+
+
+def encode_flow(flow: SceneFlowResult, stream: str) -> bytes:
+    """A SceneFlowResult as a ``flow`` message (arrays float32 on the wire)."""
+    f: dict[str, Any] = {"seq_next": int(flow.seq_next)}
+    for name, _ in _FLOW_ARRAYS:
+        f[name] = encode_array(getattr(flow, name), "<f4")
+    f["intrinsics"] = _intrinsics(flow.intrinsics)
+    f["intrinsics_next"] = _intrinsics(flow.intrinsics_next)
+    f["counts"] = {str(k): int(v) for k, v in flow.counts.items()}
+    f["problem"] = _str("problem", flow.problem)
+    return pack(f, "flow", stream, flow.seq)
+
+
+def _decode_flow(r: Reader) -> Decoded:
+    arrays = {}
+    n = None
+    for name, cols in _FLOW_ARRAYS:
+        a = r.array(name, "<f4", 1 if cols is None else 2, () if cols is None else (cols,),
+                    finite=True, max_elems=3 * MAX_FLOW_POINTS)
+        if n is None:
+            n = a.shape[0]
+        elif a.shape[0] != n:
+            raise r.error(name, f"{a.shape[0]} rows but points has {n}")
+        arrays[name] = a.astype(np.float64)
+    counts_r = r.map("counts")
+    counts = {}
+    for key in counts_r.d:
+        counts[key] = counts_r.int(key)
+    flow = SceneFlowResult(
+        r.seq, r.int("seq_next", min=0), arrays["points"], arrays["displacements"], arrays["weights"],
+        arrays["pixels"], arrays["pixels_next"], read_intrinsics(r, "intrinsics"),
+        read_intrinsics(r, "intrinsics_next"), counts, r.str("problem"),
+    )
+    return Decoded("flow", flow, r.stream, r.seq)
+
+
+# --- motion -------------------------------------------------------------------------------------
+
+def encode_motion(m: MotionEstimate, stream: str) -> bytes:
+    """A MotionEstimate as a ``motion`` message (matrix 16 float64 row-major; rms_px may be NaN)."""
+    dim = GROUP_DIMS.get(m.group)
+    if dim is None:
+        raise WireError(f"unknown group {m.group!r}", field="group", stream=stream, seq=m.seq)
+    f = {
+        "seq_next": int(m.seq_next), "group": m.group, "estimator": _str("estimator", m.estimator),
+        "matrix": float_list("matrix", m.matrix, 16), "twist": float_list("twist", m.twist, dim),
+        "zeta_bar": None if m.zeta_bar is None else float_list("zeta_bar", m.zeta_bar, dim),
+        "valid": bool(m.valid), "reason": _str("reason", m.reason), "n_points": int(m.n_points),
+        "inlier_ratio": float(m.inlier_ratio), "rms_px": float(m.rms_px),
+    }
+    return pack(f, "motion", stream, m.seq)
+
+
+def _decode_motion(r: Reader) -> Decoded:
+    group = r.str("group")
+    dim = GROUP_DIMS.get(group)
+    if dim is None:
+        raise r.error("group", f"unknown group {group!r} (known: {', '.join(GROUP_DIMS)})")
+    zeta = r.floats("zeta_bar", dim, optional=True)
+    m = MotionEstimate(
+        r.seq, r.int("seq_next", min=0), group, r.str("estimator"), r.floats("matrix", 16).reshape(4, 4),
+        r.floats("twist", dim), r.bool("valid"), r.str("reason"), r.int("n_points", min=0),
+        r.float("inlier_ratio"), r.float("rms_px", finite=False), zeta,
+    )
+    return Decoded("motion", m, r.stream, r.seq)
+
+
+# --- correction ---------------------------------------------------------------------------------
+
+def encode_correction(c: Correction, stream: str, zoom: float | None = None,
+                      batch: tuple[int, int, int] | None = None) -> bytes:
+    """A Correction as a ``correction`` message, with the optional framing ``zoom`` (default: the
+    zoom planned with the path, ``c.zoom``) and ``batch`` = (release id, index in it, release
+    size): the planner's release it belongs to."""
+    if zoom is None:
+        zoom = c.zoom
+    if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
+        raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
+    if batch is not None and not (len(batch) == 3 and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
+        raise WireError(f"batch must be (release >= 0, 0 <= index < size, size), got {batch}",
+                        field="batch", stream=stream, seq=c.seq)
+    f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
+         "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom),
+         "batch": None if batch is None else [int(x) for x in batch],
+         "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain)}
+    return pack(f, "correction", stream, c.seq)
+
+
+def _decode_correction(r: Reader) -> Decoded:
+    camera = r.floats("camera", 16, optional=True)
+    chain = r.int("chain", optional=True)
+    c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
+                   r.bool("valid"), r.str("reason"), r.float("zoom", positive=True, optional=True),
+                   None if camera is None else camera.reshape(4, 4), -1 if chain is None else chain)
+    batch = r.get("batch", optional=True)
+    if batch is not None:
+        if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
+                or not (batch[0] >= 0 and 0 <= batch[1] < batch[2])):
+            raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {batch!r}")
+        batch = tuple(batch)
+    return Decoded("correction", c, r.stream, r.seq,
+                   extra={"zoom": c.zoom, "batch": batch})
+
+
+# --- stabilized ---------------------------------------------------------------------------------
+
+def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", quality: int = 90,
+                      src_pub_ns: int | None = None, ready_pub_ns: int | None = None) -> bytes:
+    """A StabilizedImage as a ``stabilized`` message (image ``jpeg``/``raw``).
+
+    Latency accounting (optional): ``src_pub_ns`` is when the capture published the source
+    frame, ``ready_pub_ns`` when it published the frame that closed this frame's segment
+    (so the wait for the segment is ready - src, and the processing is now - ready)."""
+    if not (np.isfinite(s.zoom) and s.zoom > 0):
+        raise WireError(f"zoom must be finite and > 0, got {s.zoom}", field="zoom", stream=stream, seq=s.seq)
+    f = {"t_ns": int(s.timestamp_ns), "image": encode_image(s.image, color, quality), "zoom": float(s.zoom),
+         "flags": [_str("flags", x) for x in s.flags],
+         "src_pub_ns": None if src_pub_ns is None else int(src_pub_ns),
+         "ready_pub_ns": None if ready_pub_ns is None else int(ready_pub_ns)}
+    return pack(f, "stabilized", stream, s.seq)
+
+
+def _decode_stabilized(r: Reader) -> Decoded:
+    img, enc = decode_image(r, "image")
+    flags = r.list("flags")
+    if not all(isinstance(x, str) for x in flags):
+        raise r.error("flags", "expected an array of str")
+    s = StabilizedImage(r.seq, r.int("t_ns"), img, r.float("zoom", positive=True), flags)
+    return Decoded("stabilized", s, r.stream, r.seq,
+                   extra={"encoding": enc, "src_pub_ns": r.int("src_pub_ns", optional=True),
+                          "ready_pub_ns": r.int("ready_pub_ns", optional=True)})
+
+
+# --- stats --------------------------------------------------------------------------------------
+
+_STAT_TYPES = (int, float, str, bool, type(None))
+
+
+def encode_stats(s: Stats, stream: str, seq: int) -> bytes:
+    """A Stats as a ``stats`` message; ``seq`` counts this service's stats messages."""
+    vals = {}
+    for k, v in s.values.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        if not isinstance(k, str) or not isinstance(v, _STAT_TYPES):
+            raise WireError(f"stats values must be str -> number/str/bool/nil, got {k!r}: {type(v).__name__}",
+                            field=f"values.{k}", stream=stream, seq=seq)
+        vals[k] = v
+    return pack({"service": _str("service", s.service), "values": vals}, "stats", stream, seq)
+
+
+def _decode_stats(r: Reader) -> Decoded:
+    vr = r.map("values")
+    for k, v in vr.d.items():
+        if not isinstance(k, str) or not isinstance(v, _STAT_TYPES):
+            raise vr.error(str(k), f"expected number/str/bool/nil, got {type(v).__name__}")
+    return Decoded("stats", Stats(r.str("service"), dict(vr.d)), r.stream, r.seq)
+
+
+# --- end of stream ------------------------------------------------------------------------------
+
+def encode_end(e: EndOfStream, stream: str) -> bytes:
+    """An EndOfStream as an ``end`` message (envelope seq = last frame's seq, 0 when none)."""
+    return pack({"last_seq": int(e.seq), "reason": _str("reason", e.reason)}, "end", stream, max(int(e.seq), 0))
+
+
+def _decode_end(r: Reader) -> Decoded:
+    last = r.int("last_seq", min=-1)
+    return Decoded("end", EndOfStream(last, r.str("reason")), r.stream, r.seq)
+
+
+# --- dispatch -----------------------------------------------------------------------------------
+
+_DECODERS = {
+    "frame": _decode_frame, "flow": _decode_flow, "motion": _decode_motion,
+    "correction": _decode_correction, "stabilized": _decode_stabilized, "stats": _decode_stats,
+    "end": _decode_end,
+}
+
+
+_ENCODERS = (
+    (RGBDFrame, encode_frame), (SceneFlowResult, encode_flow), (MotionEstimate, encode_motion),
+    (Correction, encode_correction), (StabilizedImage, encode_stabilized), (Stats, encode_stats),
+    (EndOfStream, encode_end),
+)
+
+
+def encode(obj: Any, stream: str, **kw: Any) -> bytes:
+    """Encode any message object (type from its class); ``kw`` goes to the per-type encoder."""
+    for cls, encoder in _ENCODERS:
+        if isinstance(obj, cls):
+            return encoder(obj, stream, **kw)
+    raise WireError(f"no wire message type for {type(obj).__name__}")
+
+
+def decode(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES, pixels: bool = True) -> Decoded:
+    """Decode one message; raises :class:`WireError` (and nothing else) for any malformed input.
+    ``pixels=False`` checks every field the same way but leaves images and depth maps undecoded
+    (zero-filled read-only views of the declared shape): :func:`check`."""
+    r = None
+    try:
+        r = unpack(data, max_bytes)
+        r.pixels = pixels
+        return _DECODERS[r.type](r)
+    except WireError:
+        raise
+    except Exception as e:  # noqa: BLE001 - safety net: no other exception type may escape
+        raise WireError(f"malformed message: {type(e).__name__}: {e}",
+                        stream=getattr(r, "stream", None), seq=getattr(r, "seq", None)) from None
+
+
+# Which message types each stage's key carries (an end marker closes any data stage's stream).
+STAGE_TYPES = {"frame": ("frame", "end"), "flow": ("flow", "end"), "motion": ("motion", "end"),
+               "correction": ("correction", "end"), "stabilized": ("stabilized", "end"), "stats": ("stats",)}
+
+
+def check(data: bytes, stream: str | None = None, stage: str | None = None,
+          max_bytes: int = DEFAULT_MAX_BYTES) -> Decoded:
+    """Validate a message before any bookkeeping reads it (arrival ledgers, restart cursors, inbox
+    skips): every field as :func:`decode` checks it, without decoding pixels (a frame costs ~0.1 ms),
+    plus the envelope's ``stream`` and type against the key it came on. Raises :class:`WireError`
+    naming the problem."""
+    d = decode(data, max_bytes, pixels=False)
+    if stream is not None and d.stream != stream:
+        raise WireError(f"message of stream {d.stream!r} on the key of stream {stream!r}", stream=d.stream, seq=d.seq,
+                        field="stream", type=d.type)
+    if stage is not None and d.type not in STAGE_TYPES.get(stage, ()):
+        raise WireError(f"{d.type} message on the {stage} key", stream=d.stream, seq=d.seq, field="type", type=d.type)
+    return d

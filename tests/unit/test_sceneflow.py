@@ -1,0 +1,122 @@
+"""Scene flow: lifted pairs agree with ground truth; each mask removes what it should."""
+import numpy as np
+import pytest
+
+from quick_stream.core.frame import RGBDFrame
+from quick_stream.core.sceneflow import SceneFlow, SceneFlowParams, sample_depth
+from quick_stream.io.sources.synthetic import SyntheticSource
+
+
+@pytest.fixture(scope="module")
+def pair():
+    src = SyntheticSource(frames=3, seed=11)
+    return src.frame(0), src.frame(1)
+
+
+def point_motion(a: RGBDFrame, b: RGBDFrame) -> np.ndarray:
+    return np.linalg.inv(b.pose) @ a.pose
+
+
+def test_lifted_pairs_follow_ground_truth(pair):
+    a, b = pair
+    r = SceneFlow().compute(a, b)
+    assert 1000 <= len(r) <= SceneFlowParams().max_points
+    M = point_motion(a, b)
+    pred = r.points @ M[:3, :3].T + M[:3, 3]
+    err = np.linalg.norm(r.points + r.displacements - pred, axis=1)
+    assert np.median(err) < 0.003  # metres; depth 0.8-5 m
+    # pixels_next is where the flow put the point: it reprojects x + v (to float32 precision,
+    # the wire's: about 1e-4 px at x = 640)
+    y = r.points + r.displacements
+    K = r.intrinsics_next
+    np.testing.assert_allclose(K.fx * y[:, 0] / y[:, 2] + K.cx, r.pixels_next[:, 0], atol=2e-4)
+    for a in (r.points, r.displacements, r.pixels, r.pixels_next):
+        assert np.array_equal(a, a.astype(np.float32))
+
+
+def test_subsampling_is_bounded_and_deterministic(pair):
+    a, b = pair
+    p = SceneFlowParams(max_points=500)
+    r1 = SceneFlow(p).compute(a, b)
+    r2 = SceneFlow(p).compute(a, b)
+    assert len(r1) == 500
+    np.testing.assert_array_equal(r1.points, r2.points)
+    np.testing.assert_array_equal(r1.displacements, r2.displacements)
+
+
+def test_invalid_depth_is_masked_in_both_frames(pair):
+    a, b = pair
+    a2 = a.with_(depth=a.depth.copy())
+    a2.depth[:, :320] = 0  # left half of frame t invalid
+    b2 = b.with_(depth=b.depth.copy())
+    b2.depth[240:, :] = 0  # bottom half of frame t+1 invalid
+    r = SceneFlow(SceneFlowParams(max_points=100000)).compute(a2, b2)
+    assert r.pixels[:, 0].min() >= 320
+    assert r.pixels_next[:, 1].max() < 240
+    assert r.counts["invalid_depth"] > 0 and r.counts["invalid_depth_next"] > 0
+
+
+def test_flow_leaving_the_image_is_masked():
+    src = SyntheticSource(frames=2, seed=3)
+    a = src.frame(0)
+    # frame t+1 = frame t shifted 40 px left: points near the left edge leave the image
+    shift = 40
+    col = np.zeros_like(a.color)
+    col[:, :-shift] = a.color[:, shift:]
+    dep = np.zeros_like(a.depth)
+    dep[:, :-shift] = a.depth[:, shift:]
+    b = a.with_(color=col, depth=dep, seq=1)
+    r = SceneFlow(SceneFlowParams(max_points=100000)).compute(a, b)
+    assert r.counts["out_of_image"] > 0
+    assert r.pixels[:, 0].min() >= shift - 2
+    assert np.median(r.pixels_next[:, 0] - r.pixels[:, 0]) == pytest.approx(-shift, abs=0.5)
+
+
+def test_occluding_object_is_caught_by_forward_backward_check(pair):
+    a, b = pair
+    rng = np.random.default_rng(0)
+    col = b.color.copy()
+    # an object appears in frame t+1: a noise patch that has no counterpart in frame t
+    col[150:300, 250:420] = rng.integers(0, 255, (150, 170, 3), dtype=np.uint8)
+    b2 = b.with_(color=col)
+    on = SceneFlow(SceneFlowParams(max_points=100000)).compute(a, b2)
+    off = SceneFlow(SceneFlowParams(max_points=100000, fb_check=False)).compute(a, b2)
+
+    def in_patch(r):
+        u, v = r.pixels_next[:, 0], r.pixels_next[:, 1]
+        return np.count_nonzero((u > 260) & (u < 410) & (v > 160) & (v < 290))
+
+    assert on.counts["fb_inconsistent"] > 0
+    assert in_patch(on) < 0.5 * in_patch(off)
+
+
+def test_velocity_outliers_are_removed(pair):
+    a, b = pair
+    dep = b.depth.copy()
+    dep[:60, :80] += 1.5  # a corner of frame t+1 jumps 1.5 m back: unnaturally large velocities
+    r = SceneFlow(SceneFlowParams(max_points=100000, depth_edge=1.0)).compute(a, b.with_(depth=dep))
+    speeds = np.linalg.norm(r.displacements, axis=1)
+    assert r.counts["velocity_outlier"] > 50
+    assert speeds.max() < 0.5
+
+
+def test_depth_is_not_blended_across_edges():
+    d = np.ones((4, 4), np.float32)
+    d[:, 2:] = 3.0
+    z = sample_depth(d, np.array([0.5, 1.5, 2.5]), np.array([1.0, 1.0, 1.0]), 0.05)
+    np.testing.assert_allclose(z, [1.0, 0.0, 3.0])
+
+
+def test_lk_refinement_brings_sample_flow_closer_to_the_truth(pair):
+    a, b = pair
+    M = point_motion(a, b)
+    K = b.intrinsics
+    errs = {}
+    for refine in ("none", "lk"):
+        r = SceneFlow(SceneFlowParams(refine=refine)).compute(a, b)
+        y = r.points @ M[:3, :3].T + M[:3, 3]  # where the sample's 3D point really is in frame t+1
+        truth = np.column_stack((K.fx * y[:, 0] / y[:, 2] + K.cx, K.fy * y[:, 1] / y[:, 2] + K.cy))
+        errs[refine] = float(np.median(np.linalg.norm(r.pixels_next - truth, axis=1)))
+    assert errs["lk"] < 0.75 * errs["none"], errs
+    with pytest.raises(ValueError, match="refine"):
+        SceneFlowParams(refine="sift").validate()

@@ -1,0 +1,185 @@
+"""The pipeline stages the services drive: gaps, orphans, order and bounds (quick_stream/core/stages.py, render_stage.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.render_stage import RenderStage
+from quick_stream.core.stages import FlowStage, MotionStage
+from quick_stream.io.sources import open_source
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return list(open_source("synthetic:frames=40,width=160,height=120"))
+
+
+def test_flow_stage_refuses_frames_out_of_order(frames):
+    st = FlowStage()
+    assert st.push(frames[3]) is None
+    assert st.push(frames[4]).seq_next == 4
+    with pytest.raises(ValueError, match="not after"):
+        st.push(frames[2])
+
+
+def run_with_gap(frames, skip: range, restart: bool):
+    """Flow/motion/render over the frames, the flow stage never seeing ``skip``: dropped from its
+    queue (it then pairs across them) or, with ``restart``, lost with a killed flow service."""
+    flow, motion, render = FlowStage(), MotionStage(), RenderStage()
+    out = []
+    for f in frames:
+        render.add_frame(f.seq, f)
+        if f.seq in skip:
+            continue
+        if restart and f.seq == skip.stop:
+            flow = FlowStage()  # the restarted service starts over
+        fl = flow.push(f)
+        if fl is None:
+            batches = [] if motion.started else [motion.start(f.seq)]
+        else:
+            _, batches = motion.push(fl)
+        for b in batches:
+            out += render.render_batch(b)
+    for b in motion.finish():
+        out += render.render_batch(b)
+    out += render.flush()
+    return motion, render, out
+
+
+def test_a_restart_gap_restarts_the_path_and_every_frame_comes_out_in_order_flagged(frames):
+    motion, render, out = run_with_gap(frames, range(12, 17), restart=True)
+    assert [sf.seq for sf in out] == list(range(40))
+    flagged = [sf.seq for sf in out if sf.flags]
+    # the gap (no correction) and the restarted flow's first frame, where the path restarts
+    assert flagged == list(range(12, 18))
+    assert all("skipped upstream" in out[s].flags[0] for s in range(12, 17))
+    assert "invalid" in out[17].flags[0]
+    assert motion.gaps == 1 and render.orphans == 5 and render.missing == 0
+
+
+def test_frames_dropped_before_flow_come_out_in_order_flagged(frames):
+    motion, render, out = run_with_gap(frames, range(12, 16), restart=False)  # 4 missing: max_missing
+    assert [sf.seq for sf in out] == list(range(40))
+    assert [sf.seq for sf in out if sf.flags] == list(range(12, 16))  # the path spans them
+    assert motion.gaps == 0 and render.orphans == 4
+
+
+def test_more_frames_dropped_than_flow_bridges_restart_the_path(frames):
+    motion, render, out = run_with_gap(frames, range(12, 17), restart=False)  # 5 missing
+    assert [sf.seq for sf in out] == list(range(40))
+    assert [sf.seq for sf in out if sf.flags] == list(range(12, 18))
+    assert "5 frames missing between frame 11 and 17" in out[17].flags[0]
+    assert motion.gaps == 0 and render.orphans == 5
+
+
+@pytest.mark.parametrize("fps,breaks", [(120, 0), (30, 3)])
+def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, breaks):
+    """A 120 fps camera whose capture sends every 8th frame (the pipeline takes 15 frames/s): 7
+    frames missing between two sent ones span 67 ms, which flow bridges; the same gaps at 30 fps
+    (267 ms) break the path. Render only ever sees the frames sent: none is flagged at 120 fps."""
+    sent = list(open_source(f"synthetic:frames=25,width=160,height=120,fps={fps}"))[::8]
+    flow, motion, render = FlowStage(), MotionStage(), RenderStage()
+    out, batches = [], [motion.start(sent[0].seq)]
+    for f in sent:
+        render.add_frame(f.seq, f)
+        if (fl := flow.push(f)) is not None:
+            batches += motion.push(fl)[1]
+    batches += motion.finish()
+    for b in batches:
+        out += render.render_batch(b)
+    out += render.flush()
+    assert [sf.seq for sf in out] == [0, 8, 16, 24]
+    assert flow.check.counts["missing_frames"] == 21 and flow.check.counts["breaks"] == breaks
+    assert sum(bool(sf.flags) for sf in out) == breaks and render.orphans == 0
+
+
+def test_motion_stage_refuses_stale_flows(frames):
+    flow, motion = FlowStage(), MotionStage()
+    flow.push(frames[0])
+    f01 = flow.push(frames[1])
+    motion.push(f01)
+    with pytest.raises(ValueError, match="stale or duplicate"):
+        motion.push(f01)
+
+
+def test_render_stage_bounds_what_it_holds(frames):
+    r = RenderStage(max_frames=5)
+    for f in frames[:8]:
+        r.add_frame(f.seq, f)
+    assert r.buffered == 5 and r.dropped == 3
+    out = r.render_batch([Correction(0, np.eye(4), 0, True)])  # frame 0 was dropped: counted missing, the rest waits
+    assert out == [] and r.missing == 1 and r.buffered == 5
+
+
+def test_render_stage_reports_a_frame_that_cannot_be_loaded(frames):
+    r = RenderStage()
+
+    def broken():
+        raise ValueError("truncated JPEG")
+
+    r.add_frame(0, broken)
+    assert r.render_batch([Correction(0, np.eye(4), 0, True)]) == []
+    assert r.bad == [{"seq": 0, "error": "ValueError: truncated JPEG"}]
+
+
+def test_release_groups_hand_over_releases_whose_sender_died():
+    import numpy as np
+
+    from quick_stream.core.path.planner import Correction
+    from quick_stream.core.render_stage import ReleaseGroups
+
+    def c(seq):
+        return Correction(seq, np.eye(4), 0, False)
+
+    g = ReleaseGroups()
+    g.add(c(0), (0, 0, 1))
+    g.add(c(1), (1, 0, 3))
+    g.add(c(2), (1, 1, 3))  # ... and the motion service dies before index 2
+    assert [b[1] for b in g.ready][0][0].seq == 0 and len(g.ready) == 1
+    g.add(c(9), (0, 0, 2))  # the restarted service numbers from 0 again
+    assert g.abandoned == 1 and [[x.seq for x in b] for _, b, *_ in g.ready] == [[0], [1, 2]]
+    g.add(c(10), (0, 1, 2))
+    assert [[x.seq for x in b] for _, b, *_ in g.ready][-1] == [9, 10]
+    g.add(c(20), (5, 0, 2))
+    g.add(c(21), (5, 0, 2))  # an index already there: a new release under a reused number
+    assert g.abandoned == 2
+
+
+def test_render_refuses_one_far_future_frame_and_follows_a_confirmed_renumbering():
+    from quick_stream.core.render_stage import RenderStage
+    from quick_stream.io.sources.synthetic import SyntheticSource
+
+    fr = next(iter(SyntheticSource(width=64, height=48, frames=1)))
+    st = RenderStage()
+    st.add_frame(0, fr)
+    with pytest.raises(ValueError, match="frames ahead of frame 0"):
+        st.add_frame(10**12, fr)
+    st.add_frame(1, fr)  # the stream goes on
+    for s in range(9000, 9004):
+        with pytest.raises(ValueError, match="ahead"):
+            st.add_frame(s, fr)
+    st.add_frame(9004, fr)  # the fifth in a row: a new numbering
+    assert st.buffered == 3
+
+
+def test_flow_refuses_one_far_future_frame_and_breaks_at_a_confirmed_renumbering():
+    """One frame from the far future used to become the previous frame, so every later one was
+    refused as out of order and the stream halted for good."""
+    from quick_stream.core.continuity import FrameRefused
+    from quick_stream.io.sources.synthetic import SyntheticSource
+
+    frames = list(SyntheticSource(width=64, height=48, frames=12))
+    st = FlowStage()
+    st.push(frames[0])
+    with pytest.raises(FrameRefused, match="frames ahead of frame 0"):
+        st.push(frames[1].with_(seq=10**12))
+    f = st.push(frames[1])  # the stream goes on from frame 0
+    assert (f.seq, f.seq_next, f.problem) == (0, 1, "")
+    renumbered = [frames[2 + i].with_(seq=7000 + i) for i in range(5)]
+    for fr in renumbered[:4]:
+        with pytest.raises(FrameRefused, match="ahead"):
+            st.push(fr)
+    f = st.push(renumbered[4])  # the fifth in a row: a discontinuity, the path restarts there
+    assert (f.seq, f.seq_next) == (1, 7004) and "missing" in f.problem
+    assert st.check.counts["seq_jumps"] == 5

@@ -1,0 +1,382 @@
+"""Tests of the msgpack wire format: round trips, every rejection case, and a fuzz test."""
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from quick_stream.core.frame import Intrinsics, RGBDFrame
+from quick_stream.core.motion import MotionEstimate, invalid_motion
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.sceneflow import SceneFlowResult
+from quick_stream.stream.wire import (
+    FORMAT_VERSION,
+    Decoded,
+    StabilizedImage,
+    Stats,
+    WireError,
+    decode,
+    dequantize_depth,
+    encode,
+    encode_correction,
+    encode_flow,
+    encode_frame,
+    encode_motion,
+    encode_stabilized,
+    encode_stats,
+    quantize_depth,
+)
+
+K = Intrinsics(50.0, 51.0, 15.5, 11.5, 32, 24)
+
+
+def make_frame(w: int = 32, h: int = 24, seed: int = 0, pose: bool = True) -> RGBDFrame:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w]
+    color = np.stack([xx * 255 // w, yy * 255 // h, (xx + yy) % 256], -1).astype(np.uint8)
+    depth = rng.uniform(0.3, 5.0, (h, w)).astype(np.float32)
+    depth[0, 0] = 0.0
+    k = Intrinsics(50.0, 51.0, (w - 1) / 2, (h - 1) / 2, w, h)
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.2, 0.3]
+    return RGBDFrame(color, depth, k, 1_700_000_000_123_456_789, 7, T if pose else None, "synthetic")
+
+
+def make_flow(n: int = 50) -> SceneFlowResult:
+    rng = np.random.default_rng(1)
+    return SceneFlowResult(
+        3, 4, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)) * 0.01, rng.uniform(size=n),
+        rng.uniform(0, 32, (n, 2)), rng.uniform(0, 32, (n, 2)), K, K.scaled(0.5),
+        {"depth": 12, "fb": 3}, "",
+    )
+
+
+def make_motion() -> MotionEstimate:
+    rng = np.random.default_rng(2)
+    M = np.eye(4)
+    M[:3, 3] = rng.normal(size=3)
+    return MotionEstimate(9, 10, "sim3", "exact", M, rng.normal(size=7), True, "", 812, 0.93,
+                          0.41, rng.normal(size=7))
+
+
+def make_correction() -> Correction:
+    M = np.eye(4)
+    M[:3, 3] = [0.01, 0.02, -0.03]
+    return Correction(11, M, 2, True, True, "")
+
+
+def small_messages() -> list[bytes]:
+    f = make_frame(8, 6)
+    return [
+        encode_frame(f, "cam0", color="raw", depth="raw"),
+        encode_frame(f, "cam0", color="jpeg", depth="zstd"),
+        encode_flow(make_flow(4), "cam0"),
+        encode_motion(make_motion(), "cam0"),
+        encode_correction(make_correction(), "cam0", zoom=1.1),
+        encode_stabilized(StabilizedImage(5, 99, f.color, 1.2, ["late"]), "cam0", color="raw"),
+        encode_stats(Stats("flow", {"fps": 29.9, "drops": 0, "state": "ok"}), "cam0", 3),
+    ]
+
+
+def raw(data: bytes) -> dict:
+    return msgpack.unpackb(data, raw=False)
+
+
+def repack(d: dict) -> bytes:
+    return msgpack.packb(d, use_bin_type=True)
+
+
+def rejects(data: bytes, *words: str, **kw) -> WireError:
+    with pytest.raises(WireError) as ei:
+        decode(data, **kw)
+    msg = str(ei.value)
+    for w in words:
+        assert w in msg, f"{w!r} not in {msg!r}"
+    return ei.value
+
+
+# --- round trips --------------------------------------------------------------------------------
+
+def test_frame_raw_raw_bit_exact():
+    f = make_frame()
+    m = decode(encode_frame(f, "cam0", color="raw", depth="raw"))
+    assert isinstance(m, Decoded) and m.type == "frame" and m.stream == "cam0" and m.seq == 7
+    assert m.version == FORMAT_VERSION
+    g = m.obj
+    assert isinstance(g, RGBDFrame)
+    assert g.color.dtype == np.uint8 and np.array_equal(g.color, f.color)
+    assert g.depth.dtype == np.float32
+    assert np.array_equal(g.depth, dequantize_depth(quantize_depth(f.depth)))
+    assert np.abs(g.depth - f.depth).max() <= 0.5e-3 + 1e-6
+    assert g.intrinsics == f.intrinsics and g.timestamp_ns == f.timestamp_ns and g.seq == f.seq
+    assert np.array_equal(g.pose, f.pose) and g.origin == "synthetic"
+    assert m.extra == {"color_encoding": "raw", "depth_encoding": "raw", "depth_scale": 1000.0, "pub_ns": None}
+    g.validate()
+
+
+def test_frame_jpeg_zstd():
+    f = make_frame(64, 48, pose=False)
+    m = decode(encode_frame(f, "cam1", quality=95, depth="zstd", depth_scale=5000))
+    g = m.obj
+    assert g.pose is None and g.color.shape == f.color.shape
+    assert np.abs(g.color.astype(int) - f.color).mean() < 3.0
+    assert np.array_equal(g.depth, dequantize_depth(quantize_depth(f.depth, 5000), 5000))
+    assert m.extra["depth_encoding"] == "zstd" and m.extra["depth_scale"] == 5000.0
+
+
+def test_depth_quantisation_invalid_values():
+    d = np.array([[0.0, -1.0, np.nan, np.inf, 70.0, 1.2345]], np.float32)
+    q = quantize_depth(d)
+    assert q.dtype == np.uint16 and q[0, :5].tolist() == [0, 0, 0, 0, 0] and q[0, 5] in (1234, 1235)
+    assert dequantize_depth(q, 1000)[0, 5] == np.float32(q[0, 5]) / np.float32(1000)
+
+
+def test_flow_round_trip():
+    fl = make_flow()
+    m = decode(encode_flow(fl, "cam0"))
+    g = m.obj
+    assert m.type == "flow" and g.seq == 3 and g.seq_next == 4
+    for name in ("points", "displacements", "weights", "pixels", "pixels_next"):
+        a, b = getattr(g, name), getattr(fl, name)
+        assert a.dtype == np.float64 and np.array_equal(a, b.astype(np.float32).astype(np.float64))
+    assert g.intrinsics == fl.intrinsics and g.intrinsics_next == fl.intrinsics_next
+    assert g.counts == fl.counts and g.problem == ""
+    empty = SceneFlowResult(1, 2, *(np.zeros((0, 3)),) * 2, np.zeros(0), *(np.zeros((0, 2)),) * 2, K, K,
+                            {}, "too dark")
+    assert decode(encode_flow(empty, "cam0")).obj.problem == "too dark"
+
+
+def test_motion_round_trip():
+    mo = make_motion()
+    g = decode(encode_motion(mo, "cam0")).obj
+    assert isinstance(g, MotionEstimate)
+    for name in ("seq", "seq_next", "group", "estimator", "valid", "reason", "n_points", "inlier_ratio", "rms_px"):
+        assert getattr(g, name) == getattr(mo, name)
+    assert np.array_equal(g.matrix, mo.matrix) and np.array_equal(g.twist, mo.twist)
+    assert np.array_equal(g.zeta_bar, mo.zeta_bar)
+    inv = invalid_motion(4, 5, "ga3", "induced", "only 3 pairs")
+    h = decode(encode_motion(inv, "cam0")).obj
+    assert not h.valid and h.reason == "only 3 pairs" and math.isnan(h.rms_px)
+    assert np.array_equal(h.matrix, np.eye(4)) and h.twist.shape == (12,)
+    inv.zeta_bar = None
+    assert decode(encode_motion(inv, "cam0")).obj.zeta_bar is None
+
+
+def test_correction_round_trip():
+    c = make_correction()
+    m = decode(encode_correction(c, "cam0", zoom=1.25))
+    g = m.obj
+    assert isinstance(g, Correction) and np.array_equal(g.matrix, c.matrix)
+    assert (g.seq, g.segment, g.keyframe, g.valid, g.reason) == (11, 2, True, True, "")
+    assert m.extra["zoom"] == 1.25
+    assert decode(encode_correction(c, "cam0")).extra["zoom"] is None
+
+
+def test_stabilized_and_stats_round_trip():
+    img = make_frame(40, 30).color
+    s = StabilizedImage(12, 400, img, 1.07, ["invalid-motion", "late"])
+    g = decode(encode_stabilized(s, "cam0", color="raw")).obj
+    assert np.array_equal(g.image, img) and g.zoom == 1.07 and g.flags == s.flags and g.timestamp_ns == 400
+    m = decode(encode_stabilized(s, "cam0"))
+    assert m.extra["encoding"] == "jpeg" and np.abs(m.obj.image.astype(int) - img).mean() < 4.0
+    st_ = Stats("motion", {"fps": 30.1, "frames": 1200, "state": "ok", "degraded": False, "last_err": None})
+    m = decode(encode_stats(st_, "cam0", 5))
+    assert m.type == "stats" and m.seq == 5 and m.obj == st_
+
+
+def test_encode_dispatch():
+    assert decode(encode(make_motion(), "a")).type == "motion"
+    assert decode(encode(make_correction(), stream="b", zoom=1.5)).extra["zoom"] == 1.5
+    assert decode(encode(make_frame(), "c", color="raw")).type == "frame"
+    with pytest.raises(WireError):
+        encode(object(), "x")
+
+
+# --- rejections ---------------------------------------------------------------------------------
+
+def test_reject_not_msgpack_and_truncated():
+    rejects(b"", "empty")
+    rejects(b"\xc1", "not valid msgpack")
+    data = encode_motion(make_motion(), "cam0")
+    rejects(data[:-3], "truncated")
+    rejects(data + b"\x00", "trailing")
+    rejects(bytearray(b"\x91\x01"), "not a msgpack map")
+    rejects("text", "expected bytes")
+
+
+def test_reject_version():
+    d = raw(encode_motion(make_motion(), "cam0"))
+    d["v"] = 2
+    e = rejects(repack(d), "expected 1", "found 2", "'v'", "stream 'cam0'", "seq 9")
+    assert e.field == "v" and e.stream == "cam0" and e.seq == 9
+    del d["v"]
+    rejects(repack(d), "missing format version", "'v'")
+    d["v"] = "1"
+    rejects(repack(d), "found '1'")
+
+
+def test_reject_unknown_type_and_envelope():
+    d = raw(encode_correction(make_correction(), "cam0"))
+    rejects(repack({**d, "type": "video"}), "unknown message type 'video'", "'type'")
+    rejects(repack({**d, "seq": -1}), "'seq'")
+    rejects(repack({**d, "stream": 5}), "'stream'", "expected str")
+
+
+def test_reject_missing_and_wrong_type_fields():
+    d = raw(encode_motion(make_motion(), "cam0"))
+    del d["seq_next"]
+    e = rejects(repack(d), "missing field", "'seq_next'", "stream 'cam0'", "seq 9", "type 'motion'")
+    assert e.field == "seq_next"
+    d = raw(encode_motion(make_motion(), "cam0"))
+    rejects(repack({**d, "matrix": "eye"}), "'matrix'", "expected array")
+    rejects(repack({**d, "matrix": [1.0] * 15}), "'matrix'", "expected 16")
+    rejects(repack({**d, "valid": 1}), "'valid'", "expected bool")
+    rejects(repack({**d, "n_points": True}), "'n_points'", "expected int")
+    rejects(repack({**d, "group": "so3"}), "'group'", "unknown group")
+    rejects(repack({**d, "twist": [0.0] * 6}), "'twist'", "expected 7")
+    f = raw(encode_frame(make_frame(), "cam0", color="raw"))
+    del f["intrinsics"]["fx"]
+    rejects(repack(f), "'intrinsics.fx'", "missing")
+    s = raw(encode_stats(Stats("x", {"a": 1}), "cam0", 0))
+    s["values"]["a"] = [1, 2]
+    rejects(repack(s), "'values.a'")
+
+
+def test_reject_array_length_and_shape():
+    d = raw(encode_flow(make_flow(), "cam0"))
+    d["points"]["data"] = d["points"]["data"][:-4]
+    rejects(repack(d), "'points.data'", "do not match", "seq 3")
+    d = raw(encode_flow(make_flow(), "cam0"))
+    d["points"]["dtype"] = "<f8"
+    rejects(repack(d), "'points.dtype'")
+    d = raw(encode_flow(make_flow(), "cam0"))
+    d["weights"] = raw(encode_flow(make_flow(10), "cam0"))["weights"]
+    rejects(repack(d), "'weights'", "rows")
+    f = raw(encode_frame(make_frame(), "cam0", color="raw", depth="raw"))
+    f["depth"]["data"] += b"\x00\x00"
+    rejects(repack(f), "'depth.data'")
+    f = raw(encode_frame(make_frame(), "cam0", depth="zstd"))
+    f["depth"]["shape"] = [24, 31]
+    rejects(repack(f), "'depth.data'", "content size")
+    f["depth"]["data"] = b"\x28\xb5\x2f\xfd garbage"
+    rejects(repack(f), "'depth.data'")
+    f = raw(encode_frame(make_frame(), "cam0", color="raw"))
+    f["intrinsics"]["width"] = 33
+    rejects(repack(f), "'color'", "intrinsics")
+
+
+def test_reject_non_finite():
+    d = raw(encode_motion(make_motion(), "cam0"))
+    rejects(repack({**d, "matrix": [float("nan")] + [0.0] * 15}), "'matrix'", "non-finite")
+    rejects(repack({**d, "inlier_ratio": float("inf")}), "'inlier_ratio'", "non-finite")
+    assert math.isnan(decode(repack({**d, "rms_px": float("nan")})).obj.rms_px)  # allowed
+    fl = make_flow()
+    fl.points[0, 0] = np.nan
+    rejects(encode_flow(fl, "cam0"), "'points.data'", "non-finite")
+    c = raw(encode_correction(make_correction(), "cam0"))
+    rejects(repack({**c, "zoom": float("nan")}), "'zoom'")
+    rejects(repack({**c, "zoom": -1.0}), "'zoom'")
+    with pytest.raises(WireError, match="matrix"):
+        encode_correction(Correction(0, np.full((4, 4), np.nan), 0, False), "cam0")
+
+
+def test_reject_bad_image():
+    f = raw(encode_frame(make_frame(), "cam0"))
+    f["color"]["data"] = b"not a jpeg at all"
+    rejects(repack(f), "'color.data'", "not a JPEG")
+    f = raw(encode_frame(make_frame(), "cam0"))
+    f["color"]["shape"] = [48, 64, 3]
+    rejects(repack(f), "'color.data'", "32x24")
+    f = raw(encode_frame(make_frame(), "cam0"))
+    data = f["color"]["data"]
+    f["color"]["data"] = data[:200] + b"\xff\xd9"
+    try:  # libjpeg may decode a damaged body with warnings: either outcome, never a crash
+        decode(repack(f))
+    except WireError as e:
+        assert "color" in str(e)
+    f["color"]["enc"] = "png"
+    rejects(repack(f), "'color.enc'", "png")
+
+
+def test_reject_oversized_and_hostile_headers():
+    data = encode_frame(make_frame(), "cam0", color="raw")
+    rejects(data, "max_bytes=1000", max_bytes=1000)
+    assert decode(data, max_bytes=len(data)).type == "frame"
+    for hostile in (b"\xc6\xff\xff\xff\xff", b"\xdd\xff\xff\xff\xff", b"\xdf\xff\xff\xff\xff",
+                    b"\xdb\xff\xff\xff\xff", b"\x81\xa1v\xc6\x7f\xff\xff\xff" + b"\x00" * 8):
+        rejects(hostile)
+    d = raw(encode_frame(make_frame(), "cam0", color="raw", depth="raw"))
+    d["color"]["shape"] = [2**30, 2**30, 3]
+    rejects(repack(d), "'color.shape'")
+
+
+# --- fuzz ---------------------------------------------------------------------------------------
+
+BASES = small_messages()
+VALUES = st.one_of(
+    st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=8),
+    st.binary(max_size=16), st.lists(st.integers(-5, 5), max_size=20),
+    st.dictionaries(st.text(max_size=4), st.integers(-2**63, 2**64 - 1), max_size=3),
+)
+
+
+def _check(data: bytes) -> None:
+    try:
+        m = decode(data)
+    except WireError:
+        return
+    assert isinstance(m, Decoded) and m.type in ("frame", "flow", "motion", "correction", "stabilized", "stats")
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
+@given(st.binary(max_size=200))
+def test_fuzz_random_bytes(data):
+    _check(data)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True)
+@given(st.sampled_from(range(len(BASES))), st.data())
+def test_fuzz_mutations(i, data):
+    msg = BASES[i]
+    op = data.draw(st.sampled_from(["truncate", "flip", "delete", "replace"]))
+    if op == "truncate":
+        _check(msg[: data.draw(st.integers(0, len(msg) - 1))])
+    elif op == "flip":
+        b = bytearray(msg)
+        for _ in range(data.draw(st.integers(1, 4))):
+            b[data.draw(st.integers(0, len(b) - 1))] ^= data.draw(st.integers(1, 255))
+        _check(bytes(b))
+    else:
+        d = raw(msg)
+        target = d
+        key = data.draw(st.sampled_from(sorted(d)))
+        if isinstance(d[key], dict) and d[key] and data.draw(st.booleans()):
+            target = d[key]
+            key = data.draw(st.sampled_from(sorted(target)))
+        if op == "delete":
+            del target[key]
+        else:
+            target[key] = data.draw(VALUES)
+        _check(repack(d))
+
+
+def test_a_frame_larger_than_the_maximum_is_refused_from_its_header(monkeypatch):
+    """An 8192x8192 JPEG in a small message (it pushed flow and render to ~1.1 GB): refused from the
+    declared shape before anything is decoded; the maximum is configurable per process."""
+    from quick_stream.stream.wire import codec
+
+    d = raw(encode_frame(make_frame(), "cam0"))
+    d["color"]["shape"] = [8192, 8192, 3]
+    d["intrinsics"]["width"] = d["intrinsics"]["height"] = 8192
+    rejects(repack(d), "'color.shape'", "8192x8192 outside 1..4096")
+    monkeypatch.setattr(codec, "MAX_IMAGE_SIDE", 4096)  # restored after the test
+    codec.set_max_image_side(16384)
+    with pytest.raises(WireError) as e:  # allowed now: the JPEG's own header (32x24) disagrees, still not decoded
+        decode(repack(d))
+    assert "JPEG is 32x24 but shape says 8192x8192" in str(e.value)
+    with pytest.raises(ValueError, match="16..16384"):
+        codec.set_max_image_side(100_000)
