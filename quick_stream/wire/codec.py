@@ -316,6 +316,11 @@ def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str]:
     if shape[2] != 3:
         raise m.error("shape", f"expected H x W x 3, got {shape}")
     _check_side(m, shape)
+    if "data" not in m.d and "ref" in m.d:
+        ref = m.d["ref"]
+        which = f"record {ref}" if type(ref) is int else "a record"
+        raise m.error("data", f"missing: the recording stored this JPEG apart, as {which} of its Foxglove image "
+                              "channel, and that record was not found (a damaged recording; docs/recording.md)")
     data = m.bytes("data")
     size = jpeg_size(data)
     if size is None:
