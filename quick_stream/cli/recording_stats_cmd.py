@@ -37,8 +37,11 @@ def run(args: argparse.Namespace) -> int:
             code = 2
             continue
         out.append(s.as_dict(args.fps) if args.json else report(s, args.fps))
-    if args.json:
-        print(json.dumps(out, indent=1))
-    elif out:
-        print("\n\n".join(out))
+    try:
+        if args.json:
+            print(json.dumps(out, indent=1))
+        elif out:
+            print("\n\n".join(out))
+    except BrokenPipeError:  # the reader (head, less) stopped reading
+        sys.stderr.close()
     return code
