@@ -175,7 +175,7 @@ class Rejoiner:
             while len(self._images) > _KEEP:
                 self._images.popitem(last=False)
             return bytes(data) if self.wanted is None or topic in self.wanted else None
-        if topic.startswith(keys.PREFIX + "/"):
+        if topic.startswith(keys.PREFIX + "/") and topic.rpartition("/")[2] in CHANNEL_OF_STAGE:
             return _rejoin(bytes(data), self._jpeg)
         return data
 

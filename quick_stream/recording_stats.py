@@ -17,7 +17,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mcap.records import Channel, Message
+from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
 from . import keys
@@ -131,7 +131,7 @@ def recording_stats(path: str | os.PathLike) -> RecordingStats:
                     t = record.log_time
                     stats.first_ns = t if stats.first_ns is None else min(stats.first_ns, t)
                     stats.last_ns = t if stats.last_ns is None else max(stats.last_ns, t)
-                elif type(record).__name__ == "Schema":
+                elif isinstance(record, Schema):
                     schemas[record.id] = record.name
         except Exception as e:  # noqa: BLE001 - a torn or damaged file raises assorted errors (describe_damage)
             if not records:  # not even the header: no MCAP file
