@@ -1,17 +1,22 @@
 """``recorder``: every stage's messages of a stream (or of all streams) into an MCAP file.
 
 Subscribes ``quick/@v1/<stream>/*`` (``--all-streams``: ``quick/@v1/*/*``) and
-logs each message's exact bytes on a msgpack channel named after its key (exact
-replay: ``capture --source mcap:FILE``, ``quick-stream rerun``), plus the
-Foxglove-viewable channels derived from them (images, calibration, camera and
-stabilized poses; :mod:`quick_stream.io.foxglove_view`).
+logs each message on a msgpack channel named after its key (exact replay: ``capture
+--source mcap:FILE``, ``quick-stream rerun``), plus the Foxglove-viewable protobuf
+channels (images, calibration, camera and stabilized poses and transforms;
+:mod:`quick_stream.io.foxglove`, docs/recording.md).
 
-Nothing accepted is lost to a kill: each message's wire bytes go into the file's open
-chunk as it arrives (in zenoh's thread, not behind a queue), and the chunk is written out
-at least every ``--flush`` seconds (default 0.5), so a SIGKILL loses at most what arrived
-in the last ``--flush`` seconds. The Foxglove channels are derived in the main loop from
-a drop-oldest queue (``--queue``; drops counted as ``inbox0_dropped``): under CPU
-pressure they may thin out, the wire channels never. ``quick-stream recover`` repairs
+Images are stored once: the JPEG of a frame's colour and of a stabilized image goes into
+its ``foxglove.CompressedImage`` record, and the msgpack record holds the wire message
+referencing it; readers put it back byte for byte (:mod:`quick_stream.io.recording_images`).
+``--no-foxglove``: msgpack channels only, each message whole.
+
+Nothing accepted is lost to a kill: each message (with its image record) goes into the
+file's open chunk as it arrives (in zenoh's thread, not behind a queue), and the chunk is
+written out at least every ``--flush`` seconds (default 0.5), so a SIGKILL loses at most
+what arrived in the last ``--flush`` seconds. The other Foxglove channels are derived in
+the main loop from a drop-oldest queue (``--queue``; drops counted as ``inbox0_dropped``):
+under CPU pressure they may thin out, the wire and image channels never. ``quick-stream recover`` repairs
 the footer-less file, and a restarted recorder writes to ``<name>-1.mcap`` (``-2``, ...)
 instead of overwriting it.
 
@@ -35,6 +40,7 @@ import zenoh
 
 from quick_stream.io import foxglove
 from quick_stream.io.foxglove_view import FoxgloveView
+from quick_stream.io.recording_images import write_message
 from quick_stream.io.recording import SplitRecorder, fresh_path, load_recorded, recorded_path, save_recorded
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.arrivals import Gap
@@ -53,14 +59,15 @@ def build_parser():
     p.add_argument("--all-streams", action="store_true", help="record every stream, not only --stream")
     p.add_argument("--flush", type=at.positive_float, default=0.5,
                    help="seconds between chunk flushes: what a killed recorder can lose (default 0.5)")
-    p.add_argument("--no-foxglove", action="store_true", help="msgpack channels only")
+    p.add_argument("--no-foxglove", action="store_true",
+                   help="msgpack channels only (each message whole; no Foxglove image, pose or calibration channels)")
     p.add_argument("--queue", type=at.positive_int, default=4096,
                    help="messages waiting for their Foxglove view before the oldest is dropped (default 4096)")
     p.add_argument("--nice", type=at.int_in(0, 19), default=10,
                    help="lower this process's CPU priority by this much, 0-19 (default 10: the live path goes first)")
     p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="none",
-                   help="MCAP chunk compression (default none: images do not compress; zstd saves ~25%% "
-                        "on flow and base64 image channels for CPU)")
+                   help="MCAP chunk compression (default none: images do not compress, and the flow and "
+                        "depth in the wire messages are compressed already; docs/recording.md)")
     p.add_argument("--split-mb", type=at.nonneg_float, default=4096.0,
                    help="finish the file and start the next once it holds this many MB (0: never; default 4096)")
     p.add_argument("--split-minutes", type=at.nonneg_float, default=0.0,
@@ -138,10 +145,11 @@ def run(args, conf: zenoh.Config) -> int:
                         **meter.take("log")}
 
         def accept(key_expr: str, payload: bytes, t_ns: int) -> None:
-            """Zenoh's thread, on arrival: the exact wire bytes into the file's open chunk at once, so
-            what arrived is on disk within ``--flush`` seconds however far the views lag behind."""
+            """Zenoh's thread, on arrival: the message (its JPEG in its Foxglove image record) into the
+            file's open chunk at once, so what arrived is on disk within ``--flush`` seconds however
+            far the views lag behind."""
             try:
-                keys.parse(key_expr)
+                stream, _ = keys.parse(key_expr)
             except ValueError as e:
                 errors["bad_keys"] += 1
                 log.error("%s", e)
@@ -152,9 +160,13 @@ def run(args, conf: zenoh.Config) -> int:
                     errors["unrecorded"] += bool(failure)  # arrived after the recording failed
                     return
                 try:
-                    files.rec.write(key_expr, payload, log_time_ns=t_ns)
-                    logged["bytes"] += len(payload)
-                    wrote(len(payload))
+                    if not args.no_foxglove and stream not in streams:  # its channels, before its first message
+                        streams.append(stream)
+                        foxglove.register_channels(files.rec, stream)
+                    n = write_message(lambda topic, data: files.rec.write(topic, data, log_time_ns=t_ns),
+                                      key_expr, payload, t_ns, images=not args.no_foxglove)
+                    logged["bytes"] += n
+                    wrote(n)
                 except OSError as e:
                     errors["unrecorded"] += 1
                     write_failed(e)
@@ -164,25 +176,17 @@ def run(args, conf: zenoh.Config) -> int:
                 log.info("recorded the end of %s", key_expr)  # what a stage's last message was, for operators
 
         def view_one(key_expr: str, payload: bytes, t_ns: int) -> None:
-            """The Foxglove channels derived from one message (same log time as its wire bytes)."""
+            """The Foxglove channels derived from one message (same log time as its wire message);
+            JPEG images were written on arrival (:func:`accept`)."""
             try:
                 stream, stage = keys.parse(key_expr)
             except ValueError:
                 return  # counted in accept
             view = views.get(stream)
             if view is None:
-                view = views[stream] = FoxgloveView(stream)
-                with lock:
-                    streams.append(stream)
-                    if files.rec.closed:
-                        return
-                    try:
-                        foxglove.register_channels(files.rec, stream)
-                    except OSError as e:
-                        write_failed(e)
-                        return
+                view = views[stream] = FoxgloveView(stream)  # its channels: registered on its first message
             try:
-                converted = list(view.convert(stage, payload))
+                converted = list(view.convert(stage, payload, t_ns, jpeg=False))
             except WireError as e:
                 errors["view_errors"] += 1
                 log.error("%s: no Foxglove view: %s", key_expr, e)

@@ -17,12 +17,12 @@ from types import ModuleType
 
 from ..stream.argtypes import check_outputs
 
-COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "router", "up", "acl")
+COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "recording-stats", "router", "up", "acl")
 
 
 def command(name: str) -> ModuleType:
-    """The module of sub-command ``name`` (``<name>_cmd``)."""
-    return importlib.import_module(f"{__name__}.{name}_cmd")
+    """The module of sub-command ``name`` (``<name>_cmd``, dashes as underscores)."""
+    return importlib.import_module(f"{__name__}.{name.replace('-', '_')}_cmd")
 
 
 def build_parser() -> argparse.ArgumentParser:

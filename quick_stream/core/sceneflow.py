@@ -19,6 +19,7 @@ estimator can weigh image-plane and depth errors separately.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from functools import lru_cache
 
@@ -279,9 +280,62 @@ def refine_lk(g0: np.ndarray, g1: np.ndarray, u0: np.ndarray, v0: np.ndarray, u1
 
 
 def _f32(a: np.ndarray) -> np.ndarray:
-    """float64 array rounded to float32 precision: the flow message carries float32, so a
-    stage fed from the wire computes bit for bit what an in-process one does."""
+    """float64 array rounded to float32 precision (the flow message's depths are float32)."""
     return a.astype(np.float32).astype(np.float64)
+
+
+# --- the flow as the wire carries it (docs/wire-format.md, flow, version 2) --------------------------
+
+FIXED_MAX = 32767  # int16 fixed point
+OFFSET_MAX_EXP = 10  # flow offsets in steps of 2^-k px, k <= 10: <= 0.0005 px off, 1/20 of LK's 0.01 px tolerance
+DEPTH_MAX_EXP = 16  # depth changes in steps of 2^-k m, k <= 16: <= 8 um off, 1/130 of a 1 mm depth unit
+
+
+def fixed_point_exp(values: np.ndarray, max_exp: int) -> int:
+    """The largest ``k <= max_exp`` with every ``round(values * 2^k)`` within int16 (+-32767)."""
+    m = float(np.max(np.abs(values))) if values.size else 0.0
+    if not m > 0:
+        return max_exp
+    k = min(max_exp, math.floor(math.log2(FIXED_MAX / m)))
+    while np.rint(m * 2.0 ** k) > FIXED_MAX:
+        k -= 1
+    return k
+
+
+def lift_pairs(pixels: np.ndarray, depth: np.ndarray, pixels_next: np.ndarray, depth_next: np.ndarray,
+               K0: Intrinsics, K1: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``x = K0^-1 [p, 1] z`` and displacements ``v = K1^-1 [p', 1] z' - x`` (docs/method.md (1)),
+    each rounded to float32. The one formula :func:`lift_flow` and the wire's flow decoder
+    (:mod:`quick_stream.stream.wire.flowpack`) use: the same samples give the same bits in every process."""
+    x = np.empty((len(depth), 3))
+    x[:, 0] = (pixels[:, 0] - K0.cx) * (depth / K0.fx)
+    x[:, 1] = (pixels[:, 1] - K0.cy) * (depth / K0.fy)
+    x[:, 2] = depth
+    vel = np.empty_like(x)
+    vel[:, 0] = (pixels_next[:, 0] - K1.cx) * (depth_next / K1.fx) - x[:, 0]
+    vel[:, 1] = (pixels_next[:, 1] - K1.cy) * (depth_next / K1.fy) - x[:, 1]
+    vel[:, 2] = depth_next - depth
+    return _f32(x), _f32(vel)
+
+
+def quantized_flow(seq: int, seq_next: int, pixels: np.ndarray, depth: np.ndarray, pixels_next: np.ndarray,
+                   depth_next: np.ndarray, K0: Intrinsics, K1: Intrinsics, counts: dict[str, int]) -> SceneFlowResult:
+    """The flow of the kept samples as the wire carries it, so a stage fed from the wire computes bit
+    for bit what an in-process one does: depths rounded to float32, each sample's flow
+    ``p' - p`` and depth change ``z' - z`` in int16 fixed point (steps of ``2^-k`` px and ``2^-k'`` m,
+    ``k``, ``k'`` the finest that hold the largest; :func:`fixed_point_exp`), then lifted with
+    :func:`lift_pairs`. ``pixels`` are the sampled integer pixels."""
+    pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    depth = _f32(np.asarray(depth, dtype=np.float64))
+    off = pixels_next - pixels
+    k = fixed_point_exp(off, OFFSET_MAX_EXP)
+    pixels_next = pixels + np.rint(off * 2.0 ** k) * 2.0 ** -k
+    dz = depth_next - depth
+    kd = fixed_point_exp(dz, DEPTH_MAX_EXP)
+    depth_next = depth + np.rint(dz * 2.0 ** kd) * 2.0 ** -kd
+    points, displacements = lift_pairs(pixels, depth, pixels_next, depth_next, K0, K1)
+    return SceneFlowResult(seq, seq_next, points, displacements, np.ones(len(depth)), pixels, pixels_next, K0, K1,
+                           counts)
 
 
 def lift_flow(
@@ -349,7 +403,7 @@ def lift_flow(
     vel[:, 0] = (u1 - K1.cx) * (z1 / K1.fx) - x[:, 0]
     vel[:, 1] = (v1 - K1.cy) * (z1 / K1.fy) - x[:, 1]
     vel[:, 2] = z1 - z0
-    if np.count_nonzero(ok) >= 3:
+    if np.count_nonzero(ok) >= 3:  # the outlier test on the unquantized samples; the kept ones go on the wire
         speed = np.sqrt(np.einsum("ij,ij->i", vel, vel))
         med = np.median(speed[ok])
         dev = np.abs(speed - med)
@@ -361,15 +415,5 @@ def lift_flow(
     if sel.size > p.max_points:
         sel = sel[np.linspace(0, sel.size - 1, p.max_points).round().astype(np.intp)]
     counts["kept"] = int(sel.size)
-    return SceneFlowResult(
-        seq=f0.seq,
-        seq_next=f1.seq,
-        points=_f32(x[sel]),
-        displacements=_f32(vel[sel]),
-        weights=np.ones(sel.size),
-        pixels=_f32(np.column_stack((uu[sel], vv[sel]))),
-        pixels_next=_f32(np.column_stack((u1[sel], v1[sel]))),
-        intrinsics=K0,
-        intrinsics_next=K1,
-        counts=counts,
-    )
+    return quantized_flow(f0.seq, f1.seq, np.column_stack((uu[sel], vv[sel])), z0[sel],
+                          np.column_stack((u1[sel], v1[sel])), z1[sel], K0, K1, counts)

@@ -1,20 +1,22 @@
-"""Foxglove-viewable JSON channels for MCAP recordings (beside the exact msgpack channels).
+"""Foxglove-viewable protobuf channels for MCAP recordings (beside the msgpack channels).
 
-Foxglove cannot decode msgpack, so a recording also carries JSON channels with the
-published Foxglove schemas (message encoding ``json``, schema encoding ``jsonschema``):
+Foxglove cannot decode msgpack, so a recording also carries channels with the standard
+Foxglove schemas, message encoding ``protobuf`` and schema encoding ``protobuf`` (the
+schema record holds a serialized ``google.protobuf.FileDescriptorSet`` of the message and
+every file it imports, as Foxglove and the ``mcap`` protobuf readers expect). Per stream
+(docs/recording.md lists them with their sizes):
 
 - ``/<stream>/color``: ``foxglove.CompressedImage`` of the input colour (the frame's JPEG);
 - ``/<stream>/stabilized``: ``foxglove.CompressedImage`` of the stabilized output;
 - ``/<stream>/calibration``: ``foxglove.CameraCalibration`` (pinhole, no distortion);
 - ``/<stream>/camera_pose``, ``/<stream>/stabilized_pose``: ``foxglove.PoseInFrame`` in ``world``;
-- ``/tf``: ``foxglove.FrameTransform`` (optional).
+- ``/<stream>/tf``: ``foxglove.FrameTransform`` from ``world`` to the camera frame ``<stream>``
+  (the camera pose) and to ``<stream>_stabilized`` (the stabilized virtual camera), so the 3D
+  panel places the images and calibration.
 
-The exact-replay channels stay msgpack (topic = the zenoh key expression, no schema).
-
-Timestamps are the frame's capture timestamp as ``{"sec", "nsec"}``. Bytes fields
-(``CompressedImage.data``) are base64 strings, as JSON-encoded Foxglove messages
-require. The schemas below use the published field names; they add ``required``
-lists for the fields this module always writes (viewers ignore them).
+Images are the JPEG bytes themselves (a protobuf ``bytes`` field; the JSON encoding needed
+base64, a third more). The schemas come from the ``foxglove-schemas-protobuf`` package
+(README, Dependencies). The exact-replay channels stay msgpack (topic = the zenoh key).
 
 Poses are 4x4 matrices. Motions of the larger groups (SIM3, SA3, GA3) have a
 linear part that is not a rotation; :func:`nearest_rotation` projects it onto the
@@ -23,12 +25,18 @@ Foxglove pose has only a position and a unit quaternion.
 """
 from __future__ import annotations
 
-import base64
-import json
+from functools import lru_cache
 from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from google.protobuf.descriptor import FileDescriptor
+from google.protobuf.descriptor_pb2 import FileDescriptorSet
+from google.protobuf.message import DecodeError, Message
 
 from ..core.frame import Intrinsics
 from ..stream.keys import key
@@ -36,76 +44,12 @@ from ..stream.wire.codec import unpack
 from .recording import Recorder
 from .sources.trajectory import matrix_to_quat
 
-# --- schemas ------------------------------------------------------------------------------------
+MESSAGE_ENCODING = "protobuf"
+SCHEMA_ENCODING = "protobuf"
 
-_TIME = {
-    "type": "object",
-    "title": "time",
-    "properties": {
-        "sec": {"type": "integer", "minimum": 0},
-        "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
-    },
-    "required": ["sec", "nsec"],
-}
-_NUMBER = {"type": "number"}
-_VECTOR3 = {
-    "type": "object",
-    "title": "foxglove.Vector3",
-    "properties": {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER},
-    "required": ["x", "y", "z"],
-}
-_QUATERNION = {
-    "type": "object",
-    "title": "foxglove.Quaternion",
-    "properties": {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER, "w": _NUMBER},
-    "required": ["x", "y", "z", "w"],
-}
-
-
-def _numbers(n: int | None = None) -> dict[str, Any]:
-    s: dict[str, Any] = {"type": "array", "items": _NUMBER}
-    if n is not None:
-        s.update(minItems=n, maxItems=n)
-    return s
-
-
-def _object(title: str, description: str, properties: dict[str, Any]) -> dict[str, Any]:
-    return {"title": title, "description": description, "type": "object",
-            "properties": properties, "required": list(properties)}
-
-
-SCHEMAS: dict[str, dict] = {
-    "foxglove.CompressedImage": _object("foxglove.CompressedImage", "A compressed image", {
-        "timestamp": _TIME,
-        "frame_id": {"type": "string"},
-        "data": {"type": "string", "contentEncoding": "base64"},
-        "format": {"type": "string"},
-    }),
-    "foxglove.CameraCalibration": _object("foxglove.CameraCalibration", "Camera calibration parameters", {
-        "timestamp": _TIME,
-        "frame_id": {"type": "string"},
-        "width": {"type": "integer", "minimum": 0},
-        "height": {"type": "integer", "minimum": 0},
-        "distortion_model": {"type": "string"},
-        "D": _numbers(),
-        "K": _numbers(9),
-        "R": _numbers(9),
-        "P": _numbers(12),
-    }),
-    "foxglove.PoseInFrame": _object("foxglove.PoseInFrame", "A timestamped pose in a reference frame", {
-        "timestamp": _TIME,
-        "frame_id": {"type": "string"},
-        "pose": {"type": "object", "title": "foxglove.Pose",
-                 "properties": {"position": _VECTOR3, "orientation": _QUATERNION},
-                 "required": ["position", "orientation"]},
-    }),
-    "foxglove.FrameTransform": _object("foxglove.FrameTransform", "A transform between two reference frames", {
-        "timestamp": _TIME,
-        "parent_frame_id": {"type": "string"},
-        "child_frame_id": {"type": "string"},
-        "translation": _VECTOR3,
-        "rotation": _QUATERNION,
-    }),
+# schema name -> generated message class
+MESSAGES: dict[str, type[Message]] = {
+    cls.DESCRIPTOR.full_name: cls for cls in (CompressedImage, CameraCalibration, PoseInFrame, FrameTransform)
 }
 
 # topic suffix -> schema name of the per-stream channels
@@ -115,8 +59,8 @@ STREAM_CHANNELS: dict[str, str] = {
     "calibration": "foxglove.CameraCalibration",
     "camera_pose": "foxglove.PoseInFrame",
     "stabilized_pose": "foxglove.PoseInFrame",
+    "tf": "foxglove.FrameTransform",
 }
-TF_TOPIC = "/tf"
 MSGPACK_STAGES = ("frame", "flow", "motion", "correction", "stabilized", "stats")
 
 
@@ -128,28 +72,49 @@ def topic(stream: str, channel: str) -> str:
     return f"/{stream}/{channel}"
 
 
+def camera_frame(stream: str, stabilized: bool = False) -> str:
+    """The frame id of a stream's camera (``cam0``) or of its stabilized virtual camera (``cam0_stabilized``)."""
+    return f"{stream}_stabilized" if stabilized else stream
+
+
+@lru_cache(maxsize=None)
 def schema_bytes(name: str) -> bytes:
-    """The JSON text of schema ``name`` as stored in the MCAP schema record."""
-    return json.dumps(SCHEMAS[name], separators=(",", ":")).encode()
+    """The serialized ``FileDescriptorSet`` of schema ``name`` (its file after every file it imports)."""
+    if name not in MESSAGES:
+        raise ValueError(f"no Foxglove schema {name!r} here (known: {', '.join(MESSAGES)})")
+    fds = FileDescriptorSet()
+    done: set[str] = set()
+
+    def add(f: FileDescriptor) -> None:
+        for dep in f.dependencies:
+            if dep.name not in done:
+                add(dep)
+        if f.name not in done:
+            done.add(f.name)
+            f.CopyToProto(fds.file.add())
+
+    add(MESSAGES[name].DESCRIPTOR.file)
+    return fds.SerializeToString(deterministic=True)
 
 
-def register_channels(recorder: Recorder, stream: str, tf: bool = False,
+def register_channels(recorder: Recorder, stream: str,
                       msgpack_stages: tuple[str, ...] = MSGPACK_STAGES) -> dict[str, str]:
-    """Register a stream's Foxglove JSON channels (and ``/tf`` if ``tf``) and msgpack channels.
+    """Register a stream's Foxglove protobuf channels and its msgpack channels.
 
     Returns {name: topic} with names ``color``, ``stabilized``, ... , ``tf`` and, for the
     msgpack channels, ``msgpack:<stage>`` (topic = the zenoh key expression).
     """
     topics: dict[str, str] = {}
     for stage in msgpack_stages:
-        recorder.channel(key(stream, stage), encoding="msgpack")
+        # the stages whose JPEGs the recorder stores once, in the Foxglove image record (recording_images)
+        image = {"frame": "color", "stabilized": "stabilized"}.get(stage)
+        recorder.channel(key(stream, stage), encoding="msgpack",
+                         metadata={"image_topic": topic(stream, image)} if image else None)
         topics[f"msgpack:{stage}"] = key(stream, stage)
-    channels = [(name, topic(stream, name), schema) for name, schema in STREAM_CHANNELS.items()]
-    if tf:
-        channels.append(("tf", TF_TOPIC, "foxglove.FrameTransform"))
-    for name, t, schema in channels:
-        recorder.channel(t, encoding="json", schema_name=schema, schema=schema_bytes(schema),
-                         schema_encoding="jsonschema")
+    for name, schema in STREAM_CHANNELS.items():
+        t = topic(stream, name)
+        recorder.channel(t, encoding=MESSAGE_ENCODING, schema_name=schema, schema=schema_bytes(schema),
+                         schema_encoding=SCHEMA_ENCODING)
         topics[name] = t
     return topics
 
@@ -190,19 +155,14 @@ def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
 
 # --- messages -----------------------------------------------------------------------------------
 
-def timestamp(timestamp_ns: int) -> dict[str, int]:
-    """Foxglove time ``{"sec", "nsec"}`` of a non-negative timestamp in ns."""
+def _stamp(msg: Any, timestamp_ns: int) -> None:
     t = int(timestamp_ns)
     if t < 0:
         raise ValueError(f"Foxglove timestamps must be >= 0 ns, got {t}")
-    return {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000}
+    msg.timestamp.seconds, msg.timestamp.nanos = divmod(t, 1_000_000_000)
 
 
-def _json(msg: dict[str, Any]) -> bytes:
-    return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode()
-
-
-def _pose_parts(matrix: np.ndarray) -> tuple[dict[str, float], dict[str, float]]:
+def _pose_parts(matrix: np.ndarray) -> tuple[tuple[float, float, float], tuple[float, float, float, float]]:
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape != (4, 4):
         raise ValueError(f"pose must be a 4x4 matrix, got shape {m.shape}")
@@ -210,45 +170,62 @@ def _pose_parts(matrix: np.ndarray) -> tuple[dict[str, float], dict[str, float]]
         raise ValueError("pose has non-finite values")
     q = rotation_to_quaternion(m[:3, :3])
     t = m[:3, 3]
-    return ({"x": float(t[0]), "y": float(t[1]), "z": float(t[2])},
-            {"x": float(q[0]), "y": float(q[1]), "z": float(q[2]), "w": float(q[3])})
+    return (float(t[0]), float(t[1]), float(t[2])), (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 def compressed_image(timestamp_ns: int, data: bytes, fmt: str, frame_id: str) -> bytes:
-    """A ``foxglove.CompressedImage`` JSON message of already-compressed ``jpeg``/``png`` bytes."""
+    """A ``foxglove.CompressedImage`` message of already-compressed ``jpeg``/``png`` bytes (kept as they are)."""
     if fmt not in ("jpeg", "png"):
         raise ValueError(f"image format must be 'jpeg' or 'png', got {fmt!r}")
-    return _json({"timestamp": timestamp(timestamp_ns), "frame_id": str(frame_id),
-                  "data": base64.b64encode(bytes(data)).decode("ascii"), "format": fmt})
+    msg = CompressedImage(frame_id=str(frame_id), data=bytes(data), format=fmt)
+    _stamp(msg, timestamp_ns)
+    return msg.SerializeToString()
 
 
 def camera_calibration(intrinsics: Intrinsics, timestamp_ns: int, frame_id: str) -> bytes:
-    """A ``foxglove.CameraCalibration`` JSON message: pinhole K, no distortion, R = I, P = [K | 0]."""
+    """A ``foxglove.CameraCalibration`` message: pinhole K, no distortion, R = I, P = [K | 0]."""
     k = intrinsics
     fx, fy, cx, cy = float(k.fx), float(k.fy), float(k.cx), float(k.cy)
-    return _json({
-        "timestamp": timestamp(timestamp_ns), "frame_id": str(frame_id),
-        "width": int(k.width), "height": int(k.height),
-        "distortion_model": "plumb_bob", "D": [0.0] * 5,
-        "K": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
-        "R": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        "P": [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-    })
+    msg = CameraCalibration(
+        frame_id=str(frame_id), width=int(k.width), height=int(k.height), distortion_model="plumb_bob",
+        D=[0.0] * 5, K=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0], R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        P=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+    _stamp(msg, timestamp_ns)
+    return msg.SerializeToString()
 
 
 def pose_in_frame(matrix: np.ndarray, timestamp_ns: int, frame_id: str = "world") -> bytes:
-    """A ``foxglove.PoseInFrame`` JSON message of a 4x4 pose (linear part projected to a rotation)."""
-    position, orientation = _pose_parts(matrix)
-    return _json({"timestamp": timestamp(timestamp_ns), "frame_id": str(frame_id),
-                  "pose": {"position": position, "orientation": orientation}})
+    """A ``foxglove.PoseInFrame`` message of a 4x4 pose (linear part projected to a rotation)."""
+    (tx, ty, tz), (qx, qy, qz, qw) = _pose_parts(matrix)
+    msg = PoseInFrame(frame_id=str(frame_id))
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = tx, ty, tz
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = qx, qy, qz, qw
+    _stamp(msg, timestamp_ns)
+    return msg.SerializeToString()
 
 
 def frame_transform(matrix: np.ndarray, timestamp_ns: int, parent_frame_id: str = "world",
                     child_frame_id: str = "camera") -> bytes:
-    """A ``foxglove.FrameTransform`` JSON message: ``matrix`` maps child coordinates to parent ones."""
-    translation, rotation = _pose_parts(matrix)
-    return _json({"timestamp": timestamp(timestamp_ns), "parent_frame_id": str(parent_frame_id),
-                  "child_frame_id": str(child_frame_id), "translation": translation, "rotation": rotation})
+    """A ``foxglove.FrameTransform`` message: ``matrix`` maps child coordinates to parent ones
+    (the child frame's pose in the parent frame)."""
+    (tx, ty, tz), (qx, qy, qz, qw) = _pose_parts(matrix)
+    msg = FrameTransform(parent_frame_id=str(parent_frame_id), child_frame_id=str(child_frame_id))
+    msg.translation.x, msg.translation.y, msg.translation.z = tx, ty, tz
+    msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w = qx, qy, qz, qw
+    _stamp(msg, timestamp_ns)
+    return msg.SerializeToString()
+
+
+def parse(schema_name: str, data: bytes) -> Message:
+    """A recorded Foxglove message decoded with its generated class; ``ValueError`` if it does not parse."""
+    cls = MESSAGES.get(schema_name)
+    if cls is None:
+        raise ValueError(f"no Foxglove schema {schema_name!r} here (known: {', '.join(MESSAGES)})")
+    try:
+        return cls.FromString(bytes(data))
+    except DecodeError as e:
+        raise ValueError(f"not a {schema_name} protobuf message: {e}") from None
 
 
 # --- images straight from wire messages -----------------------------------------------------------
@@ -263,18 +240,19 @@ class WireImage(NamedTuple):
     seq: int
 
 
-_IMAGE_FIELD = {"frame": "color", "stabilized": "image"}
+IMAGE_FIELD = {"frame": "color", "stabilized": "image"}
 
 
 def image_from_message(data: bytes, quality: int = 90) -> WireImage:
     """The JPEG of a ``frame`` or ``stabilized`` wire message, without decoding it.
 
     A ``jpeg`` image's bytes are returned as they are; a ``raw`` image is encoded to
-    JPEG (``quality``) with OpenCV. Raises :class:`~quick_stream.stream.wire.WireError` for
-    other message types or malformed fields.
+    JPEG (``quality``) with OpenCV. ``timestamp_ns`` is the message's ``t_ns`` (capture
+    time). Raises :class:`~quick_stream.stream.wire.WireError` for other message types or
+    malformed fields.
     """
     r = unpack(data)
-    name = _IMAGE_FIELD.get(r.type)
+    name = IMAGE_FIELD.get(r.type)
     if name is None:
         raise r.error("type", f"no image in a {r.type!r} message (expected 'frame' or 'stabilized')")
     t_ns = r.int("t_ns")
@@ -293,15 +271,18 @@ def image_from_message(data: bytes, quality: int = 90) -> WireImage:
     return WireImage(jpeg, "jpeg", t_ns, r.stream, r.seq)
 
 
-def compressed_image_from_message(data: bytes, frame_id: str, quality: int = 90) -> bytes:
-    """A ``foxglove.CompressedImage`` JSON message of a ``frame``/``stabilized`` wire message."""
+def compressed_image_from_message(data: bytes, frame_id: str, quality: int = 90,
+                                  timestamp_ns: int | None = None) -> bytes:
+    """A ``foxglove.CompressedImage`` message of a ``frame``/``stabilized`` wire message, stamped
+    ``timestamp_ns`` (default: the message's capture time ``t_ns``)."""
     img = image_from_message(data, quality)
-    return compressed_image(img.timestamp_ns, img.data, img.format, frame_id)
+    return compressed_image(img.timestamp_ns if timestamp_ns is None else timestamp_ns, img.data, img.format,
+                            frame_id)
 
 
 __all__ = [
-    "MSGPACK_STAGES", "SCHEMAS", "STREAM_CHANNELS", "TF_TOPIC", "WireImage", "camera_calibration",
-    "compressed_image", "compressed_image_from_message", "frame_transform", "image_from_message",
-    "nearest_rotation", "pose_in_frame", "quaternion_to_rotation", "register_channels",
-    "rotation_to_quaternion", "schema_bytes", "timestamp", "topic",
+    "IMAGE_FIELD", "MESSAGES", "MESSAGE_ENCODING", "MSGPACK_STAGES", "SCHEMA_ENCODING", "STREAM_CHANNELS", "WireImage",
+    "camera_calibration", "camera_frame", "compressed_image", "compressed_image_from_message", "frame_transform",
+    "image_from_message", "nearest_rotation", "parse", "pose_in_frame", "quaternion_to_rotation",
+    "register_channels", "rotation_to_quaternion", "schema_bytes", "topic",
 ]

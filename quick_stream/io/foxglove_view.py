@@ -1,10 +1,19 @@
 """The Foxglove-viewable side of a recording, derived from the wire messages as they are logged.
 
-For each stream: input and stabilized images (``foxglove.CompressedImage``, the
-JPEG bytes reused without re-encoding), the calibration whenever it changes and
-once a second (``foxglove.CameraCalibration``), the camera pose integrated from
-the motions and the stabilized (virtual camera) pose, camera pose times the
-frame's correction g_s (``foxglove.PoseInFrame`` in ``world``; docs/conventions.md).
+For each stream: the calibration whenever it changes and once a second
+(``foxglove.CameraCalibration``), the camera pose integrated from the motions and the
+stabilized (virtual camera) pose, camera pose times the frame's correction g_s
+(``foxglove.PoseInFrame`` in ``world``; docs/conventions.md), the same two poses as
+``foxglove.FrameTransform`` from ``world`` to the frames ``<stream>`` and
+``<stream>_stabilized`` (so the 3D panel places the camera), and the images of messages
+whose image is not a JPEG (raw colour, encoded here). JPEG images are written by the
+recorder itself as each message arrives, stored once (:mod:`quick_stream.io.recording_images`).
+
+**Clock**: every Foxglove ``timestamp`` is wall clock, the clock of the recording's log
+times: a frame's ``pub_ns`` (when the capture published it; for a stabilized image its
+``src_pub_ns``), else the log time of its message. The capture time ``t_ns`` (a device's
+or source's own clock, from 0 for the synthetic source) stays in the wire messages
+(docs/recording.md, "Timestamps").
 Used by the ``recorder`` service and by anyone converting a recording.
 """
 from __future__ import annotations
@@ -21,6 +30,13 @@ from . import foxglove
 _KEEP = 512  # frames of timestamps/poses kept for matching motions and corrections
 
 
+def wall_stamp(value: object, log_time_ns: int | None, fallback: int) -> int:
+    """``value`` (a message's ``pub_ns``) when it is a time, else the log time, else ``fallback``."""
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        return value
+    return int(log_time_ns) if log_time_ns is not None else max(int(fallback), 0)
+
+
 class FoxgloveView:
     """Turns one stream's wire messages into (topic, bytes) Foxglove messages.
 
@@ -32,7 +48,8 @@ class FoxgloveView:
     def __init__(self, stream: str) -> None:
         self.stream = stream
         self.topics = {name: foxglove.topic(stream, name) for name in foxglove.STREAM_CHANNELS}
-        self._t_ns: OrderedDict[int, int] = OrderedDict()
+        self.frames = {"camera": foxglove.camera_frame(stream), "stabilized": foxglove.camera_frame(stream, True)}
+        self._t_ns: OrderedDict[int, int] = OrderedDict()  # seq -> the frame's Foxglove timestamp (wall clock)
         self._pose: OrderedDict[int, np.ndarray] = OrderedDict()
         self._corr: OrderedDict[int, np.ndarray] = OrderedDict()
         self._sent: OrderedDict[int, set] = OrderedDict()
@@ -58,35 +75,48 @@ class FoxgloveView:
         if "camera" not in sent:
             sent.add("camera")
             out.append((self.topics["camera_pose"], foxglove.pose_in_frame(pose, t)))
+            out.append((self.topics["tf"], foxglove.frame_transform(pose, t, "world", self.frames["camera"])))
         corr = self._corr.get(seq)
         if corr is not None and "stabilized" not in sent:
             sent.add("stabilized")
-            out.append((self.topics["stabilized_pose"], foxglove.pose_in_frame(pose @ corr, t)))
+            virtual = pose @ corr
+            out.append((self.topics["stabilized_pose"], foxglove.pose_in_frame(virtual, t)))
+            out.append((self.topics["tf"], foxglove.frame_transform(virtual, t, "world", self.frames["stabilized"])))
         return out
 
-    def convert(self, stage: str, payload: bytes) -> list[tuple[str, bytes]]:
+    def convert(self, stage: str, payload: bytes, log_time_ns: int | None = None,
+                jpeg: bool = True) -> list[tuple[str, bytes]]:
         """Foxglove messages for one wire message of ``stage`` (none for stages without a view).
 
-        Raises :class:`~quick_stream.stream.wire.WireError` for a message that does not decode."""
+        ``log_time_ns``: the message's log time (the timestamp of a frame without ``pub_ns``).
+        ``jpeg``: also the image of a ``frame``/``stabilized`` message whose image is a JPEG already
+        (the recorder passes False: it writes those itself as they arrive, stored once); raw images
+        are always encoded to JPEG here. Raises
+        :class:`~quick_stream.stream.wire.WireError` for a message that does not decode."""
         if stage == "frame":
             r = unpack(payload)
             if r.type != "frame":
                 return []
-            out = [(self.topics["color"], foxglove.compressed_image_from_message(payload, self.stream))]
-            t_ns = r.int("t_ns")
-            self._remember(self._t_ns, r.seq, t_ns)
+            stamp = wall_stamp(r.d.get("pub_ns"), log_time_ns, r.int("t_ns"))
+            out = []
+            if jpeg or r.map("color").str("enc") != "jpeg":
+                out.append((self.topics["color"], foxglove.compressed_image_from_message(
+                    payload, self.frames["camera"], timestamp_ns=stamp)))
+            self._remember(self._t_ns, r.seq, stamp)
             k = read_intrinsics(r, "intrinsics")
             key = (k.fx, k.fy, k.cx, k.cy, k.width, k.height)
-            if key != self._calib or t_ns - self._calib_t >= 1_000_000_000:
-                self._calib, self._calib_t = key, t_ns
-                out.append((self.topics["calibration"], foxglove.camera_calibration(k, t_ns, self.stream)))
+            if key != self._calib or stamp - self._calib_t >= 1_000_000_000:
+                self._calib, self._calib_t = key, stamp
+                out.append((self.topics["calibration"], foxglove.camera_calibration(k, stamp, self.frames["camera"])))
             return out + self._poses(r.seq)
         if stage == "stabilized":
             r = unpack(payload)
-            if r.type != "stabilized":
+            if r.type != "stabilized" or (not jpeg and r.map("image").str("enc") == "jpeg"):
                 return []
-            return [(self.topics["stabilized"],
-                     foxglove.compressed_image_from_message(payload, f"{self.stream}_stabilized"))]
+            fallback = self._t_ns.get(r.seq, log_time_ns)
+            stamp = wall_stamp(r.d.get("src_pub_ns"), fallback, r.int("t_ns"))
+            return [(self.topics["stabilized"], foxglove.compressed_image_from_message(
+                payload, self.frames["stabilized"], timestamp_ns=stamp))]
         if stage == "motion":
             m = decode(payload)
             if m.type != "motion":
@@ -109,4 +139,4 @@ class FoxgloveView:
         return []
 
 
-__all__ = ["FoxgloveView"]
+__all__ = ["FoxgloveView", "wall_stamp"]

@@ -164,8 +164,12 @@ class Recorder:
         return cid
 
     def write(self, topic: str, data: bytes, log_time_ns: int | None = None,
-              publish_time_ns: int | None = None) -> None:
-        """Log ``data`` on ``topic`` (registered as msgpack if new); flush if ``flush_s`` has passed."""
+              publish_time_ns: int | None = None, sequence: int | None = None) -> int:
+        """Log ``data`` on ``topic`` (registered as msgpack if new); flush if ``flush_s`` has passed.
+
+        Returns the message's sequence number on its channel: 0, 1, 2, ... per channel and file
+        unless ``sequence`` gives it (:func:`recover` keeps the source's, which stored-apart
+        images are referenced by: :mod:`quick_stream.io.recording_images`)."""
         if self.closed:
             raise RecordingError(f"{self.path}: recorder is closed")
         cid = self._channels.get(topic)
@@ -173,12 +177,14 @@ class Recorder:
             cid = self.channel(topic)
         now = time.time_ns()
         log_time = now if log_time_ns is None else int(log_time_ns)
+        seq = self._seq[topic] if sequence is None else int(sequence)
         self._writer.add_message(cid, log_time, bytes(data), now if publish_time_ns is None else int(publish_time_ns),
-                                 self._seq[topic])
-        self._seq[topic] += 1
+                                 seq)
+        self._seq[topic] = seq + 1
         self.messages += 1
         if time.monotonic() - self._last_flush >= self.flush_s:
             self.flush()
+        return seq
 
     def maybe_flush(self) -> bool:
         """Flush if ``flush_s`` has passed since the last flush (call when idle); whether it did."""
@@ -302,7 +308,7 @@ def recover(src: str | os.PathLike, dst: str | os.PathLike) -> RecoveryReport:
                     topic = out_channels.get(record.channel_id)
                     if topic is None:
                         continue
-                    rec.write(topic, record.data, record.log_time, record.publish_time)
+                    rec.write(topic, record.data, record.log_time, record.publish_time, record.sequence)
                     topics[topic] = topics.get(topic, 0) + 1
                     n += 1
                 elif type(record).__name__ == "Footer":
@@ -317,18 +323,26 @@ def recover(src: str | os.PathLike, dst: str | os.PathLike) -> RecoveryReport:
 def read_messages(path: str | os.PathLike, topics: list[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
     """(topic, log_time_ns, data) in log-time order; raises :class:`RecordingError` if unreadable.
 
+    Wire messages come out as they were received: a JPEG the recorder stored once, in its
+    Foxglove image record, is put back (:class:`~quick_stream.io.recording_images.Rejoiner`).
     The error names the file and the problem: no intact footer/summary (a killed writer; the
     message says to run ``quick-stream recover``), or a damaged record after the n-th message read.
     """
+    from .recording_images import Rejoiner  # it imports the Foxglove schemas, which import this module
+
     path = Path(path)
+    rejoin = Rejoiner(topics)
     n = 0
     try:
         with open_recording(path) as f:
             reader = _indexed_reader(path, f)
             try:
-                for _schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                    yield channel.topic, message.log_time, message.data
+                for _schema, channel, message in reader.iter_messages(topics=rejoin.read_topics,
+                                                                      log_time_order=True):
                     n += 1
+                    data = rejoin.take(channel.topic, message.sequence, message.data)
+                    if data is not None:
+                        yield channel.topic, message.log_time, data
             except Exception as e:  # noqa: BLE001 - a damaged record raises assorted errors (describe_damage)
                 raise RecordingError(f"{path}: damaged record after {n} messages (near byte {f.pos}): "
                                      f"{describe_damage(e)}; `quick-stream recover {path}` keeps what is "

@@ -12,9 +12,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 from tests.helpers import offline_images, start_router
-from mcap.reader import make_reader
 
 from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port
+from quick_stream.io.recording import read_messages
 from quick_stream.stream.wire import decode
 
 SPECS = {"cam0": "synthetic:frames=90,width=320,height=240,seed=1",
@@ -70,9 +70,7 @@ def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
     # at 30 fps live, a second suite beside this one starved the stages and a frame dropped in flow's
     # queue changed cam1's path (frames 30-89). The rate two streams keep live is a benchmark number:
     # `quick-stream bench pipeline --streams 2`.
-    with open(tmp_path / "rec.mcap", "rb") as f:
-        r = make_reader(f)
-        for cam in SPECS:
-            msgs = [decode(m.data) for _, _, m in r.iter_messages(topics=[f"quick/@v1/{cam}/frame"])]
-            stabilized = [m for _, _, m in r.iter_messages(topics=[f"quick/@v1/{cam}/stabilized"])]
-            assert len([m for m in msgs if m.type == "frame"]) == 90 and len(stabilized) == 91  # 90 frames (+ end)
+    for cam in SPECS:  # read_messages: the wire messages as received (their JPEGs were stored apart)
+        msgs = [decode(d) for _, _, d in read_messages(tmp_path / "rec.mcap", topics=[f"quick/@v1/{cam}/frame"])]
+        stabilized = list(read_messages(tmp_path / "rec.mcap", topics=[f"quick/@v1/{cam}/stabilized"]))
+        assert len([m for m in msgs if m.type == "frame"]) == 90 and len(stabilized) == 91  # 90 frames (+ end)

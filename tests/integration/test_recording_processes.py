@@ -79,3 +79,45 @@ def test_a_full_disk_stops_the_run_with_one_clear_error_and_a_recoverable_file(t
     assert rec["state"] == "error" and "File too large" in rec["error"], rec
     rep = recover(out / "recording.mcap", tmp_path / "fixed.mcap")
     assert rep.messages > 100 and not rep.complete  # the chunks flushed before the failure survive
+
+
+def test_recording_stats_per_channel_rates(tmp_path, capsys):
+    """`quick-stream recording-stats`: bytes per channel over the log-time span, per frame, at a nominal fps."""
+    import json
+
+    from quick_stream.cli import main
+    from quick_stream.io.recording import Recorder
+    from quick_stream.io.recording_stats import recording_stats
+
+    path = tmp_path / "s.mcap"
+    with Recorder(path, chunk_size=2000) as rec:
+        rec.channel("/cam0/color", encoding="json", schema_name="foxglove.CompressedImage", schema=b"{}",
+                    schema_encoding="jsonschema")
+        for i in range(11):  # 10 s of log time, 11 frames
+            t = 1_000_000_000 * (i + 1)
+            rec.write("quick/@v1/cam0/frame", b"f" * 1000, log_time_ns=t)
+            rec.write("/cam0/color", b"c" * 250, log_time_ns=t)
+    s = recording_stats(path)
+    assert s.duration_s == 10.0 and s.frames == 11 and s.streams == 1 and not s.stopped_at
+    frame, color = s.channels["quick/@v1/cam0/frame"], s.channels["/cam0/color"]
+    assert (frame.messages, frame.bytes, frame.message_encoding) == (11, 11000, "msgpack")
+    assert (color.bytes, color.schema) == (2750, "foxglove.CompressedImage")
+    assert s.rate(frame.bytes) == 1100.0 and s.per_frame(color.bytes) == 250.0
+    assert s.file_bytes == path.stat().st_size > s.message_bytes == 13750
+    d = s.as_dict(fps=30)
+    assert d["channels"][0]["topic"] == "quick/@v1/cam0/frame" and d["channels"][0]["share"] == 0.8
+    assert d["channels"][0]["bytes_per_s_at_fps"] == 30000.0
+    assert main(["recording-stats", str(path), "--fps", "30"]) == 0
+    text = capsys.readouterr().out
+    assert "quick/@v1/cam0/frame" in text and "80.0%" in text and "MB/s@30fps" in text
+    assert main(["recording-stats", "--json", str(path)]) == 0
+    assert json.loads(capsys.readouterr().out)[0]["frames"] == 11
+    # a file cut short (a killed writer) is measured up to where it stops; a non-MCAP file is an error
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    c = recording_stats(cut)
+    assert c.stopped_at and 0 < c.channels["quick/@v1/cam0/frame"].messages < 11
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not an mcap file at all")
+    assert main(["recording-stats", str(junk)]) == 2
+    assert "junk.mcap" in capsys.readouterr().err

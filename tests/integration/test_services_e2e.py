@@ -71,6 +71,8 @@ def test_replaying_the_recording_reproduces_the_output(live_run, tmp_path):
 
 
 def test_recording_has_every_stage_and_valid_foxglove_channels(live_run):
+    from quick_stream import foxglove as fx
+
     with open(live_run / "recording.mcap", "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
@@ -80,26 +82,23 @@ def test_recording_has_every_stage_and_valid_foxglove_channels(live_run):
             assert channels[f"quick/@v1/cam0/{stage}"].message_encoding == "msgpack"
         expect = {"/cam0/color": "foxglove.CompressedImage", "/cam0/stabilized": "foxglove.CompressedImage",
                   "/cam0/calibration": "foxglove.CameraCalibration", "/cam0/camera_pose": "foxglove.PoseInFrame",
-                  "/cam0/stabilized_pose": "foxglove.PoseInFrame"}
+                  "/cam0/stabilized_pose": "foxglove.PoseInFrame", "/cam0/tf": "foxglove.FrameTransform"}
         for topic, name in expect.items():
             ch = channels[topic]
-            assert ch.message_encoding == "json"
+            assert ch.message_encoding == "protobuf"
             sc = schemas[ch.schema_id]
-            assert sc.name == name and sc.encoding == "jsonschema"
-            schema = json.loads(sc.data)
-            assert schema["type"] == "object"
+            assert sc.name == name and sc.encoding == "protobuf" and sc.data == fx.schema_bytes(name)
         counts: dict[str, int] = {}
         for _, ch, msg in reader.iter_messages(topics=list(expect)):
             counts[ch.topic] = counts.get(ch.topic, 0) + 1
-            body = json.loads(msg.data)
-            for k in json.loads(schemas[ch.schema_id].data).get("required", []):
-                assert k in body, (ch.topic, k)
+            body = fx.parse(schemas[ch.schema_id].name, msg.data)
+            assert abs(body.timestamp.seconds - msg.log_time / 1e9) < 60  # wall clock, as the log times
             if ch.topic == "/cam0/color" and counts[ch.topic] == 1:
-                import base64
-                img = cv2.imdecode(np.frombuffer(base64.b64decode(body["data"]), np.uint8), cv2.IMREAD_COLOR)
+                img = cv2.imdecode(np.frombuffer(body.data, np.uint8), cv2.IMREAD_COLOR)
                 assert img.shape == (240, 320, 3)
         assert counts["/cam0/color"] == counts["/cam0/stabilized"] == 75
         assert counts["/cam0/stabilized_pose"] == counts["/cam0/camera_pose"] == 75
+        assert counts["/cam0/tf"] == 150
 
 
 def _flow_log_times(recording: Path) -> list[int]:
@@ -122,13 +121,14 @@ def test_killed_flow_is_restarted_and_the_stream_recovers(tmp_path):
     # from the frames' history (the capture's publisher cache)
     assert "taking over from the frames' history" in (out / "logs" / "flow.log").read_text()
     flagged, seqs = [], []
-    with open(out / "recording.mcap", "rb") as f:
-        for _, _, m in make_reader(f).iter_messages(topics=["quick/@v1/cam0/stabilized"]):
-            d = decode(m.data)
-            if d.type == "stabilized":
-                seqs.append(d.seq)
-                if d.obj.flags:
-                    flagged.append(d.seq)
+    from quick_stream.io.recording import read_messages
+
+    for _, _, data in read_messages(out / "recording.mcap", topics=["quick/@v1/cam0/stabilized"]):
+        d = decode(data)
+        if d.type == "stabilized":
+            seqs.append(d.seq)
+            if d.obj.flags:
+                flagged.append(d.seq)
     assert sorted(seqs) == list(range(frames))
     assert flagged == []
 

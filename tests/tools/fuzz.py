@@ -32,10 +32,9 @@ import numpy as np
 from quick_stream.core.frame import Intrinsics, RGBDFrame
 from quick_stream.core.motion import MotionEstimate
 from quick_stream.core.path.planner import Correction
-from quick_stream.core.sceneflow import SceneFlowResult
+from quick_stream.core.sceneflow import SceneFlowResult, quantized_flow
 from quick_stream.stream import argtypes as at
-from quick_stream.stream.wire import (EndOfStream, StabilizedImage, Stats, WireError, decode, encode, encode_frame,
-                                      encode_stabilized)
+from quick_stream.stream.wire import EndOfStream, StabilizedImage, Stats, WireError, decode, encode, encode_frame, encode_stabilized
 
 
 def seeds() -> list[bytes]:
@@ -49,13 +48,17 @@ def seeds() -> list[bytes]:
     pts = rng.normal(size=(n, 3))
     flow = SceneFlowResult(7, 8, pts, pts * 0.01, np.ones(n), rng.uniform(0, 30, (n, 2)), rng.uniform(0, 30, (n, 2)),
                            k, k, {"kept": n}, "")
+    # a flow as the scene flow makes it: the compact layout (format version 2, wire/flowpack.py)
+    grid = np.array([(4 + 3 * i, 2 + 3 * j) for j in range(5) for i in range(8) if (i + j) % 3][:n], float)
+    compact = quantized_flow(7, 8, grid, rng.uniform(0.5, 3, n).astype(np.float32), grid + rng.normal(0, 0.7, (n, 2)),
+                             rng.uniform(0.5, 3, n), k, k, {"kept": n})
     m = MotionEstimate(7, 8, "se3", "exact", np.eye(4), np.zeros(6), True, "", n, 0.9, 0.3, np.zeros(6))
     c = Correction(7, np.eye(4), 2, False, True, "")
     s = StabilizedImage(7, 1_000, color, 1.05, ["flag"])
     return [
         encode_frame(f, "cam0", color="jpeg"), encode_frame(f, "cam0", color="raw", depth="zstd"),
         encode_frame(f, "cam0", color="raw", depth="raw", pub_ns=12),
-        encode(flow, "cam0"), encode(m, "cam0"), encode(c, "cam0", zoom=1.1, batch=(3, 0, 2)),
+        encode(flow, "cam0"), encode(compact, "cam0"), encode(m, "cam0"), encode(c, "cam0", zoom=1.1, batch=(3, 0, 2)),
         encode_stabilized(s, "cam0"), encode_stabilized(s, "cam0", color="raw", src_pub_ns=1, ready_pub_ns=2),
         encode(Stats("flow", {"fps": 30.0, "n": 3, "ok": True, "why": None}), "cam0", seq=4),
         encode(EndOfStream(7, "done"), "cam0"),

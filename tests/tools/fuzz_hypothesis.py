@@ -36,6 +36,7 @@ import zstandard
 from hypothesis import HealthCheck, Phase, given, settings, strategies as st
 from hypothesis import seed as hypothesis_seed
 
+from quick_stream.stream.wire import flowpack
 from quick_stream.stream.wire.messages import GROUP_DIMS
 from .fuzz import FuzzReport, check, seeds
 
@@ -138,6 +139,33 @@ def _flow(draw: st.DrawFn) -> dict[str, Any]:
     return f
 
 
+def _i2(draw: st.DrawFn, shape: tuple[int, ...]) -> np.ndarray:
+    vals = draw(st.lists(st.integers(-32767, 32767), min_size=math.prod(shape), max_size=math.prod(shape)))
+    return np.asarray(vals, "<i2").reshape(shape)
+
+
+def _flow_compact(draw: st.DrawFn) -> dict[str, Any]:
+    """A version-2 flow (wire/flowpack.py): grid samples, float32 depths, int16 fixed-point flow."""
+    cols, rows = draw(st.integers(0, 12)), draw(st.integers(0, 6))
+    bits = np.asarray(draw(st.lists(st.booleans(), min_size=cols * rows, max_size=cols * rows)), np.uint8)
+    n = int(bits.sum())
+    f: dict[str, Any] = {"seq_next": draw(st.integers(0, 2**64 - 1)), "n": n,
+                         "grid": {"x0": draw(st.integers(0, 64)), "y0": draw(st.integers(0, 64)),
+                                  "step": draw(st.integers(1, 8)), "cols": cols, "rows": rows,
+                                  "mask": np.packbits(bits, bitorder="little").tobytes()}}
+    depth = np.asarray(draw(st.lists(st.floats(0.125, 10.0, width=32), min_size=n, max_size=n)), "<f4")
+    f["depth"] = flowpack.pack_array(depth, "<f4")
+    f["offset"] = flowpack.pack_array(_i2(draw, (n, 2)), "<i2")
+    f["depth_change"] = flowpack.pack_array(_i2(draw, (n,)), "<i2")
+    f["offset_exp"], f["depth_change_exp"] = draw(st.integers(4, 16)), draw(st.integers(12, 24))
+    f["weights"] = _opt(draw, st.just(flowpack.pack_array(np.ones(n), "<f4")))
+    f["intrinsics"] = _intrinsics(draw, *_size(draw))
+    f["intrinsics_next"] = _intrinsics(draw, *_size(draw))
+    f["counts"] = draw(st.dictionaries(st.text(max_size=10), _INT, max_size=4))
+    f["problem"] = draw(st.text(max_size=20))
+    return f
+
+
 def _motion(draw: st.DrawFn) -> dict[str, Any]:
     group = draw(st.sampled_from(sorted(GROUP_DIMS)))
     dim = GROUP_DIMS[group]
@@ -180,8 +208,9 @@ BUILDERS = {"frame": _frame, "flow": _flow, "motion": _motion, "correction": _co
 def valid_maps(draw: st.DrawFn) -> dict[str, Any]:
     """A msgpack map of a valid message of any type (envelope first, as the encoder packs it)."""
     mtype = draw(st.sampled_from(sorted(BUILDERS)))
-    env = {"v": 1, "type": mtype, "stream": draw(_STREAM), "seq": draw(st.integers(0, 2**64 - 1))}
-    return env | BUILDERS[mtype](draw)
+    compact = mtype == "flow" and draw(st.booleans())  # version 2's compact layout, else version 1's arrays
+    env = {"v": 2 if compact else 1, "type": mtype, "stream": draw(_STREAM), "seq": draw(st.integers(0, 2**64 - 1))}
+    return env | (_flow_compact(draw) if compact else BUILDERS[mtype](draw))
 
 
 # --- corruption --------------------------------------------------------------------------------

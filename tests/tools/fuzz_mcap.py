@@ -2,7 +2,8 @@
 recordings through every reader entry point.
 
 Three small valid recordings (chunk compression none, zstd and lz4; 6 synthetic 32x24 frame
-messages in JPEG+zstd and raw+raw alternately, the Foxglove channels, an ``end`` message,
+messages in JPEG+zstd (its JPEG stored apart, in its Foxglove image record) and raw+raw
+alternately, the Foxglove channels, an ``end`` message,
 a chunk closed every two frames) are mutated one input at a time, deterministically for a seed:
 bit flips, byte overwrites, truncation at random offsets and at (or inside) every kind of
 record field, insertions, deletions, duplicated ranges, damaged chunk data with a stale CRC, a
@@ -39,12 +40,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
-from quick_stream.core.frame import BadFrame
 from quick_stream.io import foxglove
 from quick_stream.io.foxglove_view import FoxgloveView
-from quick_stream.io.recording import MAGIC, Recorder, RecordingError, read_messages, recover
-from quick_stream.io.sources import SourceError, open_source
+from quick_stream.core.frame import BadFrame
 from quick_stream.stream.keys import key
+from quick_stream.io.recording import MAGIC, Recorder, RecordingError, read_messages, recover
+from quick_stream.io.recording_images import write_message
+from quick_stream.io.sources import SourceError, open_source
 from quick_stream.stream.wire import EndOfStream, encode, encode_frame
 
 FRAMES_SPEC = "synthetic:frames=6,width=32,height=24"
@@ -55,7 +57,8 @@ ENTRIES = ("read_messages", "recover", "mcap source")
 # --- the valid recordings ------------------------------------------------------------------------
 
 def _record(path: Path, compression: str) -> None:
-    """6 frames (alternately JPEG+zstd and raw+raw), their Foxglove views and an end message."""
+    """6 frames (alternately JPEG+zstd, stored apart from its JPEG, and raw+raw), their Foxglove views
+    and an end message."""
     view = FoxgloveView("cam0")
     t = 10**9
     with Recorder(path, compression=compression) as rec:
@@ -63,8 +66,9 @@ def _record(path: Path, compression: str) -> None:
         for i, f in enumerate(open_source(FRAMES_SPEC)):
             data = encode_frame(f, "cam0", color=("jpeg", "raw")[i % 2], depth=("zstd", "raw")[i % 2])
             t = 10**9 + f.timestamp_ns
-            rec.write(key("cam0", "frame"), data, log_time_ns=t)
-            for topic, payload in view.convert("frame", data):
+            # as the recorder writes it: a JPEG stored once, in its Foxglove image record
+            write_message(lambda topic, d: rec.write(topic, d, log_time_ns=t), key("cam0", "frame"), data, t)
+            for topic, payload in view.convert("frame", data, t, jpeg=False):
                 rec.write(topic, payload, log_time_ns=t)
             if i % 2:
                 rec.flush()  # a chunk every two frames

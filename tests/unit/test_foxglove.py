@@ -1,66 +1,59 @@
-"""Foxglove JSON channels: schemas in the MCAP file, valid messages, images and quaternions."""
-import base64
-import json
+"""Foxglove protobuf channels: schemas in the MCAP file, messages decoded with them, images stored
+once, timestamps on the log-time clock, transforms; quaternions."""
 import math
 
 import cv2
 import numpy as np
 import pytest
+from google.protobuf import descriptor_pool, message_factory
+from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from mcap.reader import make_reader
 
-from quick_stream.core.frame import Intrinsics
 from quick_stream.io import foxglove as fx
-from quick_stream.io.recording import Recorder
+from quick_stream.io.foxglove_view import FoxgloveView
+from quick_stream.core.frame import Intrinsics
+from quick_stream.stream.keys import key
+from quick_stream.core.motion import MotionEstimate
+from quick_stream.core.path.planner import Correction
+from quick_stream.io.recording import Recorder, read_messages, recover
+from quick_stream.io.recording_images import image_message, split, stored_message, write_message
 from quick_stream.io.sources import open_source
 from quick_stream.io.sources.trajectory import quat_to_matrix
-from quick_stream.stream.keys import key
 from quick_stream.stream.wire import (
     StabilizedImage,
     WireError,
+    decode,
+    encode_correction,
     encode_frame,
     encode_motion,
     encode_stabilized,
 )
 
-_TYPES = {"object": dict, "array": list, "string": str}
+WALL = 1_764_000_000_000_000_000  # a wall-clock time (2025), ns
 
 
-def check(value, schema, where="$"):
-    """Assert ``value`` fits the JSON-schema subset our schemas use; raises AssertionError naming the path."""
-    t = schema.get("type")
-    if t == "number":
-        assert isinstance(value, (int, float)) and not isinstance(value, bool), f"{where}: not a number: {value!r}"
-        assert math.isfinite(value), f"{where}: non-finite"
-    elif t == "integer":
-        assert isinstance(value, int) and not isinstance(value, bool), f"{where}: not an integer: {value!r}"
-    elif t is not None:
-        assert isinstance(value, _TYPES[t]), f"{where}: not a {t}: {type(value).__name__}"
-    if "minimum" in schema:
-        assert value >= schema["minimum"], f"{where}: {value} < {schema['minimum']}"
-    if "maximum" in schema:
-        assert value <= schema["maximum"], f"{where}: {value} > {schema['maximum']}"
-    if t == "object":
-        for name in schema.get("required", []):
-            assert name in value, f"{where}: missing required {name!r}"
-        for name, sub in schema.get("properties", {}).items():
-            if name in value:
-                check(value[name], sub, f"{where}.{name}")
-    if t == "array":
-        assert len(value) >= schema.get("minItems", 0), f"{where}: fewer than {schema['minItems']} items"
-        assert len(value) <= schema.get("maxItems", len(value)), f"{where}: more than {schema['maxItems']} items"
-        for i, item in enumerate(value):
-            check(item, schema.get("items", {}), f"{where}[{i}]")
+def file_classes(path):
+    """{topic: (schema name, message class built from the schema record in the file)}, and the messages."""
+    classes, msgs = {}, []
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            if channel.topic not in classes:
+                if schema is None:
+                    classes[channel.topic] = (None, None)
+                else:
+                    assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
+                    pool = descriptor_pool.DescriptorPool()
+                    for fd in FileDescriptorSet.FromString(schema.data).file:
+                        pool.AddSerializedFile(fd.SerializeToString())
+                    cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+                    classes[channel.topic] = (schema.name, cls)
+            msgs.append((channel.topic, message))
+    return classes, msgs
 
 
-def test_checker_rejects_what_it_should():
-    s = fx.SCHEMAS["foxglove.CameraCalibration"]
-    good = json.loads(fx.camera_calibration(Intrinsics(100, 100, 50, 40, 101, 81), 5, "cam"))
-    check(good, s)
-    for bad in ({**good, "K": good["K"][:8]}, {**good, "width": 1.5}, {**good, "D": ["x"]},
-                {k: v for k, v in good.items() if k != "frame_id"},
-                {**good, "timestamp": {"sec": 0, "nsec": 10**9}}, {**good, "width": True}):
-        with pytest.raises(AssertionError):
-            check(bad, s)
+def ns(stamp) -> int:
+    return stamp.seconds * 10**9 + stamp.nanos
 
 
 @pytest.fixture(scope="module")
@@ -68,77 +61,167 @@ def frames():
     return list(open_source("synthetic:frames=3,width=160,height=120"))
 
 
+def _motion(seq):
+    m = np.eye(4)
+    m[:3, 3] = (0.01 * seq, 0.0, 0.02)
+    return MotionEstimate(seq, seq + 1, "se3", "exact", m, np.zeros(6), True, "", 100, 1.0, 0.1, None)
+
+
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory, frames):
-    """A recording with msgpack channels and every Foxglove channel; returns (path, expected counts)."""
+    """What the recorder writes for 3 frames: wire messages (JPEGs stored once) and the views."""
     path = tmp_path_factory.mktemp("fox") / "rec.mcap"
+    view = FoxgloveView("cam0")
+    wire = []  # (topic, exact wire bytes)
     with Recorder(path) as rec:
-        topics = fx.register_channels(rec, "cam0", tf=True)
+        topics = fx.register_channels(rec, "cam0")
+
+        def log(stage, data, t):
+            write_message(lambda tp, d: rec.write(tp, d, log_time_ns=t), key("cam0", stage), data, t)
+            wire.append((key("cam0", stage), data))
+            for tp, d in view.convert(stage, data, t, jpeg=False):
+                rec.write(tp, d, log_time_ns=t)
+
         for f in frames:
-            t = f.timestamp_ns
-            frame_msg = encode_frame(f, "cam0", color="jpeg")
-            stab_msg = encode_stabilized(StabilizedImage(f.seq, t, f.color[::-1].copy()), "cam0", color="raw")
-            rec.write(key("cam0", "frame"), frame_msg, log_time_ns=t)
-            rec.write(key("cam0", "stabilized"), stab_msg, log_time_ns=t)
-            rec.write(topics["color"], fx.compressed_image_from_message(frame_msg, "cam0_camera"), t)
-            rec.write(topics["stabilized"], fx.compressed_image_from_message(stab_msg, "cam0_camera"), t)
-            rec.write(topics["calibration"], fx.camera_calibration(f.intrinsics, t, "cam0_camera"), t)
-            rec.write(topics["camera_pose"], fx.pose_in_frame(f.pose, t), t)
-            sim3 = f.pose.copy()
-            sim3[:3, :3] *= 1.3  # a scaled pose must still give a unit quaternion
-            rec.write(topics["stabilized_pose"], fx.pose_in_frame(sim3, t), t)
-            rec.write(topics["tf"], fx.frame_transform(f.pose, t, "world", "cam0_camera"), t)
-    return path, topics
+            t = WALL + f.seq * 33_000_000  # arrival (log) time
+            log("frame", encode_frame(f, "cam0", color="jpeg", depth="zstd", pub_ns=t - 1000), t)
+            corr = Correction(f.seq, np.diag([1.0, 1.0, 1.0, 1.0]), 0, False, True, "")
+            corr.matrix[:3, 3] = (0.0, 0.001, 0.0)
+            log("correction", encode_correction(corr, "cam0"), t + 1)
+            log("stabilized", encode_stabilized(StabilizedImage(f.seq, f.timestamp_ns, f.color[::-1].copy()), "cam0",
+                                                src_pub_ns=t - 1000), t + 2)
+            if f.seq + 1 < len(frames):
+                log("motion", encode_motion(_motion(f.seq), "cam0"), t + 3)
+    return path, topics, wire
 
 
-def test_foxglove_channels_have_schemas_and_valid_messages(recording, frames):
-    path, topics = recording
-    seen: dict[str, list] = {}
-    with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        summary = reader.get_summary()
-        for schema, channel, message in reader.iter_messages(log_time_order=True):
-            seen.setdefault(channel.topic, []).append((schema, channel, message))
-    assert set(seen) == {key("cam0", "frame"), key("cam0", "stabilized"), *[t for n, t in topics.items()
-                                                                             if not n.startswith("msgpack:")]}
+def test_channels_have_protobuf_schemas_and_messages_decode_with_them(recording, frames):
+    path, topics, _ = recording
+    classes, msgs = file_classes(path)
     for name, topic in topics.items():
         if name.startswith("msgpack:"):
-            ch = next(c for c in summary.channels.values() if c.topic == topic)
-            assert ch.message_encoding == "msgpack" and ch.schema_id == 0
             continue
-        want = "foxglove.FrameTransform" if name == "tf" else fx.STREAM_CHANNELS[name]
-        assert len(seen[topic]) == len(frames), topic
-        for schema, channel, message in seen[topic]:
-            assert channel.message_encoding == "json"
-            assert schema.name == want and schema.encoding == "jsonschema"
-            schema_dict = json.loads(schema.data)
-            assert schema_dict == fx.SCHEMAS[want]
-            msg = json.loads(message.data)
-            check(msg, schema_dict, topic)
-            assert msg["timestamp"]["sec"] * 10**9 + msg["timestamp"]["nsec"] == message.log_time
-
-
-def test_compressed_images_decode_to_the_frame_size(recording, frames):
-    path, topics = recording
+        schema_name, cls = classes[topic]
+        assert schema_name == fx.STREAM_CHANNELS[name], topic
+        for t, m in msgs:
+            if t == topic:
+                msg = cls.FromString(m.data)
+                assert msg.IsInitialized() and ns(msg.timestamp) >= WALL - 1000, topic
     with open(path, "rb") as fh:
-        msgs = [(c.topic, json.loads(m.data)) for _, c, m in make_reader(fh).iter_messages(
-            topics=[topics["color"], topics["stabilized"]])]
-    assert len(msgs) == 2 * len(frames)
-    for topic, msg in msgs:
-        assert msg["format"] == "jpeg" and msg["frame_id"] == "cam0_camera"
-        img = cv2.imdecode(np.frombuffer(base64.b64decode(msg["data"]), np.uint8), cv2.IMREAD_COLOR)
-        assert img is not None and img.shape == (120, 160, 3), topic
-    # the colour channel carries the frame message's JPEG bytes unchanged
-    frame_msg = encode_frame(frames[0], "cam0", color="jpeg", quality=77)
-    img = fx.image_from_message(frame_msg)
-    assert img.data[:2] == b"\xff\xd8" and (img.stream, img.seq, img.timestamp_ns) == ("cam0", 0, 0)
-    jpeg = base64.b64decode(json.loads(fx.compressed_image_from_message(frame_msg, "c"))["data"])
-    assert jpeg == img.data
+        summary = make_reader(fh).get_summary()
+    channels = {c.topic: c for c in summary.channels.values()}
+    assert channels[key("cam0", "frame")].message_encoding == "msgpack"
+    assert channels[key("cam0", "frame")].metadata == {"image_topic": "/cam0/color"}
+    assert channels[key("cam0", "motion")].schema_id == 0
+    counts = {}
+    for t, _ in msgs:
+        counts[t] = counts.get(t, 0) + 1
+    n = len(frames)
+    assert counts["/cam0/color"] == counts["/cam0/stabilized"] == counts["/cam0/stabilized_pose"] == n
+    assert counts["/cam0/camera_pose"] == n and counts["/cam0/tf"] == 2 * n and counts["/cam0/calibration"] == 1
+
+
+def test_images_are_the_jpeg_bytes_and_stored_once(recording, frames):
+    path, topics, wire = recording
+    classes, msgs = file_classes(path)
+    cls = classes["/cam0/color"][1]
+    color = [cls.FromString(m.data) for t, m in msgs if t == "/cam0/color"]
+    stab = [cls.FromString(m.data) for t, m in msgs if t == "/cam0/stabilized"]
+    for msg, f in zip(color, frames):
+        assert msg.format == "jpeg" and msg.frame_id == "cam0" and msg.data[:2] == b"\xff\xd8"
+        img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
+        assert img.shape == (120, 160, 3)
+        assert msg.data == fx.image_from_message(encode_frame(f, "cam0", color="jpeg", depth="zstd")).data
+    assert {m.frame_id for m in stab} == {"cam0_stabilized"}
+    # the msgpack records hold no JPEG: each one is in its image record only ...
+    stored = [m.data for t, m in msgs if t in (key("cam0", "frame"), key("cam0", "stabilized"))]
+    assert all(b"\xff\xd8\xff" not in d for d in stored)
+    jpegs = sum(len(m.data) for m in color + stab)
+    assert sum(len(m.data) for t, m in msgs) < sum(len(d) for _, d in wire) + 0.1 * jpegs
+    # ... and read_messages gives every wire message back byte for byte, in order
+    got = [(t, d) for t, _, d in read_messages(path) if t.startswith("quick/")]
+    assert got == wire
+    only = [d for _, _, d in read_messages(path, topics=[key("cam0", "stabilized")])]
+    assert only == [d for t, d in wire if t == key("cam0", "stabilized")]
+
+
+def test_timestamps_are_wall_clock_and_transforms_follow_the_poses(recording):
+    path, _, _ = recording
+    classes, msgs = file_classes(path)
+    by_topic = {}
+    for t, m in msgs:
+        by_topic.setdefault(t, []).append((classes[t][1].FromString(m.data) if classes[t][1] else None, m))
+    for msg, m in by_topic["/cam0/color"]:
+        assert ns(msg.timestamp) == m.log_time - 1000  # the frame's pub_ns, on the clock of the log times
+    for msg, m in by_topic["/cam0/stabilized"]:
+        assert ns(msg.timestamp) == m.log_time - 2 - 1000  # its source frame's pub_ns
+    tfs = [msg for msg, _ in by_topic["/cam0/tf"]]
+    assert {(t.parent_frame_id, t.child_frame_id) for t in tfs} == {("world", "cam0"), ("world", "cam0_stabilized")}
+    cam = [t for t in tfs if t.child_frame_id == "cam0"]
+    # camera poses integrated from the motions: frame 2 sits at the sum of the two translations
+    last = max(cam, key=lambda t: ns(t.timestamp))
+    assert np.allclose([last.translation.x, last.translation.y, last.translation.z], [0.01, 0.0, 0.04])
+    assert (last.rotation.x, last.rotation.y, last.rotation.z, last.rotation.w) == (0.0, 0.0, 0.0, 1.0)
+    stab = [t for t in tfs if t.child_frame_id == "cam0_stabilized"]
+    assert all(math.isclose(t.translation.y, 0.001) for t in stab)
+    poses = [msg for msg, _ in by_topic["/cam0/camera_pose"]]
+    assert {ns(p.timestamp) for p in poses} == {ns(t.timestamp) for t in cam}
+    assert all(p.frame_id == "world" for p in poses)
+
+
+def test_recover_keeps_the_image_references(recording, tmp_path):
+    path, _, wire = recording
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-40])  # no footer: recover rewrites every message
+    r = recover(cut, tmp_path / "fixed.mcap")
+    assert r.messages > 0
+    got = [(t, d) for t, _, d in read_messages(tmp_path / "fixed.mcap") if t.startswith("quick/")]
+    assert got == wire
+
+
+def test_a_missing_image_record_is_named_when_decoding(frames, tmp_path):
+    path = tmp_path / "gap.mcap"
+    data = encode_frame(frames[0], "cam0", color="jpeg")
+    with Recorder(path) as rec:
+        fx.register_channels(rec, "cam0")
+        # the stored message references image record 7, which this file never got (a damaged chunk)
+        rec.write("/cam0/color", image_message(split(data, WALL)), sequence=8)
+        rec.write(key("cam0", "frame"), stored_message(split(data, WALL), 7))
+    (_, _, stored), = [x for x in read_messages(path) if x[0] == key("cam0", "frame")]
+    with pytest.raises(WireError, match="stored this JPEG apart.*not found"):
+        decode(stored)
+
+
+def test_messages_that_cannot_be_stored_apart_are_stored_whole(frames, tmp_path):
+    import msgpack
+
+    raw = encode_frame(frames[0], "cam0", color="raw")
+    foreign = msgpack.unpackb(encode_frame(frames[1], "cam0", color="jpeg"))
+    foreign["t_ns"] = 1.0 * foreign["t_ns"]  # a float where we pack an int: does not re-pack to itself
+    foreign_bytes = msgpack.packb(foreign, use_bin_type=True, use_single_float=True)
+    path = tmp_path / "whole.mcap"
+    with Recorder(path) as rec:
+        fx.register_channels(rec, "cam0")
+        for i, d in enumerate((raw, foreign_bytes)):
+            write_message(lambda tp, x: rec.write(tp, x, log_time_ns=WALL + i), key("cam0", "frame"), d, WALL + i)
+    with open(path, "rb") as fh:
+        recs = [(c.topic, m.data) for _, c, m in make_reader(fh).iter_messages()]
+    assert [t for t, _ in recs] == [key("cam0", "frame"), "/cam0/color", key("cam0", "frame")]
+    assert recs[0][1] == raw and recs[2][1] == foreign_bytes  # whole; the JPEG one still has its view
+    assert [d for _, _, d in read_messages(path, topics=[key("cam0", "frame")])] == [raw, foreign_bytes]
+
+
+def test_schema_record_is_a_file_descriptor_set_with_its_imports():
+    fds = FileDescriptorSet.FromString(fx.schema_bytes("foxglove.FrameTransform"))
+    names = [f.name for f in fds.file]
+    assert names[-1] == "foxglove/FrameTransform.proto"
+    assert {"google/protobuf/timestamp.proto", "foxglove/Vector3.proto", "foxglove/Quaternion.proto"} <= set(names)
+    assert len(names) == len(set(names))
+    with pytest.raises(ValueError, match="no Foxglove schema"):
+        fx.schema_bytes("foxglove.Nope")
 
 
 def test_image_from_message_rejects_other_types(frames):
-    from quick_stream.core.motion import MotionEstimate
-
     m = MotionEstimate(0, 1, "se3", "exact", np.eye(4), np.zeros(6), True, "", 10, 1.0, 0.1, None)
     with pytest.raises(WireError, match="no image"):
         fx.image_from_message(encode_motion(m, "cam0"))
@@ -148,15 +231,17 @@ def test_image_from_message_rejects_other_types(frames):
 
 def test_calibration_and_timestamps():
     k = Intrinsics(500.0, 510.0, 319.5, 239.5, 640, 480)
-    msg = json.loads(fx.camera_calibration(k, 3_000_000_007, "cam"))
-    assert msg["timestamp"] == {"sec": 3, "nsec": 7}
-    assert np.allclose(np.reshape(msg["K"], (3, 3)), k.K)
-    assert msg["P"][:3] == [500.0, 0.0, 319.5] and msg["P"][3] == 0.0
-    assert (msg["width"], msg["height"], msg["distortion_model"]) == (640, 480, "plumb_bob")
+    msg = fx.parse("foxglove.CameraCalibration", fx.camera_calibration(k, 3_000_000_007, "cam"))
+    assert (msg.timestamp.seconds, msg.timestamp.nanos) == (3, 7)
+    assert np.allclose(np.reshape(msg.K, (3, 3)), k.K)
+    assert list(msg.P[:3]) == [500.0, 0.0, 319.5] and msg.P[3] == 0.0
+    assert (msg.width, msg.height, msg.distortion_model, msg.frame_id) == (640, 480, "plumb_bob", "cam")
     with pytest.raises(ValueError):
-        fx.timestamp(-1)
+        fx.camera_calibration(k, -1, "cam")
     with pytest.raises(ValueError, match="format"):
         fx.compressed_image(0, b"x", "bmp", "cam")
+    with pytest.raises(ValueError, match="not a foxglove.CompressedImage"):
+        fx.parse("foxglove.CompressedImage", b"\xff\xff\xff")
 
 
 def _rot(axis, deg):
@@ -214,11 +299,13 @@ def test_pose_message_drops_scale_and_rejects_bad_matrices():
     m = np.eye(4)
     m[:3, :3] = 2.5 * _rot((0, 0, 1), 90)
     m[:3, 3] = (1, 2, 3)
-    msg = json.loads(fx.pose_in_frame(m, 10))
-    check(msg, fx.SCHEMAS["foxglove.PoseInFrame"])
-    assert msg["frame_id"] == "world" and msg["pose"]["position"] == {"x": 1.0, "y": 2.0, "z": 3.0}
-    o = msg["pose"]["orientation"]
-    assert np.allclose([o["x"], o["y"], o["z"], o["w"]], (0, 0, math.sqrt(0.5), math.sqrt(0.5)))
+    msg = fx.parse("foxglove.PoseInFrame", fx.pose_in_frame(m, 10))
+    p = msg.pose.position
+    assert msg.frame_id == "world" and (p.x, p.y, p.z) == (1.0, 2.0, 3.0) and msg.timestamp.nanos == 10
+    o = msg.pose.orientation
+    assert np.allclose([o.x, o.y, o.z, o.w], (0, 0, math.sqrt(0.5), math.sqrt(0.5)))
+    tf = fx.parse("foxglove.FrameTransform", fx.frame_transform(m, 10, "world", "cam0"))
+    assert (tf.parent_frame_id, tf.child_frame_id, tf.translation.z, tf.rotation.w) == ("world", "cam0", 3.0, o.w)
     bad = np.eye(4)
     bad[0, 0] = np.nan
     for b in (bad, np.zeros((4, 4)), np.eye(3)):
@@ -234,3 +321,4 @@ def test_topics_validate_stream_ids():
         fx.topic("cam/0", "color")
     with pytest.raises(ValueError):
         fx.topic("cam0", "depth")
+    assert fx.topic("cam0", "tf") == "/cam0/tf" and fx.camera_frame("cam0", stabilized=True) == "cam0_stabilized"

@@ -135,3 +135,28 @@ def test_open_errors(tmp_path):
     junk.write_bytes(b"this is not an mcap file")
     with pytest.raises(SourceError, match="no frame messages"):
         open_source(f"mcap:{junk}")
+
+
+def test_frames_whose_jpeg_was_stored_apart_replay_byte_for_byte(tmp_path, originals):
+    """As the recorder stores them: each JPEG in its Foxglove image record, the frame message
+    referencing it; the source hands out the exact wire bytes, indexed or streamed (no footer)."""
+    from quick_stream import foxglove
+    from quick_stream.io.recording_images import write_message
+
+    path = tmp_path / "apart.mcap"
+    sent = [encode_frame(f, "cam0", color="jpeg", depth="zstd", pub_ns=5 + i) for i, f in enumerate(originals)]
+    with Recorder(path, chunk_size=1) as rec:
+        foxglove.register_channels(rec, "cam0")
+        for i, data in enumerate(sent):
+            t = 10**9 + originals[i].timestamp_ns
+            write_message(lambda topic, d: rec.write(topic, d, log_time_ns=t), key("cam0", "frame"), data, t)
+    src = open_source(f"mcap:{path}")
+    assert src.indexed and src.color_encoding == "jpeg"
+    assert [d for _, d in src.iter_with_messages()] == sent
+    data = path.read_bytes()
+    cut = tmp_path / "killed.mcap"
+    cut.write_bytes(data[: len(data) - 200])  # footer and summary gone
+    src = open_source(f"mcap:{cut}")
+    assert not src.indexed
+    items = list(src.iter_with_messages())
+    assert [d for _, d in items] == sent and all(isinstance(f, RGBDFrame) for f, _ in items)

@@ -15,13 +15,14 @@ import cv2
 import pytest
 
 from quick_stream.cli import main
-from quick_stream.core.render_stage import RenderStage
-from quick_stream.core.stages import FlowStage, MotionStage
-from quick_stream.io.recording import Recorder, read_messages
-from quick_stream.io.sources import open_source
-from quick_stream.quality.rerun import RerunError, rerun_stage
 from quick_stream.stream import keys
 from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.io.recording import Recorder, read_messages
+from quick_stream.quality.rerun import RerunError, rerun_stage
+from quick_stream.io.sources import open_source
+from quick_stream.core.render_stage import RenderStage
+from quick_stream.core.sceneflow import lift_pairs
+from quick_stream.core.stages import FlowStage, MotionStage
 from quick_stream.stream.wire import (
     EndOfStream,
     StabilizedImage,
@@ -147,16 +148,21 @@ def test_a_tampered_flow_is_reported_and_the_cli_fails(recording, tmp_path, caps
         for t, log_time, data in read_messages(path):
             msg = decode(data)
             if msg.type == "flow" and msg.seq == 20:
-                msg.obj.displacements[0] += 1e-3  # one perturbed point
-                data, target = encode_flow(msg.obj, STREAM), msg.seq
+                fl = msg.obj  # one point's flow off by one fixed-point step (2^-10 px), lifted again
+                depth_next = fl.points[:, 2] + fl.displacements[:, 2]
+                fl.pixels_next[0, 0] += 2.0 ** -10
+                fl.points, fl.displacements = lift_pairs(fl.pixels, fl.points[:, 2], fl.pixels_next, depth_next,
+                                                         fl.intrinsics, fl.intrinsics_next)
+                data, target = encode_flow(fl, STREAM), msg.seq
+                assert decode(data).version == 2  # still the compact layout
             rec.write(t, data, log_time_ns=log_time)
     assert target == 20
     r = rerun_stage(bad, "flow", None, default_params())
     assert not r.ok and r.identical == r.logged - 1
-    assert [(m.topic, m.seq, m.fields) for m in r.mismatches] == [(topic("flow"), 20, ("displacements.data",))]
+    assert [(m.topic, m.seq, m.fields) for m in r.mismatches] == [(topic("flow"), 20, ("offset.data",))]
     assert main(["rerun", "flow", str(bad)]) == 1
     out = capsys.readouterr().out
-    assert "seq 20: displacements.data" in out and "DIFFERENT: 1 of 68" in out
+    assert "seq 20: offset.data" in out and "DIFFERENT: 1 of 68" in out
 
 
 def test_usage_errors(recording, tmp_path, capsys):

@@ -380,3 +380,93 @@ def test_a_frame_larger_than_the_maximum_is_refused_from_its_header(monkeypatch)
     assert "JPEG is 32x24 but shape says 8192x8192" in str(e.value)
     with pytest.raises(ValueError, match="16..16384"):
         codec.set_max_image_side(100_000)
+
+
+# --- flow, version 2: the compact layout (wire/flowpack.py) ---------------------------------------
+
+@pytest.fixture(scope="module")
+def scene_flows():
+    """Flows as the scene flow makes them (synthetic 160x120): what the flow service publishes."""
+    from quick_stream.sceneflow import SceneFlow
+    from quick_stream.io.sources import open_source
+
+    fr = list(open_source("synthetic:frames=6,width=160,height=120"))
+    sf = SceneFlow()
+    return [sf.compute(a, b) for a, b in zip(fr, fr[1:])]
+
+
+def _bits_equal(a, b) -> bool:
+    a, b = np.ascontiguousarray(a, np.float64), np.ascontiguousarray(b, np.float64)
+    return a.shape == b.shape and np.array_equal(a.view(np.uint64), b.view(np.uint64))
+
+
+FLOW_ARRAYS = ("points", "displacements", "weights", "pixels", "pixels_next")
+
+
+def test_compact_flow_round_trip_is_bit_exact_and_small(scene_flows):
+    from quick_stream.stream.wire.codec import encode_array, pack
+
+    for fl in scene_flows:
+        data = encode_flow(fl, "cam0")
+        m = decode(data)
+        assert m.version == 2 and raw(data)["v"] == 2 and "grid" in raw(data) and "points" not in raw(data)
+        for name in FLOW_ARRAYS:  # what motion gets from the wire is what it gets in-process
+            assert _bits_equal(getattr(m.obj, name), getattr(fl, name)), name
+        assert encode_flow(m.obj, "cam0") == data  # re-encoding is stable (rerun compares bytes)
+        # version 1 (five float32 arrays, old recordings) still decodes, to the same numbers
+        v1 = {"seq_next": fl.seq_next, **{n: encode_array(getattr(fl, n), "<f4") for n in FLOW_ARRAYS},
+              "intrinsics": raw(data)["intrinsics"], "intrinsics_next": raw(data)["intrinsics_next"],
+              "counts": fl.counts, "problem": ""}
+        old = pack(v1, "flow", "cam0", fl.seq, version=1)
+        assert len(data) < len(old) / 4
+        g = decode(old)
+        assert g.version == 1 and all(_bits_equal(getattr(g.obj, n), getattr(fl, n)) for n in FLOW_ARRAYS)
+
+
+def test_flows_the_compact_layout_cannot_hold_go_as_version_1(scene_flows):
+    fl = make_flow()  # random pixels: not on a grid
+    assert raw(encode_flow(fl, "cam0"))["v"] == 1
+    g = scene_flows[0]
+    for change in ("pixels", "pixels_next", "weights", "points"):
+        h = SceneFlowResult(g.seq, g.seq_next, g.points.copy(), g.displacements.copy(), g.weights.copy(),
+                            g.pixels.copy(), g.pixels_next.copy(), g.intrinsics, g.intrinsics_next, g.counts)
+        arr = getattr(h, change)
+        arr[0] = arr[0] + (0.25 if change != "pixels" else 1.0)  # off the grid order / the lift (float32-exact)
+        d = raw(encode_flow(h, "cam0"))
+        assert d["v"] == (2 if change == "weights" else 1), change  # weights other than 1 are carried
+        got = decode(encode_flow(h, "cam0")).obj
+        assert _bits_equal(getattr(got, change), getattr(h, change)), change
+    empty = SceneFlowResult.empty(*[make_frame()] * 2, "too dark")
+    m = decode(encode_flow(empty, "cam0"))
+    assert m.version == 2 and len(m.obj) == 0 and m.obj.problem == "too dark"
+
+
+def test_compact_flow_rejections(scene_flows):
+    from quick_stream.stream.wire import flowpack
+
+    good = raw(encode_flow(scene_flows[0], "cam0"))
+    n = good["n"]
+
+    def edit(fn):
+        d = msgpack.unpackb(msgpack.packb(good, use_bin_type=True), raw=False)
+        fn(d)
+        return repack(d)
+
+    rejects(edit(lambda d: d.update(n=n + 1)), "'grid.mask'", "samples")
+    rejects(edit(lambda d: d["grid"].update(mask=d["grid"]["mask"][:-1])), "'grid.mask'", "bytes")
+    rejects(edit(lambda d: d["grid"].update(cols=1 << 13, rows=1 << 12)), "'grid.cols'", "exceed")
+    rejects(edit(lambda d: d.update(offset_exp=65)), "'offset_exp'")
+    rejects(edit(lambda d: d["depth"].update(shape=[n + 1])), "'depth.shape'")
+    rejects(edit(lambda d: d["offset"].update(dtype="<f4")), "'offset.dtype'")
+    rejects(edit(lambda d: d["depth_change"].update(enc="raw")), "'depth_change.enc'")
+    rejects(edit(lambda d: d["depth"].update(data=b"\x28\xb5\x2f\xfd junk")), "'depth.data'")
+    rejects(edit(lambda d: d.update(depth=flowpack.pack_array(np.full(n, np.inf), "<f4"))), "'depth'", "non-finite")
+    rejects(edit(lambda d: d.update(depth=flowpack.pack_array(np.full(n, 3e38), "<f4"),
+                                    offset_exp=-64)), "non-finite")
+    rejects(edit(lambda d: d.pop("grid")), "'grid'", "missing")
+    cells = good["grid"]["cols"] * good["grid"]["rows"]
+    if cells % 8:  # a bit set past the last cell
+        rejects(edit(lambda d: d["grid"].update(mask=d["grid"]["mask"][:-1] + bytes([d["grid"]["mask"][-1] | 0x80]))),
+                "'grid.mask'", "past the last cell")
+    rejects(edit(lambda d: d.update(v=3)), "'v'", "expected 1 to 2", "found 3", "'flow'")
+    rejects(edit(lambda d: d.update(v=1)), "'points'", "missing")  # a version-1 decoder's view of it

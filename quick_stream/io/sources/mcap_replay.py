@@ -36,6 +36,7 @@ from ...stream.keys import PREFIX, check_stream, key, parse
 from ...stream.wire import WireError, decode
 from ...stream.wire.codec import unpack
 from ..recording import RecordingError, describe_damage, open_recording, read_messages
+from ..recording_images import Rejoiner
 from .base import FrameOrGap, SourceError
 
 log = logging.getLogger("quick_stream.io.sources.mcap_replay")
@@ -47,8 +48,11 @@ _OPTIONS = ("stream",)
 
 def _stream_records(path: Path, topics: set[str] | None,
                     on_stop: Callable[[str], None]) -> Iterator[tuple[str, int, bytes]]:
-    """(topic, log_time_ns, data) in file order, up to the first damaged record."""
+    """(topic, log_time_ns, data) in file order, up to the first damaged record; images stored
+    apart put back into their wire messages (:class:`~quick_stream.io.recording_images.Rejoiner`)."""
     channels: dict[int, str] = {}
+    rejoin = Rejoiner(None if topics is None else sorted(topics))
+    read = None if rejoin.read_topics is None else set(rejoin.read_topics)
     n, pos = 0, 0
     try:
         with open_recording(path) as f:
@@ -59,8 +63,10 @@ def _stream_records(path: Path, topics: set[str] | None,
                 elif isinstance(record, Message):
                     n += 1
                     topic = channels.get(record.channel_id)
-                    if topic is not None and (topics is None or topic in topics):
-                        yield topic, record.log_time, record.data
+                    if topic is not None and (read is None or topic in read):
+                        data = rejoin.take(topic, record.sequence, record.data)
+                        if data is not None:
+                            yield topic, record.log_time, data
     except OSError as e:
         on_stop(f"{path}: cannot read: {e.strerror or e}")
     except Exception as e:  # noqa: BLE001 - a torn tail raises assorted errors; keep what was read

@@ -19,7 +19,8 @@ import zstandard
 
 from ...core.frame import dequantize_depth, quantize_depth  # noqa: F401 - re-exported
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # the version of every message type but those in VERSIONS
+VERSIONS = {"flow": 2}  # types whose newest version is another (flow 2: the compact layout)
 MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1.0, 1e6  # raw depth units per metre (mm = 1000, TUM = 5000)
 MESSAGE_TYPES = ("frame", "flow", "motion", "correction", "stabilized", "stats", "end")
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
@@ -63,15 +64,21 @@ class WireError(ValueError):
         super().__init__(f"wire: {problem}" + (f" [{', '.join(where)}]" if where else ""))
 
 
-def pack(fields: dict[str, Any], type: str, stream: str, seq: int) -> bytes:
-    """The message bytes: envelope plus ``fields`` (already msgpack-native values)."""
+def version_of(type: str) -> int:
+    """The newest format version of message ``type`` (docs/wire-format.md, Versioning)."""
+    return VERSIONS.get(type, FORMAT_VERSION)
+
+
+def pack(fields: dict[str, Any], type: str, stream: str, seq: int, version: int | None = None) -> bytes:
+    """The message bytes: envelope plus ``fields`` (already msgpack-native values); ``version``
+    (default the type's newest, :func:`version_of`) goes in ``v``."""
     if type not in MESSAGE_TYPES:
         raise WireError(f"unknown message type {type!r}", stream=stream, seq=seq)
     if not isinstance(stream, str) or not stream:
         raise WireError(f"stream id must be a non-empty str, got {stream!r}", seq=seq, field="stream")
     if isinstance(seq, bool) or not isinstance(seq, (int, np.integer)) or seq < 0:
         raise WireError(f"seq must be an int >= 0, got {seq!r}", stream=stream, field="seq")
-    msg = {"v": FORMAT_VERSION, "type": type, "stream": stream, "seq": int(seq)}
+    msg = {"v": version_of(type) if version is None else int(version), "type": type, "stream": stream, "seq": int(seq)}
     msg.update(fields)
     return msgpack.packb(msg, use_bin_type=True)
 
@@ -108,10 +115,12 @@ def unpack(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES) -> Reader:
         raise WireError(f"missing format version (expected v={FORMAT_VERSION})",
                         stream=stream, seq=seq, field="v", type=mtype)
     v = obj["v"]
-    if not _is_int(v) or v != FORMAT_VERSION:
-        raise WireError(f"unsupported format version: expected {FORMAT_VERSION}, found {v!r}",
-                        stream=stream, seq=seq, field="v", type=mtype)
-    r = Reader(obj, stream=stream, seq=seq, type=mtype)
+    newest = version_of(mtype) if mtype in MESSAGE_TYPES else FORMAT_VERSION
+    if not _is_int(v) or not 1 <= v <= newest:
+        expected = f"{FORMAT_VERSION}" if newest == FORMAT_VERSION else f"1 to {newest}"
+        raise WireError(f"unsupported format version{f' of a {mtype!r} message' if newest != FORMAT_VERSION else ''}: "
+                        f"expected {expected}, found {v!r}", stream=stream, seq=seq, field="v", type=mtype)
+    r = Reader(obj, stream=stream, seq=seq, type=mtype, version=v)
     r.type = r.str("type")
     if r.type not in MESSAGE_TYPES:
         raise r.error("type", f"unknown message type {r.type!r} (known: {', '.join(MESSAGE_TYPES)})")
@@ -159,6 +168,7 @@ class Reader:
     prefix: str = ""
     type: str | None = None
     pixels: bool = True  # False: check every field, but leave images and depth maps undecoded (:func:`check`)
+    version: int = FORMAT_VERSION  # the message's format version (``v``)
 
     def error(self, name: str, problem: str) -> WireError:
         return WireError(problem, stream=self.stream, seq=self.seq, field=self.prefix + name, type=self.type)
@@ -216,7 +226,7 @@ class Reader:
         val = self._typed(name, (dict,), "map", optional)
         if val is None:
             return None
-        return Reader(val, self.stream, self.seq, f"{self.prefix}{name}.", self.type)
+        return Reader(val, self.stream, self.seq, f"{self.prefix}{name}.", self.type, self.pixels, self.version)
 
     def floats(self, name: str, n: int | None = None, finite: bool = True,
                optional: bool = False) -> np.ndarray | None:
@@ -316,6 +326,11 @@ def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str]:
     if shape[2] != 3:
         raise m.error("shape", f"expected H x W x 3, got {shape}")
     _check_side(m, shape)
+    if "data" not in m.d and "ref" in m.d:
+        ref = m.d["ref"]
+        which = f"record {ref}" if type(ref) is int else "a record"
+        raise m.error("data", f"missing: the recording stored this JPEG apart, as {which} of its Foxglove image "
+                              "channel, and that record was not found (a damaged recording; docs/recording.md)")
     data = m.bytes("data")
     size = jpeg_size(data)
     if size is None:

@@ -29,6 +29,7 @@ from .codec import (
     pack,
     unpack,
 )
+from .flowpack import compact_fields, decode_compact
 
 GROUP_DIMS = {"se3": 6, "sim3": 7, "sa3": 11, "ga3": 12}
 MAX_FLOW_POINTS = 10_000_000
@@ -179,38 +180,47 @@ _FLOW_ARRAYS = (("points", 3), ("displacements", 3), ("weights", None), ("pixels
 
 
 def encode_flow(flow: SceneFlowResult, stream: str) -> bytes:
-    """A SceneFlowResult as a ``flow`` message (arrays float32 on the wire)."""
+    """A SceneFlowResult as a ``flow`` message: the compact layout of version 2 when it gives every
+    array back bit for bit (the scene flow's own results: :mod:`.flowpack`), else version 1's five
+    float32 arrays."""
+    compact = compact_fields(flow)
     f: dict[str, Any] = {"seq_next": int(flow.seq_next)}
-    for name, _ in _FLOW_ARRAYS:
-        f[name] = encode_array(getattr(flow, name), "<f4")
+    if compact is None:
+        for name, _ in _FLOW_ARRAYS:
+            f[name] = encode_array(getattr(flow, name), "<f4")
+    else:
+        f.update(compact)
     f["intrinsics"] = _intrinsics(flow.intrinsics)
     f["intrinsics_next"] = _intrinsics(flow.intrinsics_next)
     f["counts"] = {str(k): int(v) for k, v in flow.counts.items()}
     f["problem"] = _str("problem", flow.problem)
-    return pack(f, "flow", stream, flow.seq)
+    return pack(f, "flow", stream, flow.seq, version=1 if compact is None else 2)
 
 
 def _decode_flow(r: Reader) -> Decoded:
-    arrays = {}
-    n = None
-    for name, cols in _FLOW_ARRAYS:
-        a = r.array(name, "<f4", 1 if cols is None else 2, () if cols is None else (cols,),
-                    finite=True, max_elems=3 * MAX_FLOW_POINTS)
-        if n is None:
-            n = a.shape[0]
-        elif a.shape[0] != n:
-            raise r.error(name, f"{a.shape[0]} rows but points has {n}")
-        arrays[name] = a.astype(np.float64)
+    K0, K1 = read_intrinsics(r, "intrinsics"), read_intrinsics(r, "intrinsics_next")
+    if r.version >= 2:
+        arrays = decode_compact(r, MAX_FLOW_POINTS, K0, K1)
+    else:
+        arrays = {}
+        n = None
+        for name, cols in _FLOW_ARRAYS:
+            a = r.array(name, "<f4", 1 if cols is None else 2, () if cols is None else (cols,),
+                        finite=True, max_elems=3 * MAX_FLOW_POINTS)
+            if n is None:
+                n = a.shape[0]
+            elif a.shape[0] != n:
+                raise r.error(name, f"{a.shape[0]} rows but points has {n}")
+            arrays[name] = a.astype(np.float64)
     counts_r = r.map("counts")
     counts = {}
     for key in counts_r.d:
         counts[key] = counts_r.int(key)
     flow = SceneFlowResult(
         r.seq, r.int("seq_next", min=0), arrays["points"], arrays["displacements"], arrays["weights"],
-        arrays["pixels"], arrays["pixels_next"], read_intrinsics(r, "intrinsics"),
-        read_intrinsics(r, "intrinsics_next"), counts, r.str("problem"),
+        arrays["pixels"], arrays["pixels_next"], K0, K1, counts, r.str("problem"),
     )
-    return Decoded("flow", flow, r.stream, r.seq)
+    return Decoded("flow", flow, r.stream, r.seq, version=r.version)
 
 
 # --- motion -------------------------------------------------------------------------------------
