@@ -386,18 +386,25 @@ class ServiceRuntime:
         while not (list(info.routers_zid()) or list(info.peers_zid())) and time.monotonic() < deadline:
             time.sleep(0.01)
 
-    def _ask_cursor(self, stage: str) -> tuple[bool, bool, int | None]:
-        """(any service answered, any answer has a seq (a stream is under way), the newest ``stage`` seq)."""
-        answered, under_way, best = False, False, None
+    def _cursor_answers(self) -> Iterator[tuple[str, dict]]:
+        """(service, {stage: newest seq}) of every service of the stream that answers a cursor query
+        (:meth:`serve_cursor`) within 0.5 s; an answer that does not decode is skipped."""
         replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
                                    consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
         for reply in replies:
             try:
                 values = decode(reply.ok.payload.to_bytes()).obj.values
+                service = str(reply.ok.key_expr).rsplit("/", 1)[-1]
             except (WireError, AttributeError, zenoh.ZError):
                 continue
+            yield service, values
+
+    def _ask_cursor(self, stage: str) -> tuple[bool, bool, int | None]:
+        """(any service answered, any answer has a seq (a stream is under way), the newest ``stage`` seq)."""
+        answered, under_way, best = False, False, None
+        for service, values in self._cursor_answers():
             answered = True
-            log.debug("cursor %s: %s answered %s", stage, str(reply.ok.key_expr).rsplit("/", 1)[-1], values)
+            log.debug("cursor %s: %s answered %s", stage, service, values)
             under_way = under_way or bool(values)
             seq = values.get(stage)
             if isinstance(seq, int) and not isinstance(seq, bool) and (best is None or seq > best):
@@ -415,14 +422,7 @@ class ServiceRuntime:
         while True:
             behind: set[str] = set()
             answered: set[str] = set()
-            replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
-                                       consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
-            for reply in replies:
-                try:
-                    values = decode(reply.ok.payload.to_bytes()).obj.values
-                    service = str(reply.ok.key_expr).rsplit("/", 1)[-1]
-                except (WireError, AttributeError, zenoh.ZError):
-                    continue
+            for service, values in self._cursor_answers():
                 answered.add(service)
                 got = values.get(stage)
                 if isinstance(got, int) and not isinstance(got, bool) and got < seq:
@@ -443,17 +443,7 @@ class ServiceRuntime:
         can recover it only while the publisher waits here."""
         deadline = time.monotonic() + timeout_s
         while True:
-            still: set[str] = set()
-            replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
-                                       consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
-            for reply in replies:
-                try:
-                    values = decode(reply.ok.payload.to_bytes()).obj.values
-                    service = str(reply.ok.key_expr).rsplit("/", 1)[-1]
-                except (WireError, AttributeError, zenoh.ZError):
-                    continue
-                if stage in values:
-                    still.add(service)
+            still = {service for service, values in self._cursor_answers() if stage in values}
             if not still or time.monotonic() > deadline or self.stop.is_set():
                 return still
             self.stop.wait(0.05)
