@@ -53,6 +53,7 @@ def test_scripted_faults_cost_single_frames_and_the_stream_goes_on():
     # frame 3's colour and frame 5's depth never arrived: those device frames are missing
     assert 3 not in colour_seq[:12] and 5 not in colour_seq[:12]
     assert src.pairer.stats.unpaired_color == 1 and src.pairer.stats.paired_by_time == 1  # the mismatch
+    assert src.pairer.stats.unpaired_depth == 1  # frame 3's depth, whose colour never came
     gaps = [f for f in out if isinstance(f, BadFrame)]
     assert len(gaps) == 1 and "disconnected" in gaps[0].error and "reconnected after" in gaps[0].error
     assert src.reconnects and src.connections == 2

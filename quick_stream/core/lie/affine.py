@@ -98,7 +98,7 @@ def _newton(
             break
         redo = active[want[active]]
         if redo.size:
-            Pr, dPr = phi_derivative(np.einsum("bk,kij->bij", u[redo], lin), lin)
+            _, dPr = phi_derivative(np.einsum("bk,kij->bij", u[redo], lin), lin)
             J[redo] = np.swapaxes(dPr.reshape(-1, m, 9), -1, -2)
             fresh[redo], want[redo] = True, False
         Ja, ra = J[active], r[active]

@@ -192,7 +192,6 @@ class McapSource:
         self.intrinsics: Intrinsics = first.obj.intrinsics
         self.depth_scale: float = float(first.extra["depth_scale"])
         self.color_encoding: str = first.extra["color_encoding"]
-        self.depth_encoding: str = first.extra["depth_encoding"]
         dts = np.diff(np.asarray(times, dtype=np.float64))
         dts = dts[dts > 0]
         self.fps = 1e9 / float(np.median(dts)) if len(dts) else DEFAULT_FPS

@@ -49,8 +49,6 @@ class TumEntry:
 
     rgb_t: float
     rgb_file: str
-    rgb_line: int
-    depth_t: float
     depth_file: str
     pose: np.ndarray | None = None
     out_of_order: str = ""  # non-empty: why this entry's timestamp is rejected
@@ -185,7 +183,7 @@ class TumSource:
                 bad = (f"{self.path / 'rgb.txt'}:{r[2]}: timestamp {r[0]:.6f} of {r[1]} is not "
                        f"after the previous frame's ({latest:.6f}); timestamps out of order")
             latest = max(latest, r[0])
-            entries.append(TumEntry(r[0], r[1], r[2], d[0], d[1], pose, bad))
+            entries.append(TumEntry(r[0], r[1], d[1], pose, bad))
         self.entries = entries  # full association list; seq = index into it
 
         if start > len(entries):
