@@ -115,13 +115,10 @@ class _Rigid(LieGroup):
         return J
 
     def _project_linear(self, A: np.ndarray) -> np.ndarray:
-        """SVD ``A = U S V^T`` -> ``U diag(1, 1, det(U V^T)) V^T`` (times mean(S) for SIM(3))."""
-        U, S, Vt = np.linalg.svd(A)
-        d = np.sign(np.linalg.det(U @ Vt))
-        d = np.where(d == 0.0, 1.0, d)
-        R = (U * np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)[:, None, :]) @ Vt
+        """The nearest rotation (:func:`so3.nearest_rotation`), times the mean singular value for SIM(3)."""
+        R = so3.nearest_rotation(A)
         if self._scaled:
-            R = R * S.mean(axis=-1)[:, None, None]
+            R = R * np.linalg.svd(A, compute_uv=False).mean(axis=-1)[:, None, None]
         return R
 
 

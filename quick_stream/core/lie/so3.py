@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["hat", "vee", "exp", "log", "right_jacobian", "left_jacobian"]
+__all__ = ["hat", "vee", "exp", "log", "right_jacobian", "left_jacobian", "nearest_rotation"]
 
 # Below this angle the trigonometric coefficients are evaluated by Taylor series.
 _SMALL = 1e-4
@@ -97,6 +97,21 @@ def log(R: np.ndarray) -> np.ndarray:
         sign = np.where(np.einsum("ni,ni->n", axis, sp) < 0.0, -1.0, 1.0)
         out[near_pi] = (sign * tp)[:, None] * axis
     return out
+
+
+def nearest_rotation(A: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) each 3x3 ``A``; (..., 3, 3) -> (..., 3, 3).
+
+    ``A = U S V^T`` -> ``U diag(1, 1, det(U V^T)) V^T``: the orthogonal polar factor, its sign fixed
+    so a reflection never comes out (Kabsch). For a rotation it is the rotation, for ``s R`` (SIM(3))
+    exactly ``R``; of an affine part (SA(3), GA(3)) scale and shear are dropped. The one place the
+    package projects onto SO(3): fits, reports, plots and the renderer's rotation reference.
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(A, dtype=np.float64))
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0.0, 1.0, d)
+    D = np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)
+    return (U * D[..., None, :]) @ Vt
 
 
 def right_jacobian(w: np.ndarray) -> np.ndarray:
