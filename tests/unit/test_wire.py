@@ -387,7 +387,7 @@ def test_a_frame_larger_than_the_maximum_is_refused_from_its_header(monkeypatch)
 @pytest.fixture(scope="module")
 def scene_flows():
     """Flows as the scene flow makes them (synthetic 160x120): what the flow service publishes."""
-    from quick_stream.sceneflow import SceneFlow
+    from quick_stream.core.sceneflow import SceneFlow
     from quick_stream.io.sources import open_source
 
     fr = list(open_source("synthetic:frames=6,width=160,height=120"))
