@@ -1,4 +1,4 @@
-"""Zenoh key expressions: ``quick/@v1/<stream>/<stage>`` (issue 4; docs/wire-format.md).
+"""Zenoh key expressions: ``quick/@v1/<stream>/<stage>`` (docs/wire-format.md).
 
 One stream per camera; every stage publishes under its stream's prefix, so
 several streams share a deployment without seeing each other's data. Stream
