@@ -1,4 +1,5 @@
-"""Two cameras on one deployment (issue 6): two streams, one router, one recorder, side by side.
+"""Two cameras on one deployment (docs/deployment.md, "Several cameras"): two streams, one router,
+one recorder, side by side.
 
 Each stream has its own capture, flow, motion and render (one process per stream per stage);
 both run side by side, each paced by its own pipeline; each stream's output equals its own single-stream result

@@ -132,7 +132,7 @@ def test_comments_and_docstrings_point_inside_the_repository():
     ("docs/method.md section 2.3, equation (3b)", False), ('docs/reliability.md, "Bad input"', False),
     ("tests/unit/test_doc_references.py::test_comments_and_docstrings_point_inside_the_repository", False),
 ])
-def test_the_rules(tmp_path, monkeypatch, text, bad):
+def test_the_rules(monkeypatch, text, bad):
     path = REPO / "quick_stream" / "_doc_reference_probe.py"  # relative paths are taken from the repo root
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: (f'"""{text}"""\n' if self == path
                                                                    else _read_text(self, *a, **k)))
