@@ -86,28 +86,65 @@ def up_and_kill(out: Path, source: str, victim: str, min_sent: int = 60, timeout
     return killed_at, json.loads((out / "logs" / "status.json").read_text()), text
 
 
-def pipeline(tmp: Path, render: list[str] = (), record: bool = True, capture: list[str] | None = None,
-             max_restarts: int = 0) -> tuple[Supervisor, str]:
-    """Router + recorder (``tmp/rec.mcap``) + flow + motion + render (+ capture with ``capture``
-    arguments) on a free loopback port, started (router first); returns (supervisor, endpoint)."""
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    z = ["-e", ep, "--no-multicast-scouting"]
-    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting"])]
+RENDER = "quick_stream.services.render"
+
+
+def stage_specs(z: list[str], stream: str | None = None, render: list[str] = (),
+                render_module: str = RENDER) -> list[ServiceSpec]:
+    """flow, motion and render with the zenoh flags ``z`` (``stream``: of that stream, each named
+    ``<stage>-<stream>``); ``render``: the render's own arguments, ``render_module`` its module (a
+    test tool such as ``tests.tools.slow_render``)."""
+    s, suffix = (["--stream", stream], f"-{stream}") if stream else ([], "")
+    return [ServiceSpec(f"flow{suffix}", ["-m", "quick_stream.services.flow", *z, *s]),
+            ServiceSpec(f"motion{suffix}", ["-m", "quick_stream.services.motion", *z, *s]),
+            ServiceSpec(f"render{suffix}", ["-m", render_module, *z, *s, *render])]
+
+
+def capture_spec(z: list[str], capture: list[str], wait_for: list[str], name: str = "capture") -> ServiceSpec:
+    """A capture with the zenoh flags ``z`` and its own arguments ``capture`` that starts sending
+    once the services ``wait_for`` are up; it may finish (its source ends)."""
+    return ServiceSpec(name, ["-m", "quick_stream.services.capture", *z, *capture, "--wait-for", ",".join(wait_for)],
+                       may_finish=True)
+
+
+def pipeline_specs(tmp: Path, ep: str, render: list[str] = (), record: bool = True, capture: list[str] | None = None,
+                   flags: list[str] = (), router: list[str] = (), recorder: list[str] = (), stages: bool = True,
+                   render_module: str = RENDER) -> list[ServiceSpec]:
+    """Router (listening on ``ep``, with its extra arguments ``router``), recorder (``tmp/rec.mcap``,
+    extra arguments ``recorder``), with ``stages`` flow, motion and render (:func:`stage_specs`) and,
+    with ``capture`` arguments, a capture waiting for all of them. Every service connects to ``ep``
+    with the extra flags ``flags``."""
+    z = ["-e", ep, "--no-multicast-scouting", *flags]
+    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting", *router])]
     if record:
-        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z,
+        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z, *recorder,
                                               "--output", str(tmp / "rec.mcap")]))
-    specs += [ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z]),
-              ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z]),
-              ServiceSpec("render", ["-m", "quick_stream.services.render", *z, *render])]
+    if stages:
+        specs += stage_specs(z, render=render, render_module=render_module)
     if capture is not None:
-        wait = ",".join(s.name for s in specs[1:])
-        specs.append(ServiceSpec("capture", ["-m", "quick_stream.services.capture", *z, *capture, "--wait-for", wait],
-                                 may_finish=True))
-    sup = Supervisor(specs, tmp / "logs", max_restarts=max_restarts)
+        specs.append(capture_spec(z, capture, [s.name for s in specs[1:]]))
+    return specs
+
+
+def start_pipeline(specs: list[ServiceSpec], tmp: Path, ep: str, max_restarts: int = 0,
+                   env: dict[str, str] | None = None) -> Supervisor:
+    """A supervisor of ``specs`` (logs in ``tmp/logs``): the router (``specs[0]``) started and
+    answering at ``ep``, then every other service."""
+    sup = Supervisor(specs, tmp / "logs", max_restarts=max_restarts, env=env)
     start_router(sup, ep)
     for s in specs[1:]:
         sup.start(s.name)
-    return sup, ep
+    return sup
+
+
+def pipeline(tmp: Path, render: list[str] = (), record: bool = True, capture: list[str] | None = None,
+             max_restarts: int = 0, render_module: str = RENDER,
+             env: dict[str, str] | None = None) -> tuple[Supervisor, str]:
+    """Router + recorder (``tmp/rec.mcap``) + flow + motion + render (+ capture with ``capture``
+    arguments) on a free loopback port, started (router first); returns (supervisor, endpoint)."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    specs = pipeline_specs(tmp, ep, render, record, capture, render_module=render_module)
+    return start_pipeline(specs, tmp, ep, max_restarts, env), ep
 
 
 def start_router(sup: Supervisor, endpoint: str, timeout: float = 60) -> None:

@@ -125,17 +125,6 @@ def _filters_present(ffmpeg: str) -> set[str]:
     return {ln.split()[1] for ln in out.splitlines() if len(ln.split()) >= 3 and ln.split()[1] in REQUIRED_FILTERS}
 
 
-def find_ffmpeg() -> str | None:
-    """Path of an ``ffmpeg`` on PATH that has the vid.stab and deshake filters, else None (never installs)."""
-    ffmpeg = shutil.which("ffmpeg")
-    if ffmpeg is None:
-        return None
-    try:
-        return ffmpeg if _filters_present(ffmpeg) == set(REQUIRED_FILTERS) else None
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 def ffmpeg_problem() -> str:
     """Why the FFmpeg baselines cannot run here, with the command that fixes it; "" when they can."""
     try:
@@ -163,6 +152,16 @@ def ensure_ffmpeg() -> str:
         raise RuntimeError(f"{ffmpeg} lacks the filter(s) {missing} (needs a build with --enable-libvidstab, "
                            f"e.g. Debian's: {INSTALL_COMMAND})")
     return ffmpeg
+
+
+def ffmpeg_version(ffmpeg: str | None = None) -> str:
+    """The first line of ``ffmpeg -version`` of ``ffmpeg`` (default: the one :func:`ensure_ffmpeg`
+    finds); "" when there is no usable ffmpeg (nothing is installed)."""
+    try:
+        ffmpeg = ffmpeg or ensure_ffmpeg()
+        return subprocess.run([ffmpeg, "-version"], capture_output=True, text=True).stdout.split("\n")[0]
+    except (RuntimeError, OSError):
+        return ""
 
 
 def _run(argv: list[str], cwd: Path, stdin: bytes | None = None) -> bytes:
@@ -202,7 +201,7 @@ def run_baselines(frames: list[np.ndarray], fps: float = 30.0, workdir: Path | N
     vf = params.filters()
     n = len(frames)
     out = BaselineOutputs()
-    out.ffmpeg_version = subprocess.run([ffmpeg, "-version"], capture_output=True, text=True).stdout.split("\n")[0]
+    out.ffmpeg_version = ffmpeg_version(ffmpeg)
     to_raw = ["-fps_mode", "passthrough", "-f", "rawvideo", "-pix_fmt", "bgr24", "-"]
     steps = {
         "encode": [ffmpeg, *QUIET, "-f", "rawvideo", "-pix_fmt", "bgr24", "-s", f"{w}x{h}", "-r", f"{fps:g}",

@@ -66,7 +66,7 @@ def version(dist: str) -> str | None:
         return None
 
 
-def _brisk_placeholder(*args: object, **kwargs: object) -> None:
+def _brisk_placeholder(*_args: object, **_kwargs: object) -> None:
     raise AttributeError("BRISK is not in OpenCV >= 5's main modules (vidstab's default GFTT does not need it)")
 
 

@@ -396,11 +396,7 @@ def _git() -> dict:
 
 
 def versions() -> dict:
-    ff = ffmpeg_baselines.find_ffmpeg()
-    ffv = ""
-    if ff:
-        ffv = subprocess.run([ff, "-version"], capture_output=True, text=True).stdout.split("\n")[0]
-    return {"ffmpeg": ffv or None, "vidstab": peers.version("vidstab"), "vidgear": peers.version("vidgear"),
+    return {"ffmpeg": ffmpeg_baselines.ffmpeg_version() or None, "vidstab": peers.version("vidstab"), "vidgear": peers.version("vidgear"),
             "imutils": peers.version("imutils"), "opencv": cv2.__version__, "numpy": np.__version__,
             "python": platform.python_version(), "quick-stream git": _git()}
 

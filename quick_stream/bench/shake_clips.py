@@ -29,6 +29,8 @@ from typing import Iterable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..core.lie import so3
+
 DEFAULT_TOOL = Path("../shared/tools/shake")
 DEFAULT_AMPLITUDES = (0.6, 0.6, 0.8)  # RMS deg: pitch, yaw, roll (the tool's defaults)
 RECORD = "bench-clip.json"
@@ -135,10 +137,7 @@ def rotation_part(g: np.ndarray) -> np.ndarray:
 
     Exact for SE(3); for SIM(3) it drops the scale, for SA(3)/GA(3) it is the polar rotation.
     """
-    a = np.asarray(g, float)[:3, :3]
-    u, _, vt = np.linalg.svd(a)
-    d = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(u @ vt))) or 1.0])
-    return u @ d @ vt
+    return so3.nearest_rotation(np.asarray(g, float)[:3, :3])
 
 
 def seconds_text(timestamp_ns: int) -> str:

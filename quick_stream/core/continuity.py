@@ -14,8 +14,8 @@ stage asks :class:`ContinuityCheck` about every frame against the previous good 
   upstream is bridged by time: 4 missing frames at 30 fps, more at 120 fps), a capture-time gap
   over ``max_gap_s`` or not forward, or a change of image size;
   the flow stage emits an empty flow naming the reason, so the motion is invalid, the
-  path restarts at that frame and the frames are flagged (docs/method.md section 5: the
-  fallback when no motion can be measured).
+  path restarts at that frame and the frames are flagged (docs/architecture.md, "Holes and bad
+  frames in a stream").
 * **jumps**: a seq more than ``max_jump`` frames ahead of the previous good frame is refused
   unless ``confirm`` such frames in a row, each following the last, confirm a new numbering
   (then it is a break): one message with a far-future seq (a glitch, a stray publisher) must

@@ -39,10 +39,11 @@ from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from google.protobuf.message import DecodeError, Message
 
 from ..core.frame import Intrinsics
+from ..core.lie import so3
 from ..stream.keys import key
 from ..stream.wire.codec import unpack
 from .recording import Recorder
-from .sources.trajectory import matrix_to_quat
+from .sources.trajectory import matrix_to_quat, quat_to_matrix
 
 MESSAGE_ENCODING = "protobuf"
 SCHEMA_ENCODING = "protobuf"
@@ -122,35 +123,28 @@ def register_channels(recorder: Recorder, stream: str,
 # --- rotations ----------------------------------------------------------------------------------
 
 def nearest_rotation(m: np.ndarray) -> np.ndarray:
-    """The rotation matrix closest (Frobenius) to the 3x3 linear part ``m``.
-
-    ``m = U S V^T`` -> ``U diag(1, 1, det(U V^T)) V^T``: the orthogonal polar factor,
-    with the sign fixed so a reflection never comes out. For ``s R`` (SIM3) this is
-    exactly ``R``; for an affine part (SA3/GA3) scale and shear are dropped.
+    """The rotation matrix closest (Frobenius) to the 3x3 linear part ``m``
+    (:func:`quick_stream.core.lie.so3.nearest_rotation`): for ``s R`` (SIM3) exactly ``R``, for an
+    affine part (SA3/GA3) scale and shear dropped, never a reflection. ValueError for a matrix with
+    non-finite values or a singular one, which has no rotation to take.
     """
     m = np.asarray(m, dtype=np.float64)[:3, :3]
     if not np.all(np.isfinite(m)):
         raise ValueError(f"matrix has non-finite values: {m.tolist()}")
-    u, s, vt = np.linalg.svd(m)
+    s = np.linalg.svd(m, compute_uv=False)
     if s[0] <= 0 or s[-1] <= 1e-12 * s[0]:
         raise ValueError(f"matrix is singular (singular values {s.tolist()}); no rotation to take")
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
+    return so3.nearest_rotation(m)
 
 
 def rotation_to_quaternion(m: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)``, ``w >= 0``, of the rotation nearest ``m`` (Shepperd's method)."""
+    """Unit quaternion ``(x, y, z, w)``, ``w >= 0``, of the rotation nearest ``m``."""
     return matrix_to_quat(nearest_rotation(m))
 
 
 def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
     """3x3 rotation matrix of the quaternion ``(x, y, z, w)`` (normalised first)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return quat_to_matrix(q)
 
 
 # --- messages -----------------------------------------------------------------------------------

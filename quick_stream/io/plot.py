@@ -5,16 +5,15 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..core.lie import so3
+
 COLORS = {"before": (60, 60, 220), "after": (60, 170, 40)}  # BGR: red, green
 
 
 def path_components(poses: np.ndarray) -> np.ndarray:
     """(N, 4, 4) -> (N, 6): translation (mm) and rotation vector (deg) relative to the first pose."""
     rel = np.linalg.inv(poses[0]) @ poses
-    A = rel[:, :3, :3]
-    U, _, Vt = np.linalg.svd(A)  # nearest rotation (affine groups carry more than a rotation)
-    R = U @ Vt
-    R[np.linalg.det(R) < 0] *= -1
+    R = so3.nearest_rotation(rel[:, :3, :3])  # affine groups carry more than a rotation
     rv = Rotation.from_matrix(R).as_rotvec()
     return np.column_stack([rel[:, :3, 3] * 1000.0, np.degrees(rv)])
 

@@ -58,7 +58,17 @@ MAGIC = b"\x89MCAP0\r\n"
 MIN_FILE_BYTES = 8 + 9 + 20 + 8  # magic, footer record, magic: the least an indexed reader needs
 
 
-class BoundedFile:
+class _ClosedOnExit:
+    """``with x:`` closes ``x`` at the end of the block."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class BoundedFile(_ClosedOnExit):
     """A recording opened for reading; ``read(n)`` never asks the OS for more than what is left.
 
     mcap's readers call ``read(length)`` with lengths taken from the file; through a plain
@@ -95,12 +105,6 @@ class BoundedFile:
     def close(self) -> None:
         self._f.close()
 
-    def __enter__(self) -> "BoundedFile":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
 
 def open_recording(path: str | os.PathLike) -> BoundedFile:
     """Open a recording for reading (raises ``OSError`` like ``open``)."""
@@ -125,7 +129,7 @@ def describe_damage(e: BaseException) -> str:
     return f"{e} [{name}]" if str(e) else f"[{name}]"
 
 
-class Recorder:
+class Recorder(_ClosedOnExit):
     """One MCAP file; not thread-safe (one recorder per process)."""
 
     def __init__(self, path: str | os.PathLike, flush_s: float = 1.0, chunk_size: int = 1 << 20,
@@ -217,14 +221,8 @@ class Recorder:
             except OSError:
                 pass  # what was still buffered cannot be written either
 
-    def __enter__(self) -> "Recorder":
-        return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-class SplitRecorder:
+class SplitRecorder(_ClosedOnExit):
     """A recording split over files: ``rec`` is the :class:`Recorder` being written; once it holds
     ``split_bytes`` or is ``split_s`` old (0: never) :meth:`wrote` finishes it (footer, indexes)
     and opens the first free ``<base stem>-N<suffix>`` (:func:`fresh_path`), calling ``on_open``
@@ -262,12 +260,6 @@ class SplitRecorder:
 
     def close(self) -> None:
         self.rec.close()
-
-    def __enter__(self) -> "SplitRecorder":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 @dataclass

@@ -53,15 +53,21 @@ def _pack(fields: dict[str, Any]) -> bytes:
     return msgpack.packb(fields, use_bin_type=True)
 
 
-def split(payload: bytes, log_time_ns: int) -> ApartImage | None:
-    """The parts of a ``frame``/``stabilized`` message with a JPEG image; None for raw images,
-    other types and messages that do not unpack."""
+def _image_field(data: bytes) -> tuple[Any, str, Any] | None:
+    """(the unpacked message, the name of its image field, that field's value) of a ``frame`` or
+    ``stabilized`` message; None for other types and for bytes that do not unpack."""
     try:
-        r = unpack(payload)
+        r = unpack(data)
     except WireError:
         return None
     name = foxglove.IMAGE_FIELD.get(r.type)
-    img = r.d.get(name) if name else None
+    return (r, name, r.d.get(name)) if name else None
+
+
+def split(payload: bytes, log_time_ns: int) -> ApartImage | None:
+    """The parts of a ``frame``/``stabilized`` message with a JPEG image; None for raw images,
+    other types and messages that do not unpack."""
+    r, name, img = _image_field(payload) or (None, "", None)
     if not isinstance(img, dict) or img.get("enc") != "jpeg" or not isinstance(img.get("data"), bytes):
         return None
     stamp = r.d.get("pub_ns" if r.type == "frame" else "src_pub_ns")
@@ -110,12 +116,7 @@ def write_message(write: Callable[[str, bytes], int], key_expr: str, payload: by
 
 def _rejoin(data: bytes, jpeg_of: Callable[[str, str, int], bytes | None]) -> bytes:
     """``data`` with its stored-apart image put back (unchanged when it has none or it is missing)."""
-    try:
-        r = unpack(data)
-    except WireError:
-        return data
-    name = foxglove.IMAGE_FIELD.get(r.type)
-    img = r.d.get(name) if name else None
+    r, name, img = _image_field(data) or (None, "", None)
     if not isinstance(img, dict) or "data" in img or type(img.get(REF)) is not int:
         return data
     jpeg = jpeg_of(r.stream, r.type, img[REF])

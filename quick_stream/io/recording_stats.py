@@ -94,13 +94,6 @@ class RecordingStats:
         }
 
 
-def _is_frame_topic(topic: str) -> bool:
-    try:
-        return keys.parse(topic)[1] == "frame"
-    except ValueError:
-        return False
-
-
 def recording_stats(path: str | os.PathLike) -> RecordingStats:
     """Measure a recording; raises :class:`RecordingError` when it cannot be opened or holds no MCAP."""
     path = Path(path)
@@ -137,7 +130,7 @@ def recording_stats(path: str | os.PathLike) -> RecordingStats:
             if not records:  # not even the header: no MCAP file
                 raise RecordingError(f"{path}: not a readable MCAP file ({describe_damage(e)})") from None
             stats.stopped_at = f"near byte {f.pos}: {describe_damage(e)}"
-    frame_channels = [c for c in stats.channels.values() if _is_frame_topic(c.topic)]
+    frame_channels = [c for c in stats.channels.values() if keys.stage_of(c.topic) == "frame"]
     stats.frames = sum(c.messages for c in frame_channels)
     stats.streams = len(frame_channels)
     return stats

@@ -1,4 +1,4 @@
-"""argparse ``type=`` validators shared by every command and service (issue 7: bad input).
+"""argparse ``type=`` validators shared by every command and service (docs/reliability.md, "Bad input").
 
 A bad value stops the program before any work starts, the way argparse reports its own
 errors: ``argument --fps: must be a number > 0, got '0'`` and exit code 2. Numbers must be

@@ -1,4 +1,4 @@
-"""Zenoh key expressions: ``quick/@v1/<stream>/<stage>`` (issue 4; docs/wire-format.md).
+"""Zenoh key expressions: ``quick/@v1/<stream>/<stage>`` (docs/wire-format.md).
 
 One stream per camera; every stage publishes under its stream's prefix, so
 several streams share a deployment without seeing each other's data. Stream
@@ -11,28 +11,35 @@ import re
 
 PREFIX = "quick/@v1"
 STAGES = ("frame", "flow", "motion", "correction", "stabilized", "stats", "health")
-_STREAM = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")  # stream ids and service names
+
+
+def _check_name(value: str, what: str) -> str:
+    if not isinstance(value, str) or not _NAME.match(value):
+        raise ValueError(f"{what} must be 1-64 characters of [A-Za-z0-9_-], got {value!r}")
+    return value
+
+
+def _check_stage(stage: str) -> str:
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    return stage
 
 
 def check_stream(stream: str) -> str:
     """The stream id, or ValueError naming what is wrong with it."""
-    if not isinstance(stream, str) or not _STREAM.match(stream):
-        raise ValueError(f"stream id must be 1-64 characters of [A-Za-z0-9_-], got {stream!r}")
-    return stream
+    return _check_name(stream, "stream id")
 
 
 def key(stream: str, stage: str) -> str:
     """The key expression a stage of a stream publishes on, e.g. ``quick/@v1/cam0/motion``."""
-    if stage not in STAGES:
-        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    stage = _check_stage(stage)
     return f"{PREFIX}/{check_stream(stream)}/{stage}"
 
 
 def all_streams(stage: str) -> str:
     """Key expression matching ``stage`` of every stream (``quick/@v1/*/<stage>``)."""
-    if stage not in STAGES:
-        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
-    return f"{PREFIX}/*/{stage}"
+    return f"{PREFIX}/*/{_check_stage(stage)}"
 
 
 def stream_keys(stream: str) -> str:
@@ -40,14 +47,9 @@ def stream_keys(stream: str) -> str:
     return f"{PREFIX}/{check_stream(stream)}/*"
 
 
-_SERVICE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-
-
 def check_service(service: str) -> str:
     """The service name, or ValueError naming what is wrong with it (same rule as stream ids)."""
-    if not isinstance(service, str) or not _SERVICE.match(service):
-        raise ValueError(f"service name must be 1-64 characters of [A-Za-z0-9_-], got {service!r}")
-    return service
+    return _check_name(service, "service name")
 
 
 def health_key(stream: str, service: str) -> str:
@@ -72,7 +74,7 @@ def _service_key(stream: str, kind: str, service: str) -> str:
 def parse_health(key_expr: str) -> tuple[str, str]:
     """(stream, service) of a liveliness token key; ValueError if it is not one."""
     parts = str(key_expr).split("/")
-    if len(parts) != 5 or "/".join(parts[:2]) != PREFIX or parts[3] != "health" or not _SERVICE.match(parts[4]):
+    if len(parts) != 5 or "/".join(parts[:2]) != PREFIX or parts[3] != "health" or not _NAME.match(parts[4]):
         raise ValueError(f"not a quick-stream health key ({PREFIX}/<stream>/health/<service>): {key_expr!r}")
     return check_stream(parts[2]), parts[4]
 
@@ -83,3 +85,11 @@ def parse(key_expr: str) -> tuple[str, str]:
     if len(parts) != 4 or "/".join(parts[:2]) != PREFIX or parts[3] not in STAGES:
         raise ValueError(f"not a quick-stream key ({PREFIX}/<stream>/<stage>): {key_expr!r}")
     return check_stream(parts[2]), parts[3]
+
+
+def stage_of(topic: str) -> str | None:
+    """The stage of a quick-stream key (a recording's topic), None for any other key."""
+    try:
+        return parse(topic)[1]
+    except ValueError:
+        return None

@@ -1,4 +1,4 @@
-"""Bad input on the wire, through the running services (issue 7).
+"""Bad input on the wire, through the running services (docs/reliability.md, "Bad input").
 
 One stream carries every kind of bad frame message the issue names: malformed, truncated and
 oversized msgpack, a wrong format version, a wrong dtype, a wrong shape, a NaN field, a

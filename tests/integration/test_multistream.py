@@ -1,4 +1,5 @@
-"""Two cameras on one deployment (issue 6): two streams, one router, one recorder, side by side.
+"""Two cameras on one deployment (docs/deployment.md, "Several cameras"): two streams, one router,
+one recorder, side by side.
 
 Each stream has its own capture, flow, motion and render (one process per stream per stage);
 both run side by side, each paced by its own pipeline; each stream's output equals its own single-stream result
@@ -11,9 +12,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tests.helpers import offline_images, start_router
+from tests.helpers import capture_spec, offline_images, pipeline_specs, stage_specs, start_pipeline
 
-from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port
+from quick_stream.stream.launcher import free_port
 from quick_stream.io.recording import read_messages
 from quick_stream.stream.wire import decode
 
@@ -23,25 +24,14 @@ SPECS = {"cam0": "synthetic:frames=90,width=320,height=240,seed=1",
 
 def test_two_streams_side_by_side_at_full_rate(tmp_path: Path):
     ep = f"tcp/127.0.0.1:{free_port()}"
+    specs = pipeline_specs(tmp_path, ep, recorder=["--all-streams"], stages=False)  # router, recorder
     z = ["-e", ep, "--no-multicast-scouting"]
-    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting"]),
-             ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z, "--all-streams",
-                                      "--output", str(tmp_path / "rec.mcap")])]
+    for cam in SPECS:
+        specs += stage_specs(z, cam, render=["--png", str(tmp_path / cam), "--color", "raw"])
     for cam, spec in SPECS.items():
-        s = ["--stream", cam]
-        specs += [ServiceSpec(f"flow-{cam}", ["-m", "quick_stream.services.flow", *z, *s]),
-                  ServiceSpec(f"motion-{cam}", ["-m", "quick_stream.services.motion", *z, *s]),
-                  ServiceSpec(f"render-{cam}", ["-m", "quick_stream.services.render", *z, *s,
-                                                "--png", str(tmp_path / cam), "--color", "raw"])]
-    for cam, spec in SPECS.items():
-        specs.append(ServiceSpec(f"capture-{cam}", ["-m", "quick_stream.services.capture", *z, "--stream", cam,
-                                                    "--source", spec, "--color", "raw", "--pace", "fast",
-                                                    "--wait-for", "flow,motion,render", "--wait-timeout", "60"],
-                                 may_finish=True))
-    sup = Supervisor(specs, tmp_path / "logs", max_restarts=0)
-    start_router(sup, ep)
-    for s in specs[1:]:
-        sup.start(s.name)
+        specs.append(capture_spec(z, ["--stream", cam, "--source", spec, "--color", "raw", "--pace", "fast",
+                                      "--wait-timeout", "60"], ["flow", "motion", "render"], f"capture-{cam}"))
+    sup = start_pipeline(specs, tmp_path, ep)
     deadline = time.monotonic() + 120
     logs = {cam: tmp_path / "logs" / f"render-{cam}.log" for cam in SPECS}
     try:

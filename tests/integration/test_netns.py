@@ -1,4 +1,5 @@
-"""The pipeline across separate network hosts (issue 6): Linux network namespaces joined by veth links.
+"""The pipeline across separate network hosts (docs/deployment.md, "Camera host + compute host"):
+Linux network namespaces joined by veth links.
 
 Four namespaces, addresses only inside them: ``hub`` (a bridge, 10.77.x.1, the router),
 ``cam`` (.2, capture), ``compute`` (.3, flow and motion), ``view`` (.4, render and recorder).

@@ -1,4 +1,4 @@
-"""End to end: the services as separate processes over Zenoh on loopback (issue 4).
+"""End to end: the services as separate processes over Zenoh on loopback (docs/architecture.md).
 
 * ``quick-stream up`` on a synthetic clip gives stabilized frames bit-identical to
   the in-process :class:`~quick_stream.core.stabilizer.Stabilizer` with the same settings;

@@ -31,9 +31,10 @@ from typing import Any
 
 from quick_stream.io.recording import read_messages
 from quick_stream.stream import argtypes as at
-from quick_stream.stream.launcher import ServiceSpec, Supervisor
+from quick_stream.stream.launcher import Supervisor
 from quick_stream.stream.wire import WireError, decode
 
+from ..helpers import pipeline_specs
 from . import repo_env
 
 VIEWER_FIFO = 4  # samples the viewer's FifoChannel holds before zenoh's receive path waits for it
@@ -94,18 +95,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     shutil.rmtree(out / "logs", ignore_errors=True)  # "end of stream" in an earlier run's render.log
     ep = f"tcp/127.0.0.1:{free_port()}"
     cfg = [x for kv in args.services_cfg for x in ("--cfg", kv)]
-    z = ["-e", ep, "--no-multicast-scouting", "--stream", args.stream, *cfg]
-    if args.services_mode:
-        z += ["-m", args.services_mode]
+    flags = ["--stream", args.stream, *cfg, *(["-m", args.services_mode] if args.services_mode else [])]
     w, h = args.size.split("x")
-    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting", *cfg]),
-             ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z, "--output", str(rec)]),
-             ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z]),
-             ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z]),
-             ServiceSpec("render", ["-m", "quick_stream.services.render", *z]),
-             ServiceSpec("capture", ["-m", "quick_stream.services.capture", *z, "--source",
-                                     f"synthetic:frames={args.frames},width={w},height={h}", "--fps", str(args.fps),
-                                     "--wait-for", "recorder,flow,motion,render"], may_finish=True)]
+    capture = ["--source", f"synthetic:frames={args.frames},width={w},height={h}", "--fps", str(args.fps)]
+    specs = pipeline_specs(out, ep, capture=capture, flags=flags, router=cfg)
     sup = Supervisor(specs, out / "logs", max_restarts=0)
     sup.start("router")
     # the driver's own eye on the output: a client that only notes when each stabilized frame arrives

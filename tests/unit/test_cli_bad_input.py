@@ -1,4 +1,4 @@
-"""Bad input at the command-line and config-file boundary (issue 7), table-driven.
+"""Bad input at the command-line and config-file boundary (docs/reliability.md, "Bad input"), table-driven.
 
 Every entry point (the ``quick-stream`` sub-commands, the five services and the test tools) is run with bad
 flags, config files, environment variables, source specs and output paths. Each must exit

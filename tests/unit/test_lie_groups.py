@@ -413,3 +413,19 @@ def test_so3_jacobians_finite_differences() -> None:
         fd_l = (so3.log(so3.exp(w + E) @ R.T) - so3.log(so3.exp(w - E) @ R.T)).T / (2 * h)
         np.testing.assert_allclose(so3.right_jacobian(w), fd_r, atol=1e-7)
         np.testing.assert_allclose(so3.left_jacobian(w), fd_l, atol=1e-7)
+
+
+def test_nearest_rotation_is_the_closest_proper_rotation() -> None:
+    rng = np.random.default_rng(11)
+    R = so3.exp(rng.standard_normal((50, 3)))
+    np.testing.assert_allclose(so3.nearest_rotation(R), R, atol=1e-14)  # a rotation stays itself
+    np.testing.assert_allclose(so3.nearest_rotation(2.5 * R), R, atol=1e-14)  # SIM(3): the scale goes
+    A = R @ (np.eye(3) + 0.2 * rng.standard_normal((50, 3, 3)))  # affine parts, batched
+    P = so3.nearest_rotation(A)
+    np.testing.assert_allclose(P @ np.swapaxes(P, -1, -2), np.broadcast_to(np.eye(3), P.shape), atol=1e-13)
+    assert np.all(np.linalg.det(P) > 0)
+    for a, p in zip(A, P):  # no nearby rotation is closer to A
+        for _ in range(5):
+            other = p @ so3.exp(0.05 * rng.standard_normal(3))
+            assert np.linalg.norm(a - p) <= np.linalg.norm(a - other) + 1e-12
+    assert np.linalg.det(so3.nearest_rotation(np.diag([1.0, 1.0, -1.0]))) > 0  # never a reflection

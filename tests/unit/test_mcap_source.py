@@ -109,6 +109,7 @@ def test_recording_without_footer_is_streamed(tmp_path, originals):
 def test_two_streams_need_a_choice(tmp_path, originals):
     path = _record(tmp_path / "two.mcap", originals[:2], streams=("left", "right"))
     assert recorded_streams(path) == {"left": 2, "right": 2}
+    assert recorded_streams(path, stage="flow") == {} and set(recorded_streams(path, stage=None)) == {"left", "right"}
     with pytest.raises(SourceError) as e:
         open_source(f"mcap:{path}")
     assert "left (2 frames)" in str(e.value) and "right (2 frames)" in str(e.value) and "stream=" in str(e.value)

@@ -1,4 +1,4 @@
-"""The depthai (OAK) source: adapter, pairing, faults and reconnection (issue 5).
+"""The depthai (OAK) source: adapter, pairing, faults and reconnection (README, "Live OAK (depthai) cameras").
 
 No camera is attached here, so the adapter runs on (a) the scripted fake device
 (quick_stream/io/sources/oak_fake.py) and (b) real ``depthai.ImgFrame`` objects coming
@@ -53,6 +53,7 @@ def test_scripted_faults_cost_single_frames_and_the_stream_goes_on():
     # frame 3's colour and frame 5's depth never arrived: those device frames are missing
     assert 3 not in colour_seq[:12] and 5 not in colour_seq[:12]
     assert src.pairer.stats.unpaired_color == 1 and src.pairer.stats.paired_by_time == 1  # the mismatch
+    assert src.pairer.stats.unpaired_depth == 1  # frame 3's depth, whose colour never came
     gaps = [f for f in out if isinstance(f, BadFrame)]
     assert len(gaps) == 1 and "disconnected" in gaps[0].error and "reconnected after" in gaps[0].error
     assert src.reconnects and src.connections == 2
@@ -124,7 +125,7 @@ def test_parse_script():
 import depthai as dai  # noqa: E402 - a test dependency (the `test` extra): the adapter on real depthai objects
 
 
-from quick_stream.io.sources.oak_device import PipelineBackend  # noqa: E402 - needs depthai
+from quick_stream.io.sources.oak_device import PipelineBackend, synced_queue  # noqa: E402 - needs depthai
 
 
 class DeviceEmulator(dai.node.HostNode):
@@ -164,7 +165,8 @@ class DeviceEmulator(dai.node.HostNode):
 
 
 class HostReplayBackend(PipelineBackend):
-    """The real backend's reading code on a host-only pipeline: ReplayVideo -> DeviceEmulator."""
+    """The real backend's pairing and reading code on a host-only pipeline: ReplayVideo ->
+    DeviceEmulator -> the same Sync node as on the device (run on the host here)."""
 
     device_id = "host-replay"
 
@@ -181,8 +183,7 @@ class HostReplayBackend(PipelineBackend):
         r.setFps(30)
         r.setLoop(False)
         dev = p.create(DeviceEmulator).build(r.out, self.depth_mm, self.K)
-        return (p, dev.color_out.createOutputQueue(maxSize=64, blocking=True),
-                dev.depth_out.createOutputQueue(maxSize=64, blocking=True))
+        return p, synced_queue(dai, p, dev.color_out, dev.depth_out, 10.0, 64, on_host=True)
 
 
 def test_adapter_on_real_depthai_imgframes_from_a_host_only_pipeline(tmp_path):
@@ -199,7 +200,9 @@ def test_adapter_on_real_depthai_imgframes_from_a_host_only_pipeline(tmp_path):
     got = list(src)
     frames = [f for f in got if isinstance(f, RGBDFrame)]
     assert len(frames) == 9  # 10 colour frames; the one whose depth was dropped is skipped
-    assert src.pairer.stats.paired_by_time == 1 and src.pairer.stats.unpaired_color == 1
+    # paired by the Sync node: the colour without depth never leaves it, the mismatched sequence
+    # number is paired by time (within the threshold), so the host has nothing left to pair
+    assert src.pairer.stats.paired_by_time == 1 and src.pairer.stats.unpaired_color == 0
     for f in frames:
         i = f.capture["seq_color"]
         assert f.intrinsics.K == pytest.approx(K) and (f.intrinsics.width, f.intrinsics.height) == (W, H)

@@ -17,7 +17,8 @@ from quick_stream.core.frame import RGBDFrame  # noqa: E402
 from quick_stream.io.sources import SourceError, open_source  # noqa: E402
 from quick_stream.io.sources.base import Source  # noqa: E402
 from quick_stream.io.sources.scene import Renderer, build_scene  # noqa: E402
-from quick_stream.io.sources.synthetic import SyntheticSource, _rotations  # noqa: E402
+from quick_stream.core.lie import so3  # noqa: E402
+from quick_stream.io.sources.synthetic import SyntheticSource  # noqa: E402
 
 
 def rotvecs(R: np.ndarray) -> np.ndarray:
@@ -250,7 +251,7 @@ def test_renderer_clips_faces_crossing_the_camera_plane(monkeypatch):
     K = s.intrinsics.K
     for C, rv in (((0.0, 0.0, 0.3), (0.0, 0.6, 0.0)), ((0.1, 0.3, 0.25), (0.3, -0.5, 0.2))):
         pose = np.eye(4)
-        pose[:3, :3] = _rotations(np.array([rv]))[0]
+        pose[:3, :3] = so3.exp(np.array(rv))
         pose[:3, 3] = C
         _, depth = r.render(pose, K)
         # brute-force ray casting against every quad

@@ -398,6 +398,16 @@ def test_quaternion_round_trip():
         assert np.allclose(quat_to_matrix(matrix_to_quat(R)), R, atol=1e-8)
 
 
+def test_trajectory_of_a_similarity_path_keeps_the_rotation(tmp_path):
+    """A SIM(3) or affine path's linear part is not a rotation: the file gets the nearest rotation."""
+    R = _rot([1, -2, 3], 0.7)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = 2.5 * R, (1, 2, 3)
+    write_tum_trajectory(tmp_path / "t.txt", [0.0], [T])
+    _, poses = read_tum_trajectory(tmp_path / "t.txt")
+    assert np.allclose(poses[0][:3, :3], R, atol=1e-9) and np.allclose(poses[0][:3, 3], (1, 2, 3))
+
+
 def test_trajectory_write_read_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     ts = np.arange(10) / 30.0

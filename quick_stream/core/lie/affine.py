@@ -1,6 +1,6 @@
 """SA(3) and GA(3) with the chart ``phi(U) = expm(U^T) expm(U - U^T)``.
 
-the paper's eq. (phi) and the ``g(xi)`` after it; docs/method.md section 3:
+docs/method.md (3f):
     exp(xi) = [[phi(U), t], [0, 1]],   U = sum_k u_k E~_k,   xi = [t(3), u(n-3)].
 ``phi`` is the Riemannian exponential of the left-invariant metric on GL(3) (Zacur et al. 2014)
 and, unlike ``expm``, is surjective onto GL+(3) and SL(3). ``det phi(U) = e^{tr U}``, so the
@@ -9,7 +9,7 @@ trace-free sl(3) basis keeps SA(3) in SL(3).
 Writing ``U = S + W`` (symmetric + skew): ``phi(U) = expm(S - W) expm(2W)``; the skew factor is a
 rotation (batched Rodrigues, ``so3``), only ``expm(U^T)`` needs a general matrix exponential (batched, ``lie.expm``).
 
-``phi`` has no closed-form inverse (paper, "sigma^-1 must be computed numerically"):
+``phi`` has no closed-form inverse (docs/method.md 3.2):
 :func:`phi_inverse` runs damped Gauss-Newton on the coordinates ``u`` with the analytic
 Jacobian (Frechet derivative of expm via the block identity
 ``expm([[X, E], [0, X]]) = [[expm X, L(X, E)], [0, expm X]]``), started from a second-order
@@ -29,7 +29,7 @@ SL_DET_TOL = 1e-6  # |det A - 1| accepted by SA3.log (A is rescaled onto SL(3) b
 
 
 def phi(U: np.ndarray) -> np.ndarray:
-    """Paper eq. (phi): ``expm(U^T) expm(U - U^T)``; (..., 3, 3) -> (..., 3, 3)."""
+    """``expm(U^T) expm(U - U^T)`` (docs/method.md (3f)); (..., 3, 3) -> (..., 3, 3)."""
     U = np.asarray(U, dtype=np.float64)
     return _expm(np.swapaxes(U, -1, -2)) @ so3.exp(so3.vee(U - np.swapaxes(U, -1, -2)))
 
@@ -37,7 +37,7 @@ def phi(U: np.ndarray) -> np.ndarray:
 def phi_derivative(U: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``phi(U)`` and its directional derivatives ``D phi(U)[E_k]`` for each ``E_k`` in ``dirs``.
 
-    U (B, 3, 3), dirs (m, 3, 3) -> (phi (B, 3, 3), dphi (B, m, 3, 3)). Product rule on eq. (phi):
+    U (B, 3, 3), dirs (m, 3, 3) -> (phi (B, 3, 3), dphi (B, m, 3, 3)). Product rule on (3f):
     ``D phi[E] = L(U^T, E^T) expm(U - U^T) + expm(U^T) R hat(Jr(w) vee(E - E^T))``, where
     ``R = expm(U - U^T) = so3.exp(w)`` and L is the Frechet derivative of expm (block identity).
     """
@@ -98,7 +98,7 @@ def _newton(
             break
         redo = active[want[active]]
         if redo.size:
-            Pr, dPr = phi_derivative(np.einsum("bk,kij->bij", u[redo], lin), lin)
+            _, dPr = phi_derivative(np.einsum("bk,kij->bij", u[redo], lin), lin)
             J[redo] = np.swapaxes(dPr.reshape(-1, m, 9), -1, -2)
             fresh[redo], want[redo] = True, False
         Ja, ra = J[active], r[active]
@@ -137,7 +137,7 @@ def _newton(
 def phi_inverse(
     A: np.ndarray, lin: np.ndarray, lin_vee: np.ndarray, tol: float = 1e-12
 ) -> np.ndarray:
-    """Numerical inverse of eq. (phi): coordinates ``u`` (B, m) with ``phi(sum u_k lin_k) = A``.
+    """Numerical inverse of phi (docs/method.md 3.2): coordinates ``u`` (B, m) with ``phi(sum u_k lin_k) = A``.
 
     A (B, 3, 3) must lie in the group spanned by ``lin`` (det > 0; det = 1 for sl(3)); ``lin_vee``
     (m, 9) is the pseudo-inverse giving coordinates from ``vec(U)``. Damped Gauss-Newton from
@@ -175,7 +175,7 @@ def phi_inverse(
 
 
 class _PhiGroup(LieGroup):
-    """Shared implementation: R^3 x| H with H = SL(3) or GL+(3) and the chart of eq. (phi)."""
+    """Shared implementation: R^3 x| H with H = SL(3) or GL+(3) and the chart of docs/method.md (3f)."""
 
     _special: bool = False
 
@@ -183,7 +183,7 @@ class _PhiGroup(LieGroup):
         return np.einsum("...k,kij->...ij", xi[..., 3:], self.linear_basis)
 
     def _exp(self, xi: np.ndarray) -> np.ndarray:
-        """``[[phi(U), t], [0, 1]]`` (paper, equation after (phi))."""
+        """``[[phi(U), t], [0, 1]]`` (docs/method.md (3f))."""
         g = np.zeros(xi.shape[:-1] + (4, 4))
         g[..., :3, :3] = phi(self._U(xi))
         g[..., :3, 3] = xi[..., :3]
@@ -234,10 +234,10 @@ class _PhiGroup(LieGroup):
 
 
 class SA3(_PhiGroup):
-    """Special affine group R^3 x| SL(3), n = 11 (paper eq. (sa_basis)).
+    """Special affine group R^3 x| SL(3), n = 11 (docs/method.md 3.1).
 
     sl(3) basis: hat(e1), hat(e2), hat(e3); the symmetric off-diagonals e2e3^T + e3e2^T,
-    e1e3^T + e3e1^T, e1e2^T + e2e1^T (the paper's ``|hat(e_k)|``, entrywise absolute value);
+    e1e3^T + e3e1^T, e1e2^T + e2e1^T (``|hat(e_k)|``, entrywise absolute value);
     diag(1, -1, 0), diag(0, 1, -1). Not orthonormal: vee uses the pseudo-inverse.
     """
 
@@ -253,7 +253,7 @@ class SA3(_PhiGroup):
 class GA3(_PhiGroup):
     """General (positive) affine group R^3 x| GL+(3), n = 12.
 
-    gl(3) basis ``E~_k = e_m e_n^T`` in column-major order ``k = 3(n-1) + m`` (paper, GA(3) basis),
+    gl(3) basis ``E~_k = e_m e_n^T`` in column-major order ``k = 3(n-1) + m`` (docs/method.md 3.1),
     so ``u = vec(U)`` (column-stacked).
     """
 

@@ -1,14 +1,13 @@
 """Generic part of the affine matrix Lie groups used by QuICK.
 
 Every group here is a subgroup of GA(3) = R^3 x| GL+(3), represented by 4x4 matrices
-``g = [[A, t], [0, 0, 0, 1]]`` (the paper's section 3, "Affine transformations"). A group
-is defined by its Lie-algebra basis ``E_1..E_n`` (paper eq. (sa_basis)): the first three are the
-translation generators (``e_k`` in the last column), the rest span the linear part. Twist
-coordinates are therefore ``xi = [t(3), u(n-3)]`` (translation first), and ``hat``/``vee`` are
-the paper's identification of ``E_k`` with ``e_k`` (the equation after (Lambda)).
+``g = [[A, t], [0, 0, 0, 1]]`` (docs/method.md 3.1). A group is defined by its Lie-algebra
+basis ``E_1..E_n`` (docs/method.md (3c)): the first three are the translation generators
+(``e_k`` in the last column), the rest span the linear part. Twist coordinates are therefore
+``xi = [t(3), u(n-3)]`` (translation first), and ``hat``/``vee`` identify ``E_k`` with ``e_k``.
 
-The exponential is the paper's *decoupled* chart ``exp(xi) = [[sigma(u), t], [0, 1]]`` (paper
-eq. (se3_exp), the SIM(3) exponential and eq. (phi); docs/method.md section 3), NOT ``expm(hat(xi))``.
+The exponential is a *decoupled* chart ``exp(xi) = [[sigma(u), t], [0, 1]]`` (docs/method.md
+(3e) for SE(3)/SIM(3), (3f) for SA(3)/GA(3)), NOT ``expm(hat(xi))``.
 Subclasses implement ``_exp``/``_log``/``_exp_derivative`` on flattened batches; everything else
 (``ad``, ``Ad``, Jacobians, actions) is generic and vectorised over leading dimensions.
 
@@ -24,7 +23,7 @@ __all__ = ["LieGroup", "translation_basis"]
 
 
 def translation_basis() -> np.ndarray:
-    """The three translation generators ``E_k = [[0, e_k], [0, 0]]`` (paper eq. (sa_basis), k <= 3)."""
+    """The three translation generators ``E_k = [[0, e_k], [0, 0]]`` (docs/method.md (3c), k <= 3)."""
     E = np.zeros((3, 4, 4))
     for k in range(3):
         E[k, k, 3] = 1.0
@@ -39,7 +38,7 @@ def _embed_linear(lin: np.ndarray) -> np.ndarray:
 
 
 class LieGroup(ABC):
-    """Uniform interface of an affine matrix Lie group with the paper's chart.
+    """Uniform interface of an affine matrix Lie group with its chart (docs/method.md section 3).
 
     Attributes:
         name: short key ("se3", "sim3", "sa3", "ga3").
@@ -75,7 +74,7 @@ class LieGroup(ABC):
     # ------------------------------------------------------------------ subclass hooks
     @abstractmethod
     def _linear_basis(self) -> np.ndarray:
-        """(n-3, 3, 3) generators of the linear part, in the paper's order."""
+        """(n-3, 3, 3) generators of the linear part, in the order of docs/method.md 3.1."""
 
     @abstractmethod
     def _exp(self, xi: np.ndarray) -> np.ndarray:
@@ -95,7 +94,7 @@ class LieGroup(ABC):
 
     # ------------------------------------------------------------------ algebra
     def hat(self, xi: np.ndarray) -> np.ndarray:
-        """(..., n) -> (..., 4, 4): ``sum_k xi_k E_k`` (paper, the equation after (Lambda))."""
+        """(..., n) -> (..., 4, 4): ``sum_k xi_k E_k`` (docs/method.md (3c))."""
         xi = self._check_twist(xi)
         return np.einsum("...k,kij->...ij", xi, self.basis)
 
@@ -113,7 +112,7 @@ class LieGroup(ABC):
     def ad(self, xi: np.ndarray) -> np.ndarray:
         """(..., n) -> (..., n, n): ``[ad(xi)]`` with column k = ``vee([hat(xi), E_k])``.
 
-        Paper eq. after (zeta_dot) / docs/method.md section 4 (used in the Euler-Poincare equation).
+        docs/method.md (3d); the path solver's Jacobian uses it (docs/method.md (6a)).
         """
         xi = self._check_twist(xi)
         return np.einsum("...i,ijk->...kj", xi, self._struct)
@@ -138,7 +137,7 @@ class LieGroup(ABC):
         return out
 
     def exp(self, xi: np.ndarray) -> np.ndarray:
-        """(..., n) -> (..., 4, 4): the paper's chart ``[[sigma(u), t], [0, 1]]`` (docs/method.md section 3)."""
+        """(..., n) -> (..., 4, 4): the chart ``[[sigma(u), t], [0, 1]]`` (docs/method.md (3e), (3f))."""
         xi = self._check_twist(xi)
         lead = xi.shape[:-1]
         return self._exp(xi.reshape(-1, self.dim)).reshape(lead + (4, 4))
@@ -150,7 +149,7 @@ class LieGroup(ABC):
         return self._log(g.reshape(-1, 4, 4)).reshape(lead + (self.dim,))
 
     def Ad(self, g: np.ndarray) -> np.ndarray:
-        """(..., 4, 4) -> (..., n, n): ``[Ad(g)]`` with column k = ``vee(g E_k g^-1)`` (paper eq. (Lambda))."""
+        """(..., 4, 4) -> (..., n, n): ``[Ad(g)]`` with column k = ``vee(g E_k g^-1)`` (docs/method.md (3d))."""
         g = self._check_matrix(g)
         gi = self.inverse(g)
         conj = g[..., None, :, :] @ self.basis @ gi[..., None, :, :]  # (..., n, 4, 4)
@@ -158,7 +157,7 @@ class LieGroup(ABC):
 
     # ------------------------------------------------------------------ Jacobians of the chart
     def right_jacobian(self, xi: np.ndarray) -> np.ndarray:
-        """(..., n) -> (..., n, n): ``log(exp(xi)^-1 exp(xi + d)) = J_r d + O(|d|^2)``.
+        """(..., n) -> (..., n, n): ``log(exp(xi)^-1 exp(xi + d)) = J_r d + O(|d|^2)`` (docs/method.md (3g)).
 
         Generic: column k = ``vee(exp(xi)^-1 d exp / d xi_k)`` (every chart here has
         ``exp(d) = I + hat(d) + O(|d|^2)``, so ``log(I + X) = vee(X)`` to first order).

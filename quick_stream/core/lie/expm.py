@@ -5,7 +5,7 @@ matrix), which dominated the SA(3)/GA(3) path solver. Here: scaling and squaring
 with a degree-12 Taylor polynomial (Horner form) after scaling every matrix of
 the batch by one common power of two so that the largest 1-norm is <= 1/4; the
 truncation error is then below 0.25^13 / 13! ~ 2.4e-18 relative, and each of
-the few squarings is one batched matmul. docs/method.md section 3 (phi) and the
+the few squarings is one batched matmul. phi (docs/method.md (3f)) and the
 Frechet-derivative block trick both call it.
 """
 from __future__ import annotations

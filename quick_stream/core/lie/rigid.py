@@ -1,15 +1,15 @@
-"""SE(3) and SIM(3) with the paper's decoupled exponentials.
+"""SE(3) and SIM(3) with the decoupled exponential chart (docs/method.md (3e)).
 
 Twist ``xi = [t(3), w(3)]`` (SE(3)) or ``[t(3), w(3), a]`` (SIM(3)); basis: translation
 generators, then ``hat(e_1..3)``, then (SIM(3)) ``I_3``.
 
-Charts (the paper's eq. (se3_exp) and the SIM(3) exponential; docs/method.md section 3):
+Charts (docs/method.md (3e)):
     SE(3):  exp(xi) = [[expm(hat w), t], [0, 1]]
     SIM(3): exp(xi) = [[e^a expm(hat w), t], [0, 1]]
 i.e. translation is NOT coupled to rotation through the SE(3) V-matrix; log is closed form
 ``(t, log R[, ln s])`` with ``s = det(A)^(1/3)``, ``R = A / s``.
 
-Chart Jacobians (derived from ``g^-1 dg`` and ``dg g^-1``; see base.LieGroup.right_jacobian):
+Chart Jacobians (derived from ``g^-1 dg`` and ``dg g^-1``; docs/method.md (3g)):
     J_r = blockdiag(e^-a R^T, Jr_SO3(w), 1)
     J_l = [[I, hat(t) Jl_SO3(w), -t], [0, Jl_SO3(w), 0], [0, 0, 1]]
 (SE(3): drop the last row/column and set a = 0.)
@@ -43,7 +43,7 @@ class _Rigid(LieGroup):
         return xi[..., :3], xi[..., 3:6], a
 
     def _exp(self, xi: np.ndarray) -> np.ndarray:
-        """Paper eq. (se3_exp) / SIM(3) exponential: ``[[e^a expm(hat w), t], [0, 1]]``."""
+        """The decoupled chart ``[[e^a expm(hat w), t], [0, 1]]`` (docs/method.md (3e))."""
         t, w, a = self._split(xi)
         g = np.zeros(xi.shape[:-1] + (4, 4))
         g[..., :3, :3] = np.exp(a)[..., None, None] * so3.exp(w)
@@ -115,18 +115,15 @@ class _Rigid(LieGroup):
         return J
 
     def _project_linear(self, A: np.ndarray) -> np.ndarray:
-        """SVD ``A = U S V^T`` -> ``U diag(1, 1, det(U V^T)) V^T`` (times mean(S) for SIM(3))."""
-        U, S, Vt = np.linalg.svd(A)
-        d = np.sign(np.linalg.det(U @ Vt))
-        d = np.where(d == 0.0, 1.0, d)
-        R = (U * np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)[:, None, :]) @ Vt
+        """The nearest rotation (:func:`so3.nearest_rotation`), times the mean singular value for SIM(3)."""
+        R = so3.nearest_rotation(A)
         if self._scaled:
-            R = R * S.mean(axis=-1)[:, None, None]
+            R = R * np.linalg.svd(A, compute_uv=False).mean(axis=-1)[:, None, None]
         return R
 
 
 class SE3(_Rigid):
-    """Rigid motions R^3 x| SO(3), n = 6, twist ``[t, w]`` (paper eq. (se3_exp))."""
+    """Rigid motions R^3 x| SO(3), n = 6, twist ``[t, w]`` (docs/method.md 3.1, (3e))."""
 
     name = "se3"
     _scaled = False

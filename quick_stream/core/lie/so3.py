@@ -1,7 +1,7 @@
 """Batched SO(3) primitives: hat/vee, Rodrigues exp, robust log, Jacobians.
 
-These are the rotational building blocks of the paper's decoupled exponentials
-(the paper's eq. (se3_exp) and the SIM(3) exponential; docs/method.md section 3).
+These are the rotational building blocks of the decoupled SE(3)/SIM(3) chart
+(docs/method.md (3e)) and of the rotation factor of phi (docs/method.md (3f)).
 Every function accepts arbitrary leading dimensions ``(...)`` and works in float64.
 
 Conventions (the usual ones, e.g. Sola et al. 2018 "A micro Lie theory", Sophus):
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["hat", "vee", "exp", "log", "right_jacobian", "left_jacobian"]
+__all__ = ["hat", "vee", "exp", "log", "right_jacobian", "left_jacobian", "nearest_rotation"]
 
 # Below this angle the trigonometric coefficients are evaluated by Taylor series.
 _SMALL = 1e-4
@@ -25,7 +25,7 @@ _NEAR_PI = np.pi - 0.1
 
 
 def hat(w: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) skew matrix with ``hat(a) b = a x b`` (paper, after eq. (se3_exp))."""
+    """(..., 3) -> (..., 3, 3) skew matrix with ``hat(a) b = a x b`` (docs/method.md 3.1)."""
     w = np.asarray(w, dtype=np.float64)
     out = np.zeros(w.shape[:-1] + (3, 3))
     out[..., 0, 1] = -w[..., 2]
@@ -59,7 +59,7 @@ def _coeffs(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def exp(w: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula ``expm(hat(w)) = I + sin(t)/t W + (1-cos t)/t^2 W^2`` (paper eq. (se3_exp)).
+    """Rodrigues' formula ``expm(hat(w)) = I + sin(t)/t W + (1-cos t)/t^2 W^2`` (docs/method.md 3.2).
 
     (..., 3) -> (..., 3, 3); Taylor coefficients for ``|w| < 1e-4``.
     """
@@ -99,11 +99,26 @@ def log(R: np.ndarray) -> np.ndarray:
     return out
 
 
+def nearest_rotation(A: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) each 3x3 ``A``; (..., 3, 3) -> (..., 3, 3).
+
+    ``A = U S V^T`` -> ``U diag(1, 1, det(U V^T)) V^T``: the orthogonal polar factor, its sign fixed
+    so a reflection never comes out (Kabsch). For a rotation it is the rotation, for ``s R`` (SIM(3))
+    exactly ``R``; of an affine part (SA(3), GA(3)) scale and shear are dropped. The one place the
+    package projects onto SO(3): fits, reports, plots and the renderer's rotation reference.
+    """
+    U, _, Vt = np.linalg.svd(np.asarray(A, dtype=np.float64))
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0.0, 1.0, d)
+    D = np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)
+    return (U * D[..., None, :]) @ Vt
+
+
 def right_jacobian(w: np.ndarray) -> np.ndarray:
     """SO(3) right Jacobian ``Jr(w) = I - (1-cos t)/t^2 W + (t - sin t)/t^3 W^2``; (..., 3) -> (..., 3, 3).
 
-    ``exp(w + d) = exp(w) exp(Jr(w) d) + O(|d|^2)`` (Chirikjian 2011, vol. 2, eq. 10.86; design
-    note section 3 uses it for the decoupled SE(3)/SIM(3) charts).
+    ``exp(w + d) = exp(w) exp(Jr(w) d) + O(|d|^2)`` (Chirikjian 2011, vol. 2, eq. 10.86;
+    the decoupled SE(3)/SIM(3) chart's Jacobian is built from it, docs/method.md (3g)).
     """
     w = np.asarray(w, dtype=np.float64)
     theta = np.linalg.norm(w, axis=-1)

@@ -8,10 +8,10 @@ Conventions (also in docs/conventions.md):
   measures (x' = x + v).
 * The *camera motion* is g(xi_t) = M_t^-1 = T_t^-1 T_{t+1}: the pose of camera
   t+1 expressed in camera t's frame. Its twist xi_t = log(g(xi_t)) uses the
-  group's chart (paper: decoupled exponential for SE(3)/SIM(3), phi for SA(3)/GA(3)),
+  group's chart (docs/method.md (3e) for SE(3)/SIM(3), (3f) for SA(3)/GA(3)),
   translation first, so xi_t[:3] is the camera's translation in camera-t axes.
 * The camera path integrates on the right: g_c(0) = I, g_c(t+1) = g_c(t) g(xi_t)
-  (paper, section "Video stabilization"), so g_c(t) = T_0^-1 T_t.
+  (docs/method.md 4.1), so g_c(t) = T_0^-1 T_t.
 
 Estimators: ``exact`` (default, robust fit, :mod:`.exact`) and ``induced``
 (the paper's mean of induced twists, :mod:`.induced`).
@@ -174,7 +174,7 @@ class MotionEstimator:
 
 
 def integrate_path(motions: list[np.ndarray] | np.ndarray) -> np.ndarray:
-    """Camera path g_c(0) = I, g_c(t+1) = g_c(t) g(xi_t) (paper, "Video stabilization"); (N+1, 4, 4)."""
+    """Camera path g_c(0) = I, g_c(t+1) = g_c(t) g(xi_t) (docs/method.md 4.1); (N+1, 4, 4)."""
     path = np.empty((len(motions) + 1, 4, 4))
     path[0] = np.eye(4)
     for i, g in enumerate(motions):

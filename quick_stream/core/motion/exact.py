@@ -44,7 +44,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from ..lie import LieGroup
+from ..lie import LieGroup, so3
 
 
 @dataclass
@@ -98,15 +98,12 @@ def fit_closed_form(group_name: str, x: np.ndarray, y: np.ndarray, w: np.ndarray
     xc, yc = x - mx, y - my
     M = np.eye(4)
     if group_name in ("se3", "sim3"):
-        H = (xc * wn[:, None]).T @ yc
-        U, S, Vt = np.linalg.svd(H)
-        d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-        D = np.diag([1.0, 1.0, d])
-        R = Vt.T @ D @ U.T
+        H = (xc * wn[:, None]).T @ yc  # weighted cross-covariance sum w x y^T
+        R = so3.nearest_rotation(H.T)  # Kabsch: the rotation maximising tr(R H)
         A = R
         if group_name == "sim3":
             var_x = float(wn @ np.einsum("ni,ni->n", xc, xc))
-            A = R * (float(np.trace(np.diag(S) @ D)) / var_x)
+            A = R * (float(np.trace(R @ H)) / var_x)  # Umeyama: tr(R H) = tr(D S)
     elif group_name in ("ga3", "sa3"):
         C = (xc * wn[:, None]).T @ xc  # 3x3
         B = (yc * wn[:, None]).T @ xc  # 3x3

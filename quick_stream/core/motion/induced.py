@@ -1,11 +1,11 @@
-"""The paper's estimator: the mean of induced twists (paper eqs. (w), (cam_twist), (induced_twist)).
+"""The paper's estimator: the mean of induced twists (docs/method.md 2.1, (2a), (2), (2b)).
 
-docs/method.md section 2. For an affine group with basis E_k = [[Et_k, t_k], [0, 0]],
+For an affine group with basis E_k = [[Et_k, t_k], [0, 0]],
 the induced twist of a point x with displacement v is xi = Ad(h)^-T [v; 0] with
 h = [[I, x/|x|^2], [0, 1]]. Worked out, its translation part is v and its
 linear-part component k is v^T Et_k x / |x|^2. :func:`induced_twists` computes
-that one general formula for any group; the closed forms of the paper
-(:func:`closed_form_twists`) are kept only to test it.
+that one general formula for any group; the definition (:func:`induced_twist_paper`) and the
+per-group closed forms (:func:`closed_form_twists`) are kept only to test it.
 
 The induced twist describes how the *points* move (x -> x + v), so the mean is
 a point-motion twist; the camera motion is its inverse (see docs/conventions.md).
@@ -34,7 +34,7 @@ def induced_twists(group: LieGroup, x: np.ndarray, v: np.ndarray) -> np.ndarray:
 def induced_twist_paper(group: LieGroup, x: np.ndarray, v: np.ndarray) -> np.ndarray:
     """One induced twist straight from the paper's definition xi = Lambda^-T [v; 0], Lambda = Ad(h).
 
-    Paper eq. (induced_twist)/(Lambda); slow, for tests of :func:`induced_twists`.
+    docs/method.md (2a); slow, for tests of :func:`induced_twists`.
     """
     h = np.eye(4)
     h[:3, 3] = x / (x @ x)
@@ -45,7 +45,7 @@ def induced_twist_paper(group: LieGroup, x: np.ndarray, v: np.ndarray) -> np.nda
 
 
 def closed_form_twists(group_name: str, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The paper's per-group closed forms (eqs. (w), (sc_ij), the SA(3) and GA(3) twists).
+    """The per-group closed forms of docs/method.md (2) (2.1), for tests of :func:`induced_twists`.
 
     SE(3): omega = x cross v / |x|^2; SIM(3): plus a = x.v / |x|^2; SA(3): omega,
     the symmetric part "|hat(x)| v" read as the symmetric matrix with x's entries
@@ -75,7 +75,7 @@ def closed_form_twists(group_name: str, x: np.ndarray, v: np.ndarray) -> np.ndar
 
 
 def estimate_induced(group: LieGroup, x: np.ndarray, v: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
-    """Point motion M (4x4) = exp(weighted mean induced twist) (paper eq. (cam_twist)).
+    """Point motion M (4x4) = exp(weighted mean induced twist) (docs/method.md (2b)).
 
     With unit weights this is exactly the paper's camera twist; the caller inverts
     it to get the camera motion.

@@ -239,7 +239,6 @@ class BudgetReport:
     """What :func:`constrain` did to one segment."""
 
     constrained: int = 0  # frames that got constraints
-    rounds: int = 0
     worst_margin_px: float = float("inf")  # smallest margin to the border at the planned zoom (px; < 0: border)
     upper: np.ndarray | None = None  # (N,) largest w = 1/zoom each frame's own mesh allows (fill band included)
 
@@ -338,7 +337,6 @@ def constrain(group: LieGroup, system: SegmentSystem, p0: np.ndarray, correction
         y, _ = nnls(L.T, np.linalg.solve(L, d - Cc @ v0), maxiter=50 * len(d))
         v = v0 + HinvCt @ y
         r, w = v[:N * m].reshape(N, m), v[N * m:]
-        rep.rounds = rnd + 1
     rep.constrained = int(np.count_nonzero(near.any(axis=1)))
     rep.upper = np.full(N, np.inf)
     rep.upper[has] = g.min(axis=1)

@@ -292,12 +292,6 @@ def inverse_map(mesh: MeshWarp, framing_scale: float = 1.0, step: int = 4) -> np
     return _full_map(mesh, framing_scale, step)[0].copy()
 
 
-def _border(border: int | float | tuple) -> tuple:
-    if np.isscalar(border):
-        return (border,) * 4
-    return tuple(border)
-
-
 def _remap(image: np.ndarray, inv_map: np.ndarray, border, interpolation: int, out: np.ndarray | None,
            ws: _MapWorkspace | None) -> np.ndarray:
     """One cv2.remap; bilinear and better use OpenCV's fixed-point maps (1/32 pixel, what remap

@@ -49,6 +49,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..frame import Intrinsics, RGBDFrame
+from ..lie import so3
 
 
 @dataclass
@@ -234,11 +235,7 @@ def rotation_references(K: np.ndarray, point_transforms: np.ndarray, src: np.nda
     half-space the input grid itself is the reference. Returns the references
     (..., gy+1, gx+1, 2) and where the rotation could be used (...,) bool.
     """
-    A = np.asarray(point_transforms, dtype=np.float64)[..., :3, :3]
-    U, _, Vt = np.linalg.svd(A)
-    D = np.ones(A.shape[:-2] + (3,))
-    D[..., 2] = np.sign(np.linalg.det(U @ Vt))
-    R = (U * D[..., None, :]) @ Vt
+    R = so3.nearest_rotation(np.asarray(point_transforms, dtype=np.float64)[..., :3, :3])
     K = np.asarray(K, dtype=np.float64)
     Hr = K @ R @ np.linalg.inv(K)
     pts = src.reshape(-1, 2)

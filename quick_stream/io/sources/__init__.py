@@ -25,6 +25,17 @@ def _split_options(text: str) -> tuple[list[str], dict[str, str]]:
     return positional, options
 
 
+def _path_and_options(rest: str, extra: dict[str, str], usage: str) -> tuple[str, dict[str, str]]:
+    """``PATH[,key=value...]``: (path, options with ``extra`` on top); SourceError ``usage`` without a
+    path. The path may contain commas only when no options follow them."""
+    path, _, opt_text = rest.partition(",")
+    _, options = _split_options(opt_text)
+    options.update(extra)
+    if not path:
+        raise SourceError(usage)
+    return path, options
+
+
 def open_source(spec: str, **overrides: object) -> Source:
     """Open a source from its spec string; ``overrides`` are extra options (CLI flags).
 
@@ -52,23 +63,12 @@ def open_source(spec: str, **overrides: object) -> Source:
         if kind == "tum":
             from .tum import TumSource
 
-            # The path may itself contain commas only if no options follow; options
-            # are the trailing ",key=value" parts.
-            path, _, opt_text = rest.partition(",")
-            _, options = _split_options(opt_text)
-            options.update(opts_extra)
-            if not path:
-                raise SourceError("tum source needs a folder: tum:PATH")
-            return TumSource.from_spec(path, options)
+            return TumSource.from_spec(*_path_and_options(rest, opts_extra, "tum source needs a folder: tum:PATH"))
         if kind == "mcap":
             from .mcap_replay import McapSource
 
-            path, _, opt_text = rest.partition(",")
-            _, options = _split_options(opt_text)
-            options.update(opts_extra)
-            if not path:
-                raise SourceError("mcap source needs a recording: mcap:FILE[,stream=ID]")
-            return McapSource.from_spec(path, options)
+            return McapSource.from_spec(*_path_and_options(
+                rest, opts_extra, "mcap source needs a recording: mcap:FILE[,stream=ID]"))
     except SourceError:
         raise
     except ImportError as e:  # an optional extra is missing; the message names it

@@ -32,7 +32,7 @@ from mcap.records import Channel, Message
 from mcap.stream_reader import StreamReader
 
 from ...core.frame import BadFrame, FrameError, Intrinsics, RGBDFrame
-from ...stream.keys import PREFIX, check_stream, key, parse
+from ...stream.keys import PREFIX, check_stream, key, parse, stage_of
 from ...stream.wire import WireError, decode
 from ...stream.wire.codec import unpack
 from ..recording import RecordingError, describe_damage, open_recording, read_messages
@@ -74,8 +74,9 @@ def _stream_records(path: Path, topics: set[str] | None,
                 f"{describe_damage(e)}")
 
 
-def _summary_counts(path: Path) -> tuple[dict[str, int] | None, str]:
-    """({frame topic: message count}, "") from an indexed file, or (None, why it is not usable)."""
+def _summary_counts(path: Path, stage: str | None = "frame") -> tuple[dict[str, int] | None, str]:
+    """({topic of ``stage``: message count}, "") from an indexed file, or (None, why it is not
+    usable); ``stage`` None: every quick-stream topic."""
     try:
         with open_recording(path) as f:
             summary = SeekingReader(f, record_size_limit=max(f.size, 1)).get_summary()
@@ -87,7 +88,7 @@ def _summary_counts(path: Path) -> tuple[dict[str, int] | None, str]:
         return None, f"no readable footer/summary ({describe_damage(e)})"
     if summary is None:
         return None, "no summary section"
-    frame_ids = {cid: ch.topic for cid, ch in summary.channels.items() if _is_frame_topic(ch.topic)}
+    frame_ids = {cid: ch.topic for cid, ch in summary.channels.items() if _is_stage_topic(ch.topic, stage)}
     stats = summary.statistics
     if stats is None or (frame_ids and not stats.channel_message_counts):
         counts: dict[str, int] = {t: 0 for t in frame_ids.values()}
@@ -104,30 +105,38 @@ def _summary_counts(path: Path) -> tuple[dict[str, int] | None, str]:
     return counts, ""
 
 
-def _is_frame_topic(topic: str) -> bool:
-    try:
-        return parse(topic)[1] == "frame"
-    except ValueError:
-        return False
+def _is_stage_topic(topic: str, stage: str | None) -> bool:
+    """``topic`` is ``quick/@v1/<stream>/<stage>`` (of any stage for None)."""
+    s = stage_of(topic)
+    return s is not None and (stage is None or s == stage)
 
 
-def _frame_counts(path: Path, on_stop: Callable[[str], None]) -> tuple[dict[str, int], bool, str]:
-    """({frame topic: count}, indexed, why not indexed); footer-less files are scanned once."""
-    counts, problem = _summary_counts(path)
+def _frame_counts(path: Path, on_stop: Callable[[str], None],
+                  stage: str | None = "frame") -> tuple[dict[str, int], bool, str]:
+    """({topic of ``stage``: count}, indexed, why not indexed); footer-less files are scanned once."""
+    counts, problem = _summary_counts(path, stage)
     if counts is not None:
         return counts, True, ""
     log.warning("%s: %s; reading it by streaming up to the first damaged record", path, problem)
     counts = {}
     for t, _, _ in _stream_records(path, None, on_stop):
-        if _is_frame_topic(t):
+        if _is_stage_topic(t, stage):
             counts[t] = counts.get(t, 0) + 1
     return counts, False, problem
 
 
-def recorded_streams(path: str | os.PathLike) -> dict[str, int]:
-    """{stream id: number of frame messages} of a recording, streams without frames left out."""
-    counts, _, _ = _frame_counts(Path(path), lambda _why: None)
-    return {parse(t)[0]: n for t, n in sorted(counts.items()) if n > 0}
+def recorded_streams(path: str | os.PathLike, stage: str | None = "frame") -> dict[str, int]:
+    """{stream id: number of ``stage`` messages} of a recording (``stage`` None: messages of any
+    stage), sorted by stream, streams without such messages left out. Counted from the summary of an
+    indexed file, else by reading it up to its first damaged record. SourceError when the file
+    cannot be opened."""
+    counts, _, _ = _frame_counts(Path(path), lambda _why: None, stage)
+    streams: dict[str, int] = {}
+    for topic, n in sorted(counts.items()):
+        if n > 0:
+            s = parse(topic)[0]
+            streams[s] = streams.get(s, 0) + n
+    return streams
 
 
 class McapSource:
@@ -139,7 +148,7 @@ class McapSource:
             raise SourceError(f"recording not found: {self.path}")
         self.stopped_at = ""  # set when reading stopped early at a damaged record
         counts, self.indexed, self.problem = _frame_counts(self.path, self._stop)  # problem: why streamed
-        streams = {parse(t)[0]: n for t, n in sorted(counts.items()) if n > 0}
+        streams = {parse(t)[0]: n for t, n in sorted(counts.items()) if n > 0}  # one frame topic a stream
         self.stream = self._choose(streams, stream)
         self.topic = key(self.stream, "frame")
         self._count = streams[self.stream]
@@ -192,7 +201,6 @@ class McapSource:
         self.intrinsics: Intrinsics = first.obj.intrinsics
         self.depth_scale: float = float(first.extra["depth_scale"])
         self.color_encoding: str = first.extra["color_encoding"]
-        self.depth_encoding: str = first.extra["depth_encoding"]
         dts = np.diff(np.asarray(times, dtype=np.float64))
         dts = dts[dts > 0]
         self.fps = 1e9 / float(np.median(dts)) if len(dts) else DEFAULT_FPS

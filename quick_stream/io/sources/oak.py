@@ -18,7 +18,9 @@ This module turns messages into frames:
 * **pairing** (:class:`FramePairer`): colour and depth (already aligned to the
   colour output on the device) by equal device sequence number, else by device
   timestamp within ``tolerance_ms``; a message whose partner never comes is
-  dropped and counted, so one lost message costs one frame, never the stream;
+  dropped and counted, so one lost message costs one frame, never the stream. The
+  real device pairs them itself (a ``Sync`` node, :mod:`~quick_stream.io.sources.oak_device`)
+  and hands over one pair per read; the pairer then only confirms it;
 * **conversion** (:func:`to_rgbd`): BGR colour, depth uint16 millimetres to float32
   metres (0 = invalid), intrinsics from *each* frame's own transformation (the
   calibration's are wrong after the device resized or cropped the image),
@@ -329,5 +331,5 @@ def open_oak(device: str, options: dict[str, str]) -> OakSource:
     else:
         from .oak_device import DepthaiBackend
 
-        backend = DepthaiBackend(device or None, w, h, fps)
+        backend = DepthaiBackend(device or None, w, h, fps, o["tolerance_ms"])
     return OakSource(backend, w, h, fps, o["tolerance_ms"], o["retries"], frames=o["frames"])

@@ -3,18 +3,23 @@
 Needs the optional extra (``pip install 'quick-stream[depthai]'``); without it every
 entry point raises an ImportError naming the extra. Pipeline (depthai v3):
 
-    Camera CAM_A  --requestOutput((W, H), BGR888i, fps)--> colour queue
+    Camera CAM_A  --requestOutput((W, H), BGR888i, fps)--> Sync.inputs["color"]
                   \\--> StereoDepth.inputAlignTo          (depth resampled to the colour view)
-    Camera CAM_B/CAM_C --requestOutput--> StereoDepth.left/right --depth (uint16 mm)--> depth queue
+    Camera CAM_B/CAM_C --requestOutput--> StereoDepth.left/right --depth (uint16 mm)--> Sync.inputs["depth"]
+    Sync (threshold: the source's tolerance_ms) --MessageGroup--> one output queue
 
-Queues are non-blocking with a few messages each, so a slow host drops old frames
-on the device side instead of stalling it. A device that stops delivering for
-``read`` timeout, or raises from depthai, is reported as :class:`DeviceGone`.
+Colour and depth are paired on the device: the ``Sync`` node sends a group only when it holds a
+colour and a depth frame within the threshold of each other, so a frame whose partner was lost
+never reaches the host (it shows as a gap in the device sequence numbers). The queue is
+non-blocking on the device side with a few groups, so a slow host drops old groups there instead
+of stalling the device; the host waits on it (``get`` with a timeout, no polling). A device that
+stops delivering for the ``read`` timeout, or raises from depthai, is reported as
+:class:`DeviceGone`.
 """
 from __future__ import annotations
 
+import datetime
 import logging
-import time
 from typing import Any
 
 from .oak import DeviceGone, EXTRA_HINT, NoDevice
@@ -45,8 +50,26 @@ def list_devices() -> list[dict[str, str]]:
     return out
 
 
+COLOR, DEPTH = "color", "depth"  # the Sync node's inputs, and the names in its MessageGroups
+
+
+def synced_queue(dai: Any, pipeline: Any, color: Any, depth: Any, tolerance_ms: float, queue_size: int,
+                 on_host: bool = False) -> Any:
+    """Link the ``color`` and ``depth`` outputs into a ``Sync`` node of ``pipeline`` that pairs them
+    within ``tolerance_ms`` (on the device, or on the host for a host-only pipeline) and return
+    the queue of its MessageGroups (non-blocking on the sending side, ``queue_size`` groups)."""
+    sync = pipeline.create(dai.node.Sync)
+    sync.setSyncThreshold(datetime.timedelta(milliseconds=tolerance_ms))
+    if on_host:
+        sync.setRunOnHost(True)
+    color.link(sync.inputs[COLOR])
+    depth.link(sync.inputs[DEPTH])
+    return sync.out.createOutputQueue(maxSize=queue_size, blocking=False)
+
+
 class PipelineBackend:
-    """A started depthai pipeline with a colour and a depth output queue: ``open``/``read``/``close``.
+    """A started depthai pipeline whose one output queue gives colour and depth frames already
+    paired (:func:`synced_queue`): ``open``/``read``/``close``.
 
     Subclasses say how the pipeline is built (:meth:`build`); reading is shared, so the
     device backend and a host-only pipeline (tests, replays) go through the same code."""
@@ -56,45 +79,39 @@ class PipelineBackend:
     def __init__(self) -> None:
         self.dai = import_depthai()
         self._pipeline = None
-        self._qc = self._qd = None
+        self._queue = None
 
-    def build(self) -> tuple[Any, Any, Any]:
-        """(pipeline, colour queue, depth queue), not started."""
+    def build(self) -> tuple[Any, Any]:
+        """(pipeline, queue of colour/depth MessageGroups), not started."""
         raise NotImplementedError
 
     def open(self) -> None:
         try:
-            pipeline, qc, qd = self.build()
+            pipeline, queue = self.build()
             pipeline.start()
         except (NoDevice, DeviceGone):
             raise
         except Exception as e:  # noqa: BLE001 - depthai raises RuntimeError subclasses of its own
             raise DeviceGone(f"cannot start the pipeline on {self.device_id}: {e}") from None
-        self._pipeline, self._qc, self._qd = pipeline, qc, qd
+        self._pipeline, self._queue = pipeline, queue
 
     def read(self, timeout_s: float) -> tuple[list[Any], list[Any]]:
-        """Whatever colour and depth messages have arrived (waits up to ``timeout_s`` for any)."""
+        """The next colour/depth pair as ([colour], [depth]); waits up to ``timeout_s`` for it."""
         if self._pipeline is None:
             raise DeviceGone("not open")
-        deadline = time.monotonic() + timeout_s
         try:
-            while True:
-                colors = self._qc.tryGetAll() or []
-                depths = self._qd.tryGetAll() or []
-                if colors or depths:
-                    return list(colors), list(depths)
-                if not self._pipeline.isRunning():
-                    raise DeviceGone("pipeline stopped")
-                if time.monotonic() > deadline:
-                    raise DeviceGone(f"no frames for {timeout_s:g} s")
-                time.sleep(0.002)
+            group = self._queue.get(datetime.timedelta(seconds=timeout_s))  # None when it timed out
+            if group is None:
+                raise DeviceGone("pipeline stopped" if not self._pipeline.isRunning()
+                                 else f"no frames for {timeout_s:g} s")
+            return [group[COLOR]], [group[DEPTH]]
         except DeviceGone:
             raise
-        except Exception as e:  # noqa: BLE001 - XLink errors surface as RuntimeError
+        except Exception as e:  # noqa: BLE001 - XLink errors (a closed queue too) surface as RuntimeError
             raise DeviceGone(str(e)) from None
 
     def close(self) -> None:
-        p, self._pipeline, self._qc, self._qd = self._pipeline, None, None, None
+        p, self._pipeline, self._queue = self._pipeline, None, None
         try:
             if p is not None:
                 p.stop()
@@ -106,11 +123,12 @@ class DepthaiBackend(PipelineBackend):
     """Colour + aligned stereo depth from one OAK device (``device_id`` None: the first found)."""
 
     def __init__(self, device_id: str | None, width: int = 640, height: int = 400, fps: float = 30.0,
-                 queue_size: int = 4) -> None:
+                 tolerance_ms: float = 10.0, queue_size: int = 4) -> None:
         super().__init__()
         self.device_id = device_id or "first available"
         self._want = device_id
         self.width, self.height, self.fps, self.queue_size = width, height, fps, queue_size
+        self.tolerance_ms = tolerance_ms
 
     def _find(self) -> Any:
         dai = self.dai
@@ -126,7 +144,7 @@ class DepthaiBackend(PipelineBackend):
         ids = ", ".join(i.getDeviceId() for i in found)
         raise NoDevice(f"no OAK device with id {self._want!r} (found: {ids})")
 
-    def build(self) -> tuple[Any, Any, Any]:
+    def build(self) -> tuple[Any, Any]:
         dai = self.dai
         info = self._find()
         self.device_id = info.getDeviceId()
@@ -142,10 +160,9 @@ class DepthaiBackend(PipelineBackend):
         left.requestOutput(size, fps=self.fps).link(stereo.left)
         right.requestOutput(size, fps=self.fps).link(stereo.right)
         rgb.link(stereo.inputAlignTo)  # depth resampled to the colour camera's view and size
-        qc = rgb.createOutputQueue(maxSize=self.queue_size, blocking=False)
-        qd = stereo.depth.createOutputQueue(maxSize=self.queue_size, blocking=False)
+        queue = synced_queue(dai, pipeline, rgb, stereo.depth, self.tolerance_ms, self.queue_size)
         log.info("depthai %s: streaming %dx%d at %g fps", self.device_id, self.width, self.height, self.fps)
-        return pipeline, qc, qd
+        return pipeline, queue
 
     def __repr__(self) -> str:
         return f"DepthaiBackend({self.device_id}, {self.width}x{self.height}@{self.fps:g})"

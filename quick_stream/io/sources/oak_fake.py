@@ -4,7 +4,7 @@ No hardware here, so the device-specific path is exercised by this backend: it
 renders the synthetic scene and hands out colour and depth messages with the
 methods the adapter uses from depthai's ``ImgFrame`` (``getCvFrame``,
 ``getTransformation().getIntrinsicMatrix()``, ``getTimestamp``,
-``getTimestampDevice``, ``getSequenceNum``, ``getWidth``, ``getHeight``).
+``getTimestampDevice``, ``getSequenceNum``).
 Depth is uint16 millimetres aligned to colour, as the device sends it.
 
 Faults are scripted by frame index: ``fake=EVENT:FRAME+EVENT:FRAME...`` in the
@@ -34,14 +34,11 @@ EVENTS = ("drop_color", "drop_depth", "mismatch", "late_depth", "intrinsics", "d
 
 
 class FakeTransformation:
-    def __init__(self, K: np.ndarray, width: int, height: int) -> None:
-        self._K, self._size = K, (width, height)
+    def __init__(self, K: np.ndarray) -> None:
+        self._K = K
 
     def getIntrinsicMatrix(self) -> list[list[float]]:  # noqa: N802 - depthai's name
         return self._K.tolist()
-
-    def getSize(self) -> tuple[int, int]:  # noqa: N802
-        return self._size
 
 
 @dataclass(eq=False)
@@ -58,7 +55,7 @@ class FakeImgFrame:
         return self.data
 
     def getTransformation(self) -> FakeTransformation:  # noqa: N802
-        return FakeTransformation(self.K, self.data.shape[1], self.data.shape[0])
+        return FakeTransformation(self.K)
 
     def getTimestamp(self) -> datetime.timedelta:  # noqa: N802
         return datetime.timedelta(microseconds=self.t_host_ns / 1e3)
@@ -68,12 +65,6 @@ class FakeImgFrame:
 
     def getSequenceNum(self) -> int:  # noqa: N802
         return self.seq
-
-    def getWidth(self) -> int:  # noqa: N802
-        return int(self.data.shape[1])
-
-    def getHeight(self) -> int:  # noqa: N802
-        return int(self.data.shape[0])
 
 
 def parse_script(text: str) -> dict[int, set[str]]:
@@ -100,7 +91,6 @@ class FakeOakBackend:
         self.fps = fps
         self.i = 0  # next synthetic frame index
         self.is_open = False
-        self.opens = 0
         self._fail_opens = 0
         self._dev_seq0 = 0  # device sequence number restarts after a reconnect
         self._dev_t0 = 0
@@ -119,7 +109,6 @@ class FakeOakBackend:
             self._fail_opens -= 1
             raise DeviceGone(f"{self.device_id}: device not ready yet")
         self.is_open = True
-        self.opens += 1
 
     def close(self) -> None:
         self.is_open = False

@@ -21,6 +21,7 @@ from typing import Iterator, Mapping
 import numpy as np
 
 from ...core.frame import Intrinsics, RGBDFrame, dequantize_depth, quantize_depth
+from ...core.lie import so3
 from .scene import Renderer, build_scene
 
 # Intended path (m, deg, s) and shake (rms per axis at shake=1) parameters.
@@ -34,17 +35,6 @@ SHAKE_TRANS_BAND = (0.8, 8.0)
 MAX_SHAKE = 5.0
 MAX_SIZE = 8192  # pixels per side
 _CHUNK = 1024  # frames whose poses are computed together
-
-
-def _rotations(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (N, 3, 3) of rotation vectors w (N, 3) (Rodrigues)."""
-    th = np.linalg.norm(w, axis=1)
-    k = w / np.where(th > 0, th, 1.0)[:, None]
-    Kx = np.zeros((len(w), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx -= Kx.transpose(0, 2, 1)
-    s, c = np.sin(th)[:, None, None], (1 - np.cos(th))[:, None, None]
-    return np.eye(3) + s * Kx + c * (Kx @ Kx)
 
 
 @dataclass(frozen=True)
@@ -96,9 +86,9 @@ class CameraPath:
         ang = np.radians([PAN_DEG, TILT_DEG]) * np.sin(tc / self.ang_period + self.ang_phase)
         zero = np.zeros(len(t))
         # intended orientation: pan (yaw about y) then tilt (pitch about x), no roll
-        r_int = _rotations(np.column_stack([zero, ang[:, 0], zero])) @ \
-            _rotations(np.column_stack([ang[:, 1], zero, zero]))
-        r_shake = _rotations(self.shake * self.rot(t))  # about the camera's own x, y, z axes
+        r_int = so3.exp(np.column_stack([zero, ang[:, 0], zero])) @ \
+            so3.exp(np.column_stack([ang[:, 1], zero, zero]))
+        r_shake = so3.exp(self.shake * self.rot(t))  # about the camera's own x, y, z axes
         out = np.zeros((len(t), 4, 4))
         out[:, :3, :3] = r_int @ r_shake
         out[:, :3, 3] = pos + (r_int @ (self.shake * self.trans(t))[:, :, None])[:, :, 0]

@@ -12,6 +12,9 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ...core.lie import so3
 
 
 class TrajectoryError(ValueError):
@@ -20,39 +23,16 @@ class TrajectoryError(ValueError):
 
 def quat_to_matrix(q: Sequence[float]) -> np.ndarray:
     """3x3 rotation matrix of the quaternion ``q = (qx, qy, qz, qw)`` (normalised first)."""
-    x, y, z, w = (float(v) for v in q)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if not math.isfinite(n) or n < 1e-12:
-        raise TrajectoryError(f"quaternion {tuple(q)} has zero or non-finite norm")
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    q = np.asarray(q, dtype=np.float64)
+    n = float(np.linalg.norm(q))
+    if q.shape != (4,) or not math.isfinite(n) or n < 1e-12:
+        raise TrajectoryError(f"quaternion {tuple(q.ravel())} has zero or non-finite norm")
+    return Rotation.from_quat(q).as_matrix()
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternion ``(qx, qy, qz, qw)`` with ``qw >= 0`` of a 3x3 rotation matrix."""
-    R = np.asarray(R, dtype=float)[:3, :3]
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    if tr > 0:  # Shepperd's method: pick the numerically largest component
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
-        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 0.0))
-        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 0.0))
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)[:3, :3]).as_quat(canonical=True)
 
 
 def pose_from_tum(t: Sequence[float], q: Sequence[float]) -> np.ndarray:
@@ -64,9 +44,11 @@ def pose_from_tum(t: Sequence[float], q: Sequence[float]) -> np.ndarray:
 
 
 def pose_to_tum(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(translation, quaternion ``(qx, qy, qz, qw)``) of a 4x4 pose."""
+    """(translation, quaternion ``(qx, qy, qz, qw)``) of a 4x4 pose; the quaternion is that of the
+    rotation nearest the pose's linear part (a SIM(3), SA(3) or GA(3) path's scale and shear are
+    dropped, as in the Foxglove poses)."""
     T = np.asarray(T, dtype=float)
-    return T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
+    return T[:3, 3].copy(), matrix_to_quat(so3.nearest_rotation(T[:3, :3]))
 
 
 def slerp(q0: Sequence[float], q1: Sequence[float], a: float) -> np.ndarray:

@@ -49,8 +49,6 @@ class TumEntry:
 
     rgb_t: float
     rgb_file: str
-    rgb_line: int
-    depth_t: float
     depth_file: str
     pose: np.ndarray | None = None
     out_of_order: str = ""  # non-empty: why this entry's timestamp is rejected
@@ -185,7 +183,7 @@ class TumSource:
                 bad = (f"{self.path / 'rgb.txt'}:{r[2]}: timestamp {r[0]:.6f} of {r[1]} is not "
                        f"after the previous frame's ({latest:.6f}); timestamps out of order")
             latest = max(latest, r[0])
-            entries.append(TumEntry(r[0], r[1], r[2], d[0], d[1], pose, bad))
+            entries.append(TumEntry(r[0], r[1], d[1], pose, bad))
         self.entries = entries  # full association list; seq = index into it
 
         if start > len(entries):
@@ -333,13 +331,19 @@ class TumSource:
             raise FrameError(f"{p}: {what} is {size[0]}x{size[1]} (from its header; not decoded), "
                              f"intrinsics are for {W}x{H}")
 
-    def _read_color(self, p: Path) -> np.ndarray:
+    def _read_image(self, p: Path, what: str) -> np.ndarray:
+        """The decoded image file (any depth and channels); FrameError when it is missing, declares
+        another size than the intrinsics' or does not decode."""
         if not p.is_file():
-            raise FrameError(f"{p}: colour image not found")
-        self._check_header(p, "colour image")
+            raise FrameError(f"{p}: {what} not found")
+        self._check_header(p, what)
         img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if img is None:
-            raise FrameError(f"{p}: cannot decode colour image")
+            raise FrameError(f"{p}: cannot decode {what}")
+        return img
+
+    def _read_color(self, p: Path) -> np.ndarray:
+        img = self._read_image(p, "colour image")
         if img.dtype == np.uint16:  # 16-bit colour: keep the high byte, as IMREAD_COLOR would
             img = (img >> 8).astype(np.uint8)
         if img.dtype != np.uint8:
@@ -357,12 +361,7 @@ class TumSource:
         return img
 
     def _read_depth(self, p: Path, color_shape: tuple[int, ...]) -> np.ndarray:
-        if not p.is_file():
-            raise FrameError(f"{p}: depth image not found")
-        self._check_header(p, "depth image")
-        raw = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise FrameError(f"{p}: cannot decode depth image")
+        raw = self._read_image(p, "depth image")
         if raw.ndim != 2:
             raise FrameError(f"{p}: depth image must be single-channel, got shape {raw.shape}")
         if raw.shape != color_shape[:2]:

@@ -14,23 +14,16 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
+from ...core.lie import so3
+
 if TYPE_CHECKING:
     from ...core.motion_pipeline import PairRecord
-
-
-def _nearest_rotation(A: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(A)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    return R
 
 
 def relative_pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """(rotation error in degrees, translation error in mm) of camera motion ``estimate`` vs ``truth``."""
     g = estimate.copy()
-    g[:3, :3] = _nearest_rotation(g[:3, :3])
+    g[:3, :3] = so3.nearest_rotation(g[:3, :3])
     E = np.linalg.inv(truth) @ g
     c = np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     return float(np.degrees(np.arccos(c))), float(np.linalg.norm(E[:3, 3]) * 1000.0)

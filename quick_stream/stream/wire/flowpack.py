@@ -5,7 +5,7 @@ pixels_next: 44 bytes a pair, 132 kB for 3000 pairs), most of it derivable: the 
 pixels lie on the scene flow's regular grid, the weights are all 1, and points and
 displacements follow from the pixels, the two depths and the intrinsics. The compact
 layout carries what they follow from, and the decoder lifts them with the very function the
-scene flow uses (:func:`quick_stream.sceneflow.lift_pairs`), so they come out bit for bit:
+scene flow uses (:func:`quick_stream.core.sceneflow.lift_pairs`), so they come out bit for bit:
 
 - ``grid``: the samples as bits of a regular grid (``x0``, ``y0``, ``step``, ``cols``, ``rows``,
   ``mask``: bit ``j * cols + i``, least significant first, is pixel (x0 + i step, y0 + j step)),
