@@ -105,7 +105,7 @@ def _flip_in_chunk(bases, comp, nth=0):
 def _all_entry_points(path, tmp_path):
     """Every reader on ``path``: the named errors are fine, anything else fails the test."""
     errors = []
-    for call in (lambda: list(read_messages(path)), lambda: recover(path, tmp_path / "out.mcap")):
+    for call in (lambda: list(read_messages(path)), lambda: recover(path, tmp_path / "out.mcap", overwrite=True)):
         try:
             call()
         except RecordingError as e:
