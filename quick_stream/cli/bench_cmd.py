@@ -23,7 +23,9 @@ if TYPE_CHECKING:
 DEFAULT_DATA = Path("../shared/data")
 
 
-def _bench(b: argparse._SubParsersAction, name: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
+def _bench(b: argparse._SubParsersAction, name: str, help: str,
+           description: str | None = None) -> argparse.ArgumentParser:
+    """A benchmark's parser; its description is its help, as a sentence, unless given."""
     return b.add_parser(name, help=help, description=description or help[:1].upper() + help[1:] + ".")
 
 
