@@ -13,6 +13,7 @@ estimator on the *whole* flow is then compared with that reference:
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -63,9 +64,15 @@ def evaluate_scene(folder: Path, boxes: list[tuple[int, int, int, int]]) -> dict
     return out
 
 
-def run(data_root: Path) -> dict[str, dict]:
+def run(data_root: Path, progress: Callable[[str], None] | None = None) -> dict[str, dict]:
+    """``progress``: told each scene."""
     root = data_root / "jointvosf_pairs"
-    return {name: evaluate_scene(root / name, boxes) for name, boxes in MOVING_BOXES.items()}
+    out = {}
+    for i, (name, boxes) in enumerate(MOVING_BOXES.items(), 1):
+        if progress:
+            progress(f"scene {i}/{len(MOVING_BOXES)}: {name}")
+        out[name] = evaluate_scene(root / name, boxes)
+    return out
 
 
 def format_table(results: dict[str, dict]) -> str:

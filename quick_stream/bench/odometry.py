@@ -7,6 +7,7 @@ ms per pair of ours is scene flow + that estimator. OpenCV's ``cv2.Odometry``
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -21,8 +22,8 @@ from ..quality.evaluation.rpe import ErrorStats, relative_pose_error
 
 
 def run(source_spec: str, methods: list[tuple[str, str]] | None = None, opencv: bool = True,
-        frames: int | None = None) -> dict:
-    """``methods``: (group, estimator) pairs; default exact and induced SE(3)."""
+        frames: int | None = None, progress: Callable[[str], None] | None = None) -> dict:
+    """``methods``: (group, estimator) pairs; default exact and induced SE(3). ``progress``: told each frame."""
     cv2.setNumThreads(1)
     methods = methods or [("se3", "exact"), ("se3", "induced")]
     src = open_source(source_spec)
@@ -35,9 +36,15 @@ def run(source_spec: str, methods: list[tuple[str, str]] | None = None, opencv: 
         errs["opencv rgbd odometry"], ms["opencv rgbd odometry"] = [], []
     invalid = {k: 0 for k in errs}
     prev = None
+    try:
+        total: int | str = len(src) if frames is None else min(frames, len(src))
+    except TypeError:  # a live camera has no length
+        total = "?" if frames is None else frames
     for i, fr in enumerate(src):
         if frames is not None and i >= frames:
             break
+        if progress:
+            progress(f"frame {i + 1}/{total}")
         if isinstance(fr, BadFrame):
             continue
         if prev is not None:

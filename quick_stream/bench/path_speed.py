@@ -14,6 +14,7 @@ frame and the largest end-constraint residual |log(C1^-1 g_s(tf))| of the return
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -25,7 +26,8 @@ SMOOTH_TRANS_M = 0.02  # stress: per-axis sd of the smooth path's per-frame tran
 SMOOTH_ROT_DEG = 0.3  # and rotation
 
 
-def run(segments: int = 20, length: int = 30) -> dict:
+def run(segments: int = 20, length: int = 30, progress: Callable[[str], None] | None = None) -> dict:
+    """``progress``: told each segment solved."""
     poses = SyntheticSource(frames=segments * length + 1, width=64, height=48).poses()
     motions = np.linalg.inv(poses[:-1]) @ poses[1:]
     out = {}
@@ -34,6 +36,8 @@ def run(segments: int = 20, length: int = 30) -> dict:
         g = get_group(name)
         ms, iters, worst = [], [], 0.0
         for k in range(segments):
+            if progress:
+                progress(f"{name}: segment {k + 1}/{segments}")
             seg = motions[k * length:(k + 1) * length]
             zb = zeta_bar(g, seg)
             C1 = g.exp(rng.normal(0, 0.005, g.dim))
@@ -72,14 +76,18 @@ def stress_segment(rng: np.random.Generator, length: int = 30, rot_deg: float = 
 
 
 def run_stress(rot_deg: float = 4.0, trans_m: float = 0.05, segments: int = 100, length: int = 30,
-               seed: int = 0, groups: tuple[str, ...] | None = None) -> dict:
-    """Solve ``segments`` stress segments (the same ones for every group, paper's zeta_bar)."""
+               seed: int = 0, groups: tuple[str, ...] | None = None,
+               progress: Callable[[str], None] | None = None) -> dict:
+    """Solve ``segments`` stress segments (the same ones for every group, paper's zeta_bar);
+    ``progress``: told each segment."""
     out = {}
     for name in groups or sorted(GROUPS):
         g: LieGroup = get_group(name)
         rng = np.random.default_rng(seed)
         ms, iters, init_iters, failed, fallback, worst = [], [], [], 0, 0, 0.0
-        for _ in range(segments):
+        for k in range(segments):
+            if progress:
+                progress(f"{name}: segment {k + 1}/{segments}")
             motions, C0, C1 = stress_segment(rng, length, rot_deg, trans_m)
             zb = zeta_bar(g, motions)
             t0 = time.perf_counter()

@@ -20,16 +20,19 @@ and measures from a monitor session:
   minute after the first) and over the last minute, the growth between them, the peak (VmHWM)
   and the series from start-up.
 
-Prints a table and writes JSON (``--json``). Numbers are for the machine it runs on.
+Prints a table and writes JSON (``--json FILE``, ``-``: standard output); progress on stderr
+once a second. Numbers are for the machine it runs on.
 """
 from __future__ import annotations
 
 import json
 import os
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import zenoh
@@ -127,11 +130,13 @@ def prerecord(path: Path, spec: str) -> str:
 
 
 def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
-                 record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1) -> dict:
+                 record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1,
+                 progress: Callable[[str], None] | None = None) -> dict:
     """One measured run; ``fps`` None = capture as fast as possible; ``replay``: the capture sends a
     pre-encoded recording instead of rendering synthetic frames live; ``streams``: that many cameras
     side by side (``cam0``, ``cam1``, ...; each its own capture, flow, motion and render, synthetic
-    seeds 1, 2, ...; one recorder of all). Returns the report dict."""
+    seeds 1, 2, ...; one recorder of all). ``progress`` is told once a second how far it is.
+    Returns the report dict."""
     from ..stream.launcher import free_port, open_when_up
 
     out.mkdir(parents=True, exist_ok=True)
@@ -188,6 +193,11 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
                     for k, v in vals.items():
                         if k in QUEUES or k.endswith("_queued"):
                             queues.setdefault(f"{st}.{svc}.{k}", []).append(float(v))
+            if progress:
+                phase = ("starting" if t_start is None else "warming up" if now - t_start <= warmup_s
+                         else f"measuring {min(now - t_start - warmup_s, seconds):.0f}/{seconds:g} s")
+                progress(f"{fps or 'fast'} fps: {phase}, stabilized "
+                         + ", ".join(f"{cam} {len(m.seqs)}" for cam, m in mons.items()))
             if all(m.ended for m in mons.values()) or (t_start and now - t_start > seconds + warmup_s + 30):
                 break
         stats = board.snapshot()
@@ -305,14 +315,21 @@ def format_report(r: dict) -> str:
 
 
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
-         record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480") -> int:
+         record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480",
+         progress: Callable[[str], None] | None = None) -> int:
+    """Run each rate and print its report; ``json_path``: also the reports as JSON there (``-``: on
+    standard output, the reports then going to stderr)."""
     reports = []
     w, h = (int(x) for x in size.split("x"))
+    text = sys.stderr if json_path == "-" else sys.stdout
     for fps in fps_list:
         r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, width=w, height=h, record=record,
-                         replay=replay, streams=streams)
+                         replay=replay, streams=streams, progress=progress)
         reports.append(r)
-        print(format_report(r), flush=True)
-    if json_path:
+        print(format_report(r), file=text, flush=True)
+    if json_path == "-":
+        print(json.dumps(reports, indent=1), flush=True)
+    elif json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps(reports, indent=1))
     return 0

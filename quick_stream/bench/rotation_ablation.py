@@ -23,6 +23,7 @@ import copy
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -132,19 +133,26 @@ def rendered_rotations(folder: Path, params: StabilizerParams) -> list[tuple[int
     return out
 
 
-def run_clip(src: Path, spec: ShakeSpec, cache: Path, tool: Path, settings: list[str]) -> dict:
+def run_clip(src: Path, spec: ShakeSpec, cache: Path, tool: Path, settings: list[str],
+             progress: Callable[[str], None] | None = None) -> dict:
+    """``progress``: told each step (making the clips, their flows, each row scored)."""
+    say = progress or (lambda _msg: None)
+    say(f"clip {spec.seed}:{spec.first}-{spec.last}: making the shaken and reference clips")
     shaken, _ = make_clip(src, spec, cache, tool)
     ref, _ = make_clip(src, spec.reference(), cache, tool)
     base = parse_settings(settings).params
+    say(f"{shaken.name}: scene flow of both clips")
     runs = {k: (_flows(shaken, base), _flows(ref, base)) for k in ("lk",)}
     no_lk = copy.deepcopy(base)
     no_lk.flow.refine = "none"
+    say(f"{shaken.name}: scene flow of both clips without LK refinement")
     runs["none"] = (_flows(shaken, no_lk), _flows(ref, no_lk))
     rows: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="qs_rot_") as tmp:
         tmp_p = Path(tmp)
 
         def score(name: str, est: list[tuple[int, np.ndarray]], refc: list[tuple[int, np.ndarray]]) -> None:
+            say(f"{shaken.name}: scored {name}")
             e, r = tmp_p / "est.txt", tmp_p / "ref.txt"
             write_corrections(e, est)
             write_corrections(r, refc)
@@ -168,10 +176,11 @@ def run_clip(src: Path, spec: ShakeSpec, cache: Path, tool: Path, settings: list
 
 
 def run(data: Path, clips: list[ShakeSpec], cache: Path, tool: Path = DEFAULT_TOOL,
-        settings: list[str] | None = None) -> dict:
+        settings: list[str] | None = None, progress: Callable[[str], None] | None = None) -> dict:
     cv2.setNumThreads(1)
     src = source_folder(data)
-    return {"settings": settings or [], "clips": [run_clip(src, s, cache, tool, settings or []) for s in clips]}
+    return {"settings": settings or [],
+            "clips": [run_clip(src, s, cache, tool, settings or [], progress) for s in clips]}
 
 
 def format_table(r: dict) -> str:

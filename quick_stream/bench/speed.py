@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import time
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -29,8 +30,11 @@ def pin_one_core() -> str:
 
 
 def run(pairs: int = 100, width: int = 640, height: int = 480, group: str = "se3",
-        flow_params: SceneFlowParams | None = None) -> dict:
+        flow_params: SceneFlowParams | None = None, progress: Callable[[str], None] | None = None) -> dict:
+    """``progress``: told each step (rendering the frames, then each pair timed)."""
+    say = progress or (lambda _msg: None)
     pinned = pin_one_core()
+    say(f"rendering {pairs + 1} synthetic frames")
     src = SyntheticSource(width=width, height=height, frames=pairs + 1)
     t0 = time.perf_counter()
     frames = list(src)
@@ -38,7 +42,8 @@ def run(pairs: int = 100, width: int = 640, height: int = 480, group: str = "se3
     sf = SceneFlow(flow_params)
     me = MotionEstimator(MotionParams(group=group))
     stages: dict[str, list[float]] = {"optical flow (fwd+bwd)": [], "lift + masks + LK": [], "motion": []}
-    for a, b in zip(frames[:-1], frames[1:]):
+    for i, (a, b) in enumerate(zip(frames[:-1], frames[1:]), 1):
+        say(f"pair {i}/{pairs}")
         t0 = time.perf_counter()
         fwd, bwd = sf.optical_flow(a, b)
         t1 = time.perf_counter()

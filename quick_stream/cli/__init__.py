@@ -6,6 +6,14 @@ this package, so ``quick-stream router`` and ``up`` start without the evaluation
 benchmark modules (and SciPy's) behind the other commands. The cli is the top layer: the
 services never import it (their shared flags are :mod:`quick_stream.stream.argtypes` and
 :mod:`quick_stream.stream.stabilizer_flags`).
+
+Conventions every sub-command keeps (tests/unit/test_cli_help.py walks the parsers): help
+is plain text (a module docstring becomes a description through
+:func:`~quick_stream.stream.argtypes.plain_text`), every option has help that shows its
+default; ``--json FILE`` (``-``: standard output, :mod:`.jsonout`); outputs are never
+overwritten silently (default names numbered, named files refused without ``--force``:
+:func:`~quick_stream.stream.argtypes.claim_outputs`), and every output path is checked before
+any work; progress goes to stderr (:mod:`.progress`).
 """
 from __future__ import annotations
 
@@ -15,7 +23,7 @@ import logging
 import sys
 from types import ModuleType
 
-from ..stream.argtypes import check_outputs
+from ..stream.argtypes import check_outputs, claim_outputs
 
 COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "recording-stats", "router", "up", "acl")
 
@@ -28,7 +36,9 @@ def command(name: str) -> ModuleType:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="quick-stream",
-        description="QuICK 3D video stabilization for RGB-D cameras.",
+        description="QuICK 3D video stabilization for RGB-D cameras. 'quick-stream COMMAND -h' describes "
+                    "a command; the services run as quick-stream-capture, -flow, -motion, -render and -recorder "
+                    "(or python -m quick_stream.services.NAME).",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -46,9 +56,12 @@ def main(argv: list[str] | None = None) -> int:
         stream=sys.stderr,
     )
     try:
-        check_outputs(args)  # before any work: an output path that cannot be written (argtypes)
+        # before any work: no file overwritten silently, and every output path can be written (argtypes)
+        claim_outputs(args, force=getattr(args, "force", False))
+        check_outputs(args)
     except ValueError as e:
-        print(f"quick-stream {args.command}: {e}", file=sys.stderr)
+        name = " ".join(x for x in (args.command, getattr(args, "bench", None)) if x)
+        print(f"quick-stream {name}: {e}", file=sys.stderr)
         return 2
     return command(args.command).run(args)
 

@@ -23,12 +23,13 @@ def _streams(text: str) -> list[str]:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("acl", help="router-tls.json5 with access control for the given streams", description=__doc__,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("acl", help="router-tls.json5 with access control for the given streams",
+                       description=at.plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--streams", type=at.checked(_streams, "streams"), default=["cam0"], metavar="ID[,ID...]",
-                   help="comma-separated stream ids (default cam0)")
+                   help="comma-separated stream ids (default: cam0)")
     p.add_argument("--output", type=at.output_file("--output"), default="", metavar="FILE",
-                   help="write here instead of printing")
+                   help="write here instead of printing (default: standard output)")
+    at.add_force(p)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,8 +1,11 @@
-"""``quick-stream bench NAME``: benchmarks that print numbers (speed, accuracy, robustness)."""
+"""``quick-stream bench NAME``: benchmarks that print numbers (speed, accuracy, robustness).
+
+Each prints its table on standard output and its progress on stderr; ``--json FILE``
+(``-``: standard output, the table then going to stderr) writes the numbers as JSON.
+"""
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -10,6 +13,8 @@ from typing import TYPE_CHECKING
 from ..core.lie import GROUPS
 from ..io.sources import SourceError
 from ..stream import argtypes as at
+from .jsonout import add_json, text_out, write_json
+from .progress import Progress
 
 if TYPE_CHECKING:
     from ..bench.quality import Variant
@@ -18,57 +23,68 @@ if TYPE_CHECKING:
 DEFAULT_DATA = Path("../shared/data")
 
 
+def _bench(b: argparse._SubParsersAction, name: str, help: str,
+           description: str | None = None) -> argparse.ArgumentParser:
+    """A benchmark's parser; its description is its help, as a sentence, unless given."""
+    return b.add_parser(name, help=help, description=description or help[:1].upper() + help[1:] + ".")
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="run a benchmark and print its numbers", description=__doc__)
+    p = sub.add_parser("bench", help="run a benchmark and print its numbers", description=at.plain_text(__doc__),
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     b = p.add_subparsers(dest="bench", required=True, metavar="NAME")
-    s = b.add_parser("speed", help="scene flow + motion ms per stage on one core (synthetic frames)")
-    s.add_argument("--pairs", type=at.positive_int, default=100)
-    s.add_argument("--width", type=at.int_in(16, 8192), default=640)
-    s.add_argument("--height", type=at.int_in(16, 8192), default=480)
-    s.add_argument("--group", choices=sorted(GROUPS), default="se3")
-    o = b.add_parser("odometry", help="relative pose error of exact/induced vs OpenCV odometry")
-    o.add_argument("--source", default=f"tum:{DEFAULT_DATA / '7scenes_redkitchen'}")
-    o.add_argument("--frames", type=at.positive_int, default=None)
-    o.add_argument("--groups", type=at.choice_list(GROUPS), default=("se3",),
-                   help="comma-separated groups to run exact and induced for (default se3)")
-    o.add_argument("--no-opencv", action="store_true")
-    m = b.add_parser("moving-objects", help="robust vs mean estimators on jointvosf_pairs (people moving)")
-    m.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    s = _bench(b, "speed", "scene flow + motion ms per stage on one core (synthetic frames)")
+    s.add_argument("--pairs", type=at.positive_int, default=100, help="frame pairs timed (default: 100)")
+    s.add_argument("--width", type=at.int_in(16, 8192), default=640, help="frame width, 16-8192 (default: 640)")
+    s.add_argument("--height", type=at.int_in(16, 8192), default=480, help="frame height, 16-8192 (default: 480)")
+    s.add_argument("--group", choices=sorted(GROUPS), default="se3", help="Lie group of the motion (default: se3)")
+    o = _bench(b, "odometry", "relative pose error of exact/induced vs OpenCV odometry")
+    o.add_argument("--source", default=f"tum:{DEFAULT_DATA / '7scenes_redkitchen'}", metavar="SPEC",
+                   help="the clip, any source spec with ground truth (default: %(default)s)")
+    o.add_argument("--frames", type=at.positive_int, default=None, help="use the first N frames (default: all)")
+    o.add_argument("--groups", type=at.choice_list(GROUPS), default=("se3",), metavar="G[,G...]",
+                   help="comma-separated groups to run exact and induced for (default: se3)")
+    o.add_argument("--no-opencv", action="store_true", help="skip OpenCV's RGB-D odometry")
+    m = _bench(b, "moving-objects", "robust vs mean estimators on jointvosf_pairs (people moving)")
+    m.add_argument("--data", type=Path, default=DEFAULT_DATA, metavar="DIR",
+                   help=f"folder holding jointvosf_pairs (default: {DEFAULT_DATA})")
     _add_quality_parser(b)
-    ra = b.add_parser("rotation", help="known-shake clips: which part of the pipeline leaves injected rotation "
-                      "(motion noise, path, warp; single changes to the defaults)")
-    ra.add_argument("--data", type=Path, default=DEFAULT_DATA, help=f"folder holding 7scenes_redkitchen "
-                    f"(default {DEFAULT_DATA})")
+    ra = _bench(b, "rotation", "known-shake clips: which part of the pipeline leaves injected rotation "
+                "(motion noise, path, warp; single changes to the defaults)")
+    ra.add_argument("--data", type=Path, default=DEFAULT_DATA, metavar="DIR", help=f"folder holding 7scenes_redkitchen "
+                    f"(default: {DEFAULT_DATA})")
     ra.add_argument("--clip", dest="clips", action="append", type=at.checked(_clip, "clip"), default=None,
-                    metavar="SEED:FIRST-LAST", help="a known-shake clip (repeatable; default 7:0-149 and 11:100-249)")
+                    metavar="SEED:FIRST-LAST", help="a known-shake clip; repeatable (default: 7:0-149 and 11:100-249)")
     ra.add_argument("--shake-tool", type=Path, default=Path("../shared/tools/shake"), metavar="DIR",
-                    help="folder of the shake tool (default ../shared/tools/shake)")
+                    help="folder of the shake tool (default: ../shared/tools/shake)")
     ra.add_argument("--work", type=at.output_dir("--work"), default="out/bench-quality", metavar="DIR",
-                    help="made clips are cached in DIR/clips (default out/bench-quality)")
-    ps = b.add_parser("path", help="optimal-path solver ms per frame for every group (--shake: large-motion "
-                      "stress: failed segments, iterations, residuals)")
+                    help="made clips are cached in DIR/clips (default: out/bench-quality)")
+    ps = _bench(b, "path", "optimal-path solver ms per frame for every group (--shake: large-motion "
+                "stress: failed segments, iterations, residuals)")
     ps.add_argument("--shake", type=at.checked(_shake, "shake"), default=None, metavar="DEG,M",
                     help="stress mode: random per-frame rotations of DEG degrees and translations of M metres "
-                    "(rms) on a smooth path, seeded, e.g. 4,0.05")
+                    "(rms) on a smooth path, seeded, e.g. 4,0.05 (default: no stress, the synthetic path)")
     ps.add_argument("--segments", type=at.positive_int, default=None,
-                    help="30-frame segments per group (default 20; with --shake 100)")
-    ps.add_argument("--seed", type=int, default=0, help="--shake: seed of the stress segments (default 0)")
+                    help="30-frame segments per group (default: 20; with --shake 100)")
+    ps.add_argument("--seed", type=at.nonneg_int, default=0, help="--shake: seed of the stress segments (default: 0)")
     for q in (s, o, m, ps, ra):
-        q.add_argument("--json", action="store_true", help="print one JSON object")
-    pl = b.add_parser("pipeline", help="the services under load: latency, throughput, drops, CPU and memory")
-    pl.add_argument("--fps", type=at.rates, default=[30.0],
-                    help="comma-separated capture rates; 'fast' = as fast as possible (default 30)")
-    pl.add_argument("--seconds", type=at.positive_float, default=120.0, help="measured seconds per rate (default 120)")
+        add_json(q, "the numbers")
+        at.add_force(q)
+    pl = _bench(b, "pipeline", "the services under load: latency, throughput, drops, CPU and memory")
+    pl.add_argument("--fps", type=at.rates, default=[30.0], metavar="RATE[,RATE...]",
+                    help="comma-separated capture rates; 'fast' = as fast as possible (default: 30)")
+    pl.add_argument("--seconds", type=at.positive_float, default=120.0,
+                    help="measured seconds per rate (default: 120)")
     pl.add_argument("--no-record", action="store_true", help="run without the recorder")
     pl.add_argument("--streams", type=at.int_in(1, 16), default=1,
-                    help="cameras side by side, each with its own capture, flow, motion and render (default 1)")
-    pl.add_argument("--size", type=at.frame_size, default="640x480", help="frame size WxH (default 640x480)")
+                    help="cameras side by side, each with its own capture, flow, motion and render (default: 1)")
+    pl.add_argument("--size", type=at.frame_size, default="640x480", help="frame size WxH (default: 640x480)")
     pl.add_argument("--replay", action="store_true",
                     help="capture replays a pre-encoded recording (camera-like cost) instead of rendering live")
-    pl.add_argument("--out", type=at.output_dir("--out"), default="out/bench-pipeline",
-                    help="folder for recordings and logs")
-    pl.add_argument("--json", type=at.output_file("--json"), default=None, metavar="FILE",
-                    help="also write the reports as JSON here")
+    pl.add_argument("--out", type=at.output_dir("--out"), default="out/bench-pipeline", metavar="DIR",
+                    help="folder for recordings and logs (default: out/bench-pipeline)")
+    add_json(pl, "the reports")
+    at.add_force(pl)
 
 
 def _shake(text: str) -> tuple[float, float]:
@@ -102,36 +118,37 @@ def _amplitudes(text: str) -> tuple[float, float, float]:
 
 
 def _add_quality_parser(b: argparse._SubParsersAction) -> None:
-    q = b.add_parser("quality", help="ours vs FFmpeg vid.stab/deshake, vidstab, vidgear and an LK baseline, "
-                     "on 7scenes_redkitchen and known-shake clips made from it",
-                     description="Quality benchmark (quick_stream/bench/quality.py): every method scored by "
-                     "quick_stream.quality.metrics against the same input frames; on the known-shake clips also the "
-                     "share of the injected rotation ours removed (the shake tool's score_rotation.py).")
-    q.add_argument("--data", type=Path, default=DEFAULT_DATA, help=f"folder holding 7scenes_redkitchen "
-                   f"(default {DEFAULT_DATA})")
+    q = _bench(b, "quality", "ours vs FFmpeg vid.stab/deshake, vidstab, vidgear and an LK baseline, "
+               "on 7scenes_redkitchen and known-shake clips made from it",
+               description="Quality benchmark (quick_stream/bench/quality.py): every method scored by "
+               "quick_stream.quality.metrics against the same input frames; on the known-shake clips also the "
+               "share of the injected rotation ours removed (the shake tool's score_rotation.py).")
+    q.add_argument("--data", type=Path, default=DEFAULT_DATA, metavar="DIR", help=f"folder holding 7scenes_redkitchen "
+                   f"(default: {DEFAULT_DATA})")
     q.add_argument("--frames", type=at.positive_int, default=None,
                    help="use only the first N frames of every clip (default: all)")
     q.add_argument("--clip", dest="clips", action="append", type=at.checked(_clip, "clip"), default=None,
                    metavar="SEED:FIRST-LAST", help="a known-shake clip: inject.py seed and inclusive source "
-                   "frame range (repeatable; default 7:0-149 and 11:100-249)")
+                   "frame range; repeatable (default: 7:0-149 and 11:100-249)")
     q.add_argument("--no-shake", action="store_true", help="only the real clip, no known-shake clips")
     q.add_argument("--amplitude", type=at.checked(_amplitudes, "amplitude"), default=(0.6, 0.6, 0.8),
-                   metavar="PITCH,YAW,ROLL", help="RMS shake in deg per axis (default 0.6,0.6,0.8)")
+                   metavar="PITCH,YAW,ROLL", help="RMS shake in deg per axis (default: 0.6,0.6,0.8)")
     q.add_argument("--shake-tool", type=Path, default=Path("../shared/tools/shake"), metavar="DIR",
-                   help="folder of the shake tool (inject.py, score_rotation.py; default ../shared/tools/shake)")
+                   help="folder of the shake tool, inject.py and score_rotation.py (default: ../shared/tools/shake)")
     q.add_argument("--work", type=at.output_dir("--work"), default="out/bench-quality", metavar="DIR",
                    help="cache of made clips (DIR/clips, reused), corrections, FFmpeg files "
-                   "(default out/bench-quality)")
+                   "(default: out/bench-quality)")
     q.add_argument("--variant", dest="variants", action="append", type=at.checked(_variant, "variant"),
                    default=[], metavar="NAME='--flag value ...'",
-                   help="also run ours with these stabilizer flags (those of quick-stream stabilize; repeatable)")
+                   help="also run ours with these stabilizer flags, those of quick-stream stabilize; repeatable "
+                   "(default: none)")
     q.add_argument("--grid", action="store_true",
                    help="add the variants every group x both end modes, and the paper's path (se3, identity, "
                    "--lowpass-sigma 0)")
     q.add_argument("--no-baselines", action="store_true",
                    help="skip the peers (FFmpeg, vidstab, vidgear, LK moving average): ours and the input only")
-    q.add_argument("--json", type=at.output_file("--json"), default=None, metavar="FILE",
-                   help="also write everything (settings, commands, versions, metrics) as JSON here")
+    add_json(q, "everything (settings, commands, versions, metrics)")
+    at.add_force(q)
 
 
 def _quality(args: argparse.Namespace) -> int:
@@ -156,10 +173,11 @@ def _quality(args: argparse.Namespace) -> int:
     cfg = quality.QualityConfig(data=args.data, frames=args.frames, clips=specs, shake_tool=args.shake_tool,
                                 work=Path(args.work), variants=variants, baselines=not args.no_baselines)
     r = quality.run(cfg, quality.progress_to_stderr())
-    print(quality.format_tables(r))
+    print(quality.format_tables(r), file=text_out(args))
     if args.json:
-        quality.write_json(r, Path(args.json))
-        print(f"wrote {args.json}")
+        write_json(args.json, r, default=quality._json_default)
+        if args.json != "-":
+            print(f"wrote {args.json}")
     return 0
 
 
@@ -172,49 +190,56 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    progress = Progress(f"quick-stream bench {args.bench}")
     if args.bench == "pipeline":
         from ..bench import pipeline
 
-        return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
-                             streams=args.streams, size=args.size, replay=args.replay)
+        with progress:
+            return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
+                                 streams=args.streams, size=args.size, replay=args.replay, progress=progress)
     if args.bench == "quality":
         return _quality(args)
-    if args.bench == "speed":
-        from ..bench import speed
+    with progress:
+        if args.bench == "speed":
+            from ..bench import speed
 
-        r = speed.run(args.pairs, args.width, args.height, args.group)
-        text = speed.format_report(r)
-    elif args.bench == "odometry":
-        from ..bench import odometry
+            r = speed.run(args.pairs, args.width, args.height, args.group, progress=progress)
+            text = speed.format_report(r)
+        elif args.bench == "odometry":
+            from ..bench import odometry
 
-        methods = [(g, e) for g in args.groups for e in ("exact", "induced")]
-        r = odometry.run(args.source, methods, opencv=not args.no_opencv, frames=args.frames)
-        text = odometry.format_table(r)
-    elif args.bench == "rotation":
-        from ..bench import rotation_ablation
-        from ..bench.shake_clips import ShakeSpec, check_tool
+            methods = [(g, e) for g in args.groups for e in ("exact", "induced")]
+            r = odometry.run(args.source, methods, opencv=not args.no_opencv, frames=args.frames, progress=progress)
+            text = odometry.format_table(r)
+        elif args.bench == "rotation":
+            from ..bench import rotation_ablation
+            from ..bench.shake_clips import ShakeSpec, check_tool
 
-        try:
-            check_tool(args.shake_tool)
-        except FileNotFoundError as e:
-            print(f"quick-stream bench rotation: {e}", file=sys.stderr)
-            return 2
-        specs = args.clips or [ShakeSpec.parse(c) for c in rotation_ablation.DEFAULT_CLIPS]
-        r = rotation_ablation.run(args.data, specs, Path(args.work) / "clips", args.shake_tool)
-        text = rotation_ablation.format_table(r)
-    elif args.bench == "path":
-        from ..bench import path_speed
+            try:
+                check_tool(args.shake_tool)
+            except FileNotFoundError as e:
+                print(f"quick-stream bench rotation: {e}", file=sys.stderr)
+                return 2
+            specs = args.clips or [ShakeSpec.parse(c) for c in rotation_ablation.DEFAULT_CLIPS]
+            r = rotation_ablation.run(args.data, specs, Path(args.work) / "clips", args.shake_tool,
+                                      progress=lambda msg: progress(msg, force=True))
+            text = rotation_ablation.format_table(r)
+        elif args.bench == "path":
+            from ..bench import path_speed
 
-        if args.shake is None:
-            r = path_speed.run(args.segments or 20)
-            text = path_speed.format_table(r)
+            if args.shake is None:
+                r = path_speed.run(args.segments or 20, progress=progress)
+                text = path_speed.format_table(r)
+            else:
+                r = path_speed.run_stress(*args.shake, segments=args.segments or 100, seed=args.seed,
+                                          progress=progress)
+                text = path_speed.format_stress_table(r, *args.shake)
         else:
-            r = path_speed.run_stress(*args.shake, segments=args.segments or 100, seed=args.seed)
-            text = path_speed.format_stress_table(r, *args.shake)
-    else:
-        from ..bench import moving_objects
+            from ..bench import moving_objects
 
-        r = moving_objects.run(args.data)
-        text = moving_objects.format_table(r)
-    print(json.dumps(r, indent=2, default=float) if args.json else text)
+            r = moving_objects.run(args.data, progress=lambda msg: progress(msg, force=True))
+            text = moving_objects.format_table(r)
+    if args.json:
+        write_json(args.json, r)
+    print(text, file=text_out(args))
     return 0

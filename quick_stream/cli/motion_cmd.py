@@ -3,13 +3,13 @@
 Runs a source through scene flow and the chosen group/estimator; prints ms per
 frame per stage and, where the source has ground-truth poses, the relative pose
 error per frame pair (rotation deg, translation mm: median, mean, RMSE).
-``--compare-opencv`` runs ``cv2.Odometry`` (RGB_DEPTH) on the same pairs.
+``--compare-opencv`` runs ``cv2.Odometry`` (RGB_DEPTH) on the same pairs. Progress
+goes to stderr; ``--json FILE`` (``-``: standard output) writes the report as JSON.
 """
 from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import logging
 import sys
 import time
@@ -27,6 +27,8 @@ from ..io.sources.trajectory import write_tum_trajectory
 from ..quality.evaluation.opencv_odometry import OpenCVOdometry
 from ..quality.evaluation.rpe import ErrorStats, pair_error_stats, relative_pose_error
 from ..stream import argtypes as at
+from .jsonout import add_json, text_out, write_json
+from .progress import Progress
 
 log = logging.getLogger("quick_stream.core.motion")
 
@@ -35,29 +37,32 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "motion",
         help="estimate camera motion from a source and evaluate it",
-        description=__doc__,
+        description=at.plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--source", default="synthetic",
-                   help="synthetic[:key=value,...] (default) or tum:PATH[,key=value,...]")
-    p.add_argument("--frames", type=at.positive_int, default=None, help="process at most this many frames")
-    p.add_argument("--group", choices=sorted(GROUPS), default="se3", help="Lie group (default se3)")
-    p.add_argument("--estimator", choices=ESTIMATORS, default="exact", help="motion estimator (default exact)")
+    p.add_argument("--source", default="synthetic", metavar="SPEC",
+                   help="synthetic[:key=value,...], tum:PATH[,key=value,...] or mcap:FILE (default: synthetic)")
+    p.add_argument("--frames", type=at.positive_int, default=None,
+                   help="process at most this many frames (default: all)")
+    p.add_argument("--group", choices=sorted(GROUPS), default="se3", help="Lie group (default: se3)")
+    p.add_argument("--estimator", choices=ESTIMATORS, default="exact", help="motion estimator (default: exact)")
     p.add_argument("--preset", choices=sorted(DIS_PRESETS), default=SceneFlowParams.preset,
-                   help=f"DIS optical-flow preset (default {SceneFlowParams.preset})")
+                   help=f"DIS optical-flow preset (default: {SceneFlowParams.preset})")
     p.add_argument("--flow-scale", type=at.float_in(0.1, 1.0), default=SceneFlowParams.flow_scale,
-                   help="compute optical flow on images scaled by this factor, 0.1-1 (default 1)")
+                   help="compute optical flow on images scaled by this factor, 0.1-1 (default: 1)")
     p.add_argument("--no-fb-check", action="store_true", help="skip the forward-backward occlusion test")
     p.add_argument("--max-points", type=at.int_in(3), default=SceneFlowParams.max_points,
-                   help=f"scene-flow pairs kept per frame pair (default {SceneFlowParams.max_points})")
+                   help=f"scene-flow pairs kept per frame pair (default: {SceneFlowParams.max_points})")
     p.add_argument("--threads", type=at.positive_int, default=1,
-                   help="OpenCV threads (default 1: one core, as each service runs)")
+                   help="OpenCV threads (default: 1, one core, as each service runs)")
     p.add_argument("--compare-opencv", action="store_true",
                    help="also run OpenCV RGB-D odometry (cv2.Odometry, RGB_DEPTH) on the same pairs")
-    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
-    p.add_argument("--trajectory", type=at.output_file("--trajectory"), metavar="FILE",
-                   help="write the estimated camera path in TUM format (anchored at the first "
-                        "ground-truth pose when the source has one)")
+    add_json(p, "the report")
+    p.add_argument("--trajectory", type=at.output_file("--trajectory"), metavar="FILE", default=None,
+                   help="write the estimated camera path in TUM format, anchored at the first ground-truth pose "
+                        "when the source has one (default: none)")
+    at.add_force(p)
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def _fmt_stats(name: str, s: ErrorStats, ms: float) -> str:
@@ -80,6 +85,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"quick-stream motion: {e}", file=sys.stderr)
         return 2
     frames = source if args.frames is None else itertools.islice(source, args.frames)
+    try:
+        total: int | str = len(source) if args.frames is None else min(args.frames, len(source))
+    except TypeError:  # a live camera has no length
+        total = "?" if args.frames is None else args.frames
+    progress = Progress("quick-stream motion", enabled=not args.quiet)
+
+    def counted(items):
+        for i, item in enumerate(items, 1):
+            yield item
+            progress(f"{i}/{total} frames")
 
     ocv_errors: list[tuple[float, float]] = []
     ocv_ms: list[float] = []
@@ -101,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
         log.warning("skipping frame %s (%s): %s", rec["seq"], rec["origin"], rec["error"])
 
     t_start = time.perf_counter()
-    result = run_motion(frames, pipeline, on_failure=on_failure, extra=compare if ocv else None)
+    with progress:
+        result = run_motion(counted(frames), pipeline, on_failure=on_failure, extra=compare if ocv else None)
     wall = time.perf_counter() - t_start
 
     timing = result.timer.summary()
@@ -142,24 +158,27 @@ def run(args: argparse.Namespace) -> int:
         report["trajectory"] = args.trajectory
 
     if args.json:
-        print(json.dumps(report, indent=2, default=float))
-        return 0
+        write_json(args.json, report)
+    out = text_out(args)
 
-    print(f"source {args.source}: {report['frames']} frames, {report['pairs']} pairs "
-          f"({report['valid_pairs']} valid), {len(result.failures)} bad frames, {wall:.1f} s")
-    print("\nms per frame, by stage (mean / median / p95):")
+    def say(*a: object) -> None:  # the text report: stdout, or stderr when the JSON takes stdout
+        print(*a, file=out)
+
+    say(f"source {args.source}: {report['frames']} frames, {report['pairs']} pairs "
+        f"({report['valid_pairs']} valid), {len(result.failures)} bad frames, {wall:.1f} s")
+    say("\nms per frame, by stage (mean / median / p95):")
     for stage, s in timing.items():
-        print(f"  {stage:<8} {s['mean']:8.2f} {s['median']:8.2f} {s['p95']:8.2f}")
+        say(f"  {stage:<8} {s['mean']:8.2f} {s['median']:8.2f} {s['p95']:8.2f}")
     if ocv_ms:
-        print(f"  {'opencv':<8} {np.mean(ocv_ms):8.2f} {np.median(ocv_ms):8.2f} {np.percentile(ocv_ms, 95):8.2f}")
-    print("\nrelative pose error per frame pair" + ("" if stats.n else " (no ground truth)") + ":")
-    print(f"{'method':<24} {'pairs':>5} {'rot med':>8} {'rot mean':>8} {'rot rms':>8} "
-          f"{'t med mm':>8} {'t mean':>8} {'t rms':>8} {'ms/pair':>9}")
+        say(f"  {'opencv':<8} {np.mean(ocv_ms):8.2f} {np.median(ocv_ms):8.2f} {np.percentile(ocv_ms, 95):8.2f}")
+    say("\nrelative pose error per frame pair" + ("" if stats.n else " (no ground truth)") + ":")
+    say(f"{'method':<24} {'pairs':>5} {'rot med':>8} {'rot mean':>8} {'rot rms':>8} "
+        f"{'t med mm':>8} {'t mean':>8} {'t rms':>8} {'ms/pair':>9}")
     for mname, m in report["methods"].items():
         s = ErrorStats(**{k: m[k] for k in ErrorStats.__dataclass_fields__})
-        print(_fmt_stats(mname, s, m["ms_per_pair"]))
+        say(_fmt_stats(mname, s, m["ms_per_pair"]))
     for rec in invalid[:10]:
-        print(f"invalid motion {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
+        say(f"invalid motion {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
     if len(invalid) > 10:
-        print(f"... {len(invalid) - 10} more invalid motions")
+        say(f"... {len(invalid) - 10} more invalid motions")
     return 0

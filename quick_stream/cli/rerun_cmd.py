@@ -5,7 +5,8 @@ recorder logged (``frame``; ``flow``; ``frame`` + ``correction``) with the given
 stabilizer settings (the flags the services ran with) and compares what it makes
 with the logged outputs (see :mod:`quick_stream.quality.rerun`). Prints a report; exit
 code 0 when every logged output is reproduced identically, 1 when any differs,
-2 when the stage cannot be re-run (missing file, no logged inputs, bad flags).
+2 when the stage cannot be re-run (missing file, no logged inputs, bad flags). Progress
+(the time it has been working) goes to stderr.
 """
 from __future__ import annotations
 
@@ -16,17 +17,18 @@ from pathlib import Path
 import cv2
 
 from ..quality.rerun import RerunError, RerunResult, STAGES, rerun_stage
-from ..stream.argtypes import stream_id
+from ..stream.argtypes import plain_text, stream_id
 from ..stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from .progress import heartbeat
 
 SHOWN = 10  # mismatches listed in the report
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("rerun", help="re-run one stage from a recording and compare with its logged outputs",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                       description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("stage", choices=STAGES, help="the stage to re-run")
-    p.add_argument("recording", type=Path, help="MCAP recording (the recorder service's)")
+    p.add_argument("recording", type=Path, metavar="FILE", help="MCAP recording (the recorder service's)")
     p.add_argument("--stream", type=stream_id, default=None, help="stream id (default: the recording's only stream)")
     add_stabilizer_args(p)
 
@@ -55,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)  # as the services run OpenCV: bit-exact results
     try:
         params = stabilizer_params(args)
-        result = rerun_stage(args.recording, args.stage, args.stream, params)
+        with heartbeat("quick-stream rerun", f"re-running the {args.stage} stage on {args.recording}"):
+            result = rerun_stage(args.recording, args.stage, args.stream, params)
     except (RerunError, ValueError) as e:
         print(f"quick-stream rerun: {e}", file=sys.stderr)
         return 2

@@ -1,8 +1,10 @@
 """``quick-stream router``: a Zenoh router in a Python process (no ``zenohd`` needed).
 
 The hub the services connect to (``-e tcp/HOST:7447``). Listens on
-``tcp/0.0.0.0:7447`` unless ``-l`` says otherwise; the other standard zenoh flags
-(``-c``, ``--cfg``, ``--no-multicast-scouting``) apply. Runs until SIGTERM/SIGINT.
+``tcp/0.0.0.0:7447`` unless ``-l`` (or the ``-c`` file) says otherwise; the other standard
+zenoh flags (``-e`` to other routers, ``-c``, ``--cfg``, ``--no-multicast-scouting``, TLS)
+apply. Always a router: ``-m`` takes ``router`` only (a ``mode`` set by the ``-c`` file or
+QUICK_STREAM_ZENOH_MODE is overridden). Runs until SIGTERM/SIGINT.
 """
 from __future__ import annotations
 
@@ -13,19 +15,27 @@ import threading
 
 import zenoh
 
+from ..stream.argtypes import plain_text
 from ..stream.transport import add_zenoh_args, config_from_args, zenoh_message
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("router", help="run a Zenoh router (the services' hub)", description=__doc__,
+    p = sub.add_parser("router", help="run a Zenoh router (the services' hub)", description=plain_text(__doc__),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     add_zenoh_args(p)
+    for action in p._actions:  # the standard zenoh flags, as a router takes them
+        if action.dest == "mode":  # always a router: -m takes only that (peer/client would be refused by name)
+            action.choices, action.default = ("router",), "router"
+            action.help = "session mode: always router for this command (default: router)"
+        elif action.dest == "listen":
+            action.help = (f"endpoint to listen on; repeatable (default: {DEFAULT_LISTEN}, unless the -c file "
+                           "sets listen endpoints)")
 
 
 def router_config(args: argparse.Namespace) -> zenoh.Config:
-    """The router's config: the flags, forced to router mode, listening on 7447 by default."""
+    """The router's config: the flags, in router mode (``-m`` takes nothing else), listening on 7447 by default."""
     args.mode = "router"
     if not args.listen and not args.config:
         args.listen = [DEFAULT_LISTEN]

@@ -31,22 +31,29 @@ from ..stream.stabilizer_flags import add_stabilizer_args, path_label, stabilize
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("stabilize", help="stabilize a source into a video", description=__doc__,
+    p = sub.add_parser("stabilize", help="stabilize a source into a video", description=at.plain_text(__doc__),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
-    p.add_argument("--frames", type=at.positive_int, default=None, help="stabilize at most this many frames")
+    p.add_argument("--source", default="synthetic", metavar="SPEC",
+                   help="synthetic[:k=v,...], tum:PATH or mcap:FILE (default: synthetic)")
+    p.add_argument("--frames", type=at.positive_int, default=None,
+                   help="stabilize at most this many frames (default: all)")
     add_stabilizer_args(p)
-    p.add_argument("--output", type=at.output_file("--output", at.VIDEO_SUFFIXES, "video"),
-                   default="out/stabilized.mp4", help="MP4 file ('' for none)")
-    p.add_argument("--png", type=at.output_dir("--png"), default=None, metavar="DIR",
-                   help="also write every stabilized frame as PNG here")
-    p.add_argument("--report", type=at.output_file("--report"), default="out/report.json",
-                   help="JSON report file ('' for none)")
-    p.add_argument("--plot", type=at.image_file("--plot"), default="out/path.png",
-                   help="PNG plot of the camera path ('' for none)")
+    g = p.add_argument_group("outputs", "Never overwritten: a default name gets the next free number, the same\n"
+                             "for the video, report and plot of one run (out/stabilized-1.mp4,\n"
+                             "out/report-1.json, out/path-1.png); a named file that exists is refused\n"
+                             "unless --force.")
+    g.add_argument("--output", type=at.output_file("--output", at.VIDEO_SUFFIXES, "video"), metavar="FILE",
+                   default=at.default_name("out/stabilized.mp4"), help="MP4 file, '' for none (default: %(default)s)")
+    g.add_argument("--png", type=at.output_dir("--png", files="*.png"), default=None, metavar="DIR",
+                   help="also write every stabilized frame as PNG here (default: none)")
+    g.add_argument("--report", type=at.output_file("--report"), default=at.default_name("out/report.json"),
+                   metavar="FILE", help="JSON report file, '' for none (default: %(default)s)")
+    g.add_argument("--plot", type=at.image_file("--plot"), default=at.default_name("out/path.png"), metavar="FILE",
+                   help="PNG plot of the camera path, '' for none (default: %(default)s)")
+    g.add_argument("--force", action="store_true", help=at.FORCE_HELP)
     p.add_argument("--no-metrics", action="store_true",
                    help="skip the quality metrics (cropping, distortion, stability, jitter; ~65 ms per frame)")
-    p.add_argument("--threads", type=at.positive_int, default=1, help="OpenCV threads (default 1)")
+    p.add_argument("--threads", type=at.positive_int, default=1, help="OpenCV threads (default: 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -74,6 +81,17 @@ class Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except OSError as e:  # an output that went bad after the checks (a full disk, a codec refusing the file)
+        text = f"{e.filename}: {e.strerror}" if e.filename and e.strerror else str(e)
+        flag = next((flag for flag, v in (("--output", args.output), ("--png", args.png), ("--report", args.report),
+                                          ("--plot", args.plot)) if v and str(v) in text), None)
+        print(f"\nquick-stream stabilize: {flag + ': ' if flag else ''}{text}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(max(1, args.threads))
     try:
         source = open_source(args.source)

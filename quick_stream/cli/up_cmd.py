@@ -7,8 +7,9 @@ requires mutual TLS and enforces its access control, and every service is a TLS
 client of it with its own certificate (deploy/tls/make-certs.sh; docs/deployment.md). Shows fps, ms per item, drops and
 restarts per service once a second; restarts a service that dies; stops
 everything cleanly when the source is exhausted and the last frame is rendered,
-after ``--duration`` seconds, or on Ctrl-C. Leaves the MCAP recording, the
-stabilized MP4 and the services' logs (``<out>/logs``).
+after ``--duration`` seconds, or on Ctrl-C. Leaves in ``--out`` the MCAP recording
+and the stabilized MP4, never overwriting an earlier run's (``recording-1.mcap``,
+``stabilized-1.mp4``, ...), and the services' logs (``<out>/logs``).
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from pathlib import Path
 import zenoh
 
 from ..io.recording import fresh_path
+from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source
 from ..stream import argtypes as at
 from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, free_port, open_when_up
@@ -31,30 +33,41 @@ SERVICES = ("recorder", "flow", "motion", "render", "capture")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("up", help="run router + all services locally, with live status", description=__doc__,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--source", default="synthetic", help="synthetic[:k=v,...] (default), tum:PATH or mcap:FILE")
-    p.add_argument("--frames", type=at.positive_int, default=None, help="stop the source after this many frames")
-    p.add_argument("--duration", type=at.positive_float, default=None, help="stop everything after this many seconds")
-    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime")
-    p.add_argument("--fps", type=at.positive_float, default=None, help="capture rate override (realtime pacing)")
+    p = sub.add_parser("up", help="run router + all services locally, with live status",
+                       description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--source", default="synthetic", metavar="SPEC",
+                   help="synthetic[:k=v,...], tum:PATH, mcap:FILE or depthai[:DEVICE_ID][,k=v,...] "
+                   "(default: synthetic)")
+    p.add_argument("--frames", type=at.positive_int, default=None,
+                   help="stop the source after this many frames (default: all)")
+    p.add_argument("--duration", type=at.positive_float, default=None, metavar="S",
+                   help="stop everything after this many seconds (default: when the source is done)")
+    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
+                   help="realtime: frames sent at their own timestamps; fast: as fast as the pipeline takes "
+                   "them (default: realtime)")
+    p.add_argument("--fps", type=at.positive_float, default=None,
+                   help="capture rate override, realtime pacing only (default: the source's rate)")
     p.add_argument("--stream", type=at.stream_id, default="cam0",
-                   help="stream id, 1-64 of [A-Za-z0-9_-] (default cam0)")
-    p.add_argument("--out", type=at.output_dir("--out"), default="out",
-                   help="folder for recording.mcap, stabilized.mp4 and logs (default out)")
+                   help="stream id, 1-64 of [A-Za-z0-9_-] (default: cam0)")
+    p.add_argument("--out", type=at.output_dir("--out"), default="out", metavar="DIR",
+                   help="folder for the recording, the stabilized video and logs; an earlier run's files are "
+                   "kept, this run's numbered after them (default: out)")
     p.add_argument("--no-record", action="store_true", help="do not run the recorder")
     p.add_argument("--port", type=at.port, default=0, help="router port on 127.0.0.1 (default: a free one)")
-    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="frame colour encoding on the wire")
-    p.add_argument("--png", type=at.output_dir("--png"), default=None, metavar="DIR",
-                   help="render also writes every frame as PNG here")
+    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg",
+                   help="frame colour encoding on the wire (default: jpeg)")
+    p.add_argument("--png", type=at.output_dir("--png", files="*.png"), default=None, metavar="DIR",
+                   help="render also writes every frame as PNG here (default: none)")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite PNG frames already in --png DIR (default: refuse)")
     p.add_argument("--quiet", action="store_true", help="no live status")
     p.add_argument("--tls-dir", default=None, metavar="DIR",
                    help="mutual TLS and access control: the folder deploy/tls/make-certs.sh wrote (router/, "
                    "monitor/: this command's own session, <stream>/<service>/); the services are TLS clients "
-                   "of the router")
+                   "of the router (default: no TLS)")
     p.add_argument("--router-config", default=None, metavar="FILE",
-                   help="with --tls-dir: the router's configuration (default: `quick-stream acl --streams <stream>`, "
-                   "written to <out>/logs/router-tls.json5); its listen endpoint and certificate paths are replaced")
+                   help="with --tls-dir: the router's configuration; its listen endpoint and certificate paths are "
+                   "replaced (default: 'quick-stream acl --streams <stream>', written to <out>/logs/router-tls.json5)")
     add_stabilizer_args(p)
 
 
@@ -110,7 +123,8 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
         ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
         ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
         ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
-                               "--output", str(out / "stabilized.mp4")] + (["--png", args.png] if args.png else [])),
+                               "--output", str(getattr(args, "video", out / "stabilized.mp4"))]
+                    + (["--png", args.png] if args.png else [])),
     ]
     wait = ",".join(s.name for s in specs[1:])
     cap = ["-m", "quick_stream.services.capture", *z("capture"), "--source", args.source, "--pace", args.pace,
@@ -189,8 +203,10 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    # never overwrite a recording: an earlier run's stays, this one gets recording-1.mcap, ...
+    # never overwrite a recording or a video: an earlier run's stays, this one gets recording-1.mcap,
+    # stabilized-1.mp4, ...
     args.recording = fresh_path(out / "recording.mcap")
+    args.video = fresh_path(out / "stabilized.mp4")
     before = set(out.glob("recording*.mcap"))
     endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
     if args.tls_dir and not args.router_config:
@@ -259,6 +275,6 @@ def run(args: argparse.Namespace) -> int:
         print("exit codes: " + ", ".join(f"{n} {c}" for n, c in bad.items()), file=sys.stderr)
     for e in sup.events:
         print(f"event: {e['service']} {e['event']}")
-    files = [out / "stabilized.mp4"] + ([] if args.no_record else sorted(set(out.glob("recording*.mcap")) - before))
+    files = [args.video] + ([] if args.no_record else sorted(set(out.glob("recording*.mcap")) - before))
     print("wrote " + ", ".join(str(f) for f in files if f.exists()) + f" (logs in {out / 'logs'})")
     return 1 if failed else 0

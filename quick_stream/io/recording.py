@@ -273,20 +273,38 @@ class RecoveryReport:
     topics: dict[str, int] = field(default_factory=dict)
 
 
-def recover(src: str | os.PathLike, dst: str | os.PathLike) -> RecoveryReport:
-    """Copy every readable message of ``src`` into a new indexed MCAP file ``dst``."""
+def recover(src: str | os.PathLike, dst: str | os.PathLike, *, overwrite: bool = False) -> RecoveryReport:
+    """Copy every readable message of ``src`` into a new indexed MCAP file ``dst``.
+
+    The copy is written beside ``dst`` (``<dst>.part``) and renamed to ``dst`` once complete: a
+    recording that cannot be repaired leaves no file. An existing ``dst`` is a RecordingError
+    unless ``overwrite``."""
     src, dst = Path(src), Path(dst)
     if src.resolve() == dst.resolve():
         raise RecordingError(f"{src}: recover needs a different output file")
+    if dst.exists() and not overwrite:
+        raise RecordingError(f"{dst}: exists (give another output file, or overwrite it: --force)")
     try:
         fin = open_recording(src)
     except OSError as e:
         raise RecordingError(f"{src}: cannot open: {e.strerror}") from None
+    part = dst.with_name(dst.name + ".part")
+    try:
+        report = _copy_readable(src, fin, part, dst)
+        if not overwrite and dst.exists():  # appeared meanwhile: still not ours to replace
+            raise RecordingError(f"{dst}: exists (give another output file, or overwrite it: --force)")
+        os.replace(part, dst)
+    finally:
+        part.unlink(missing_ok=True)
+    return report
+
+
+def _copy_readable(src: Path, fin: BoundedFile, part: Path, dst: Path) -> RecoveryReport:
     schemas: dict[int, Schema] = {}
     out_channels: dict[int, str] = {}  # source channel id -> topic (registered in the output)
     topics: dict[str, int] = {}
     stopped, complete, n = "", False, 0
-    with fin, Recorder(dst) as rec:
+    with fin, Recorder(part) as rec:
         try:
             for record in StreamReader(fin, record_size_limit=max(fin.size, 1)).records:
                 if isinstance(record, Schema):

@@ -6,15 +6,23 @@ finite (NaN and infinities are refused everywhere) and within the bound the flag
 
 Output paths are two-step. The ``type=`` here checks only what the text says (a video needs a
 video suffix); whether the path can be written (no regular file in the way of its folder, not
-an existing directory, a writable ancestor) is :func:`check_outputs`, called once the command
-is about to run. Parsing must not depend on this host's file system: the deployment tests
-parse the containers' commands, whose paths exist only inside the containers.
+an existing directory, a folder a file can be created in: tried, not guessed from permission
+bits) is :func:`check_outputs`, called once the command is about to run. Parsing must not
+depend on this host's file system: the deployment tests parse the containers' commands, whose
+paths exist only inside the containers. The ``quick-stream`` commands also never overwrite a
+file silently (:func:`claim_outputs`): a default output name is numbered like the recordings
+(``stabilized-1.mp4``), a named file that exists is refused unless ``--force``.
+
+Help texts are plain text (:func:`plain_text` turns a module docstring into a description).
 """
 from __future__ import annotations
 
 import argparse
+import inspect
 import math
 import os
+import re
+import tempfile
 from pathlib import Path
 from typing import Callable, Iterable, TypeVar
 
@@ -133,19 +141,58 @@ frame_size = checked(_frame_size, "frame_size")  # "640x480"
 rates = checked(_rates, "rates")  # "30,60,fast": frames/s per run, None = as fast as possible
 
 
+# --- help texts ---------------------------------------------------------------------------------
+
+_ROLE = re.compile(r":[a-z]+(?::[a-z]+)?:`(~?)([^`<]*?)\s*(?:<[^>]*>)?`")  # :class:`x`, :func:`~a.b`
+_LITERAL = re.compile(r"``(.+?)``", re.S)
+_LINK = re.compile(r"`([^`]+?)`_{0,2}")
+RST_MARKUP = re.compile(r"``|:[a-z]+(?::[a-z]+)?:`|`[^`]+`_|\.\. [a-z]+::")  # what plain help must not hold
+
+
+def plain_text(doc: str | None) -> str:
+    """A docstring as plain help text: reStructuredText roles and literals unwrapped
+    (``:class:`~a.B``` -> ``B``, ````x```` -> ``x``), indentation removed."""
+    if not doc:
+        return ""
+    text = _ROLE.sub(lambda m: m.group(2).rsplit(".", 1)[-1] if m.group(1) else m.group(2), doc)
+    text = _LITERAL.sub(r"\1", text)
+    text = _LINK.sub(r"\1", text)
+    return inspect.cleandoc(text)
+
+
 # --- output paths -------------------------------------------------------------------------------
 
 class OutputPath(str):
     """A path the command will write (a file, or a folder with ``directory``), and the flag that
-    named it; :func:`check_outputs` finds these among the parsed arguments."""
+    named it; :func:`check_outputs` finds these among the parsed arguments. ``numbered``: a
+    default name, given the next free number instead of overwriting (:func:`claim_outputs`);
+    ``files``: for a folder, the glob of the files the command writes in it (refused where they
+    exist, unless ``--force``)."""
 
     flag: str
     directory: bool
+    numbered: bool
+    files: str
 
-    def __new__(cls, text: str, flag: str = "", directory: bool = False) -> "OutputPath":
+    def __new__(cls, text: str, flag: str = "", directory: bool = False, numbered: bool = False,
+                files: str = "") -> "OutputPath":
         self = super().__new__(cls, text)
-        self.flag, self.directory = flag, directory
+        self.flag, self.directory, self.numbered, self.files = flag, directory, numbered, files
         return self
+
+    def with_text(self, text: str) -> "OutputPath":
+        return OutputPath(text, self.flag, self.directory, self.numbered, self.files)
+
+
+def default_name(text: str) -> OutputPath:
+    """A ``default=`` for an output flag: when it is used, the file gets the next free number
+    (``out/stabilized.mp4``, then ``out/stabilized-1.mp4``, ...) instead of overwriting."""
+    return OutputPath(text, numbered=True)
+
+
+def _overwrites(parse: Callable[[str], T]) -> Callable[[str], T]:
+    parse.overwrites = True  # type: ignore[attr-defined]  # the command needs --force (tests check it has one)
+    return parse
 
 
 def output_file(flag: str, suffixes: Iterable[str] = (), what: str = "file") -> Callable[[str], str]:
@@ -157,9 +204,22 @@ def output_file(flag: str, suffixes: Iterable[str] = (), what: str = "file") -> 
             return text
         if allowed and Path(text).suffix.lower() not in allowed:
             raise ValueError(f"{text!r} is not a {what} name (use {', '.join(allowed)})")
-        return OutputPath(text, flag)
+        return OutputPath(text, flag, numbered=getattr(text, "numbered", False))
 
-    return checked(check, "output_file")
+    return _overwrites(checked(check, "output_file"))
+
+
+def json_output(flag: str = "--json") -> Callable[[str], str]:
+    """Type: where ``--json`` goes: a file to write, or ``-`` for standard output."""
+    file = output_file(flag)
+
+    def parse(text: str) -> str:
+        if not text:
+            raise argparse.ArgumentTypeError("expected a file name, or - for standard output")
+        return "-" if text == "-" else file(text)
+
+    parse.__name__ = "json_output"
+    return _overwrites(parse)
 
 
 def image_file(flag: str) -> Callable[[str], str]:
@@ -169,17 +229,19 @@ def image_file(flag: str) -> Callable[[str], str]:
 
         if text and not cv2.haveImageWriter(text):
             raise ValueError(f"{text!r}: OpenCV cannot write images with suffix {Path(text).suffix!r} (use .png)")
-        return OutputPath(text, flag) if text else text
+        return OutputPath(text, flag, numbered=getattr(text, "numbered", False)) if text else text
 
-    return checked(check, "image_file")
+    return _overwrites(checked(check, "image_file"))
 
 
-def output_dir(flag: str) -> Callable[[str], str]:
-    """Type: a folder to write into (``""``: none); it may not exist yet."""
+def output_dir(flag: str, files: str = "") -> Callable[[str], str]:
+    """Type: a folder to write into (``""``: none); it may not exist yet. ``files``: the glob of
+    the files written in it (say ``*.png``), which must not be there already unless ``--force``."""
     def check(text: str) -> str:
-        return OutputPath(text, flag, directory=True) if text else text
+        return OutputPath(text, flag, directory=True, files=files) if text else text
 
-    return checked(check, "output_dir")
+    parse = checked(check, "output_dir")
+    return _overwrites(parse) if files else parse
 
 
 def _existing_ancestor(path: Path) -> Path:
@@ -205,6 +267,22 @@ def check_output(value: OutputPath) -> None:
         raise ValueError(f"{where}: {base} is not writable")
     if path.exists() and not os.access(path, os.W_OK):
         raise ValueError(f"{where}: not writable")
+    _try_writing(value, path, base, where)
+
+
+def _try_writing(value: OutputPath, path: Path, base: Path, where: str) -> None:
+    """Permission bits do not tell (root passes every access check, /proc and /sys refuse new files
+    anyway): create and remove a file where the output will go, open an existing file for appending."""
+    try:
+        if not value.directory and path.is_file():
+            with open(path, "ab"):
+                pass
+            return
+        with tempfile.TemporaryFile(dir=base, prefix=".quick-stream-probe-"):
+            pass
+    except OSError as e:
+        what = f"cannot write {path}" if not value.directory and path.exists() else f"cannot create files in {base}"
+        raise ValueError(f"{where}: {what} ({e.strerror or e})") from None
 
 
 def check_outputs(args: argparse.Namespace) -> None:
@@ -212,3 +290,49 @@ def check_outputs(args: argparse.Namespace) -> None:
     for value in vars(args).values():
         if isinstance(value, OutputPath):
             check_output(value)
+
+
+def numbered_path(path: str | os.PathLike, n: int) -> str:
+    """``path`` for n = 0, else ``<stem>-<n><suffix>`` (``out/stabilized-2.mp4``)."""
+    p = Path(path)
+    return str(p) if n == 0 else str(p.with_name(f"{p.stem}-{n}{p.suffix}"))
+
+
+def first_free(paths: Iterable[str | os.PathLike]) -> int:
+    """The smallest n >= 0 for which no ``numbered_path(p, n)`` exists: outputs of one run share it."""
+    paths = list(paths)
+    n = 0
+    while any(os.path.lexists(numbered_path(p, n)) for p in paths):
+        n += 1
+    return n
+
+
+def claim_outputs(args: argparse.Namespace, force: bool = False) -> None:
+    """Never overwrite silently: the outputs left at their default names (``default_name``) all get
+    the first number free for every one of them (``stabilized-1.mp4``, ``report-1.json``, ...;
+    ``args`` is updated); a file named on the command line that exists, or a folder that already
+    holds the files the command writes in it, is a ValueError naming the flag unless ``force``."""
+    outputs = {dest: v for dest, v in vars(args).items() if isinstance(v, OutputPath)}
+    defaults = {dest: v for dest, v in outputs.items() if v.numbered and not v.directory}
+    n = first_free(defaults.values())
+    for dest, v in defaults.items():
+        setattr(args, dest, v.with_text(numbered_path(v, n)))
+    if force:
+        return
+    for v in outputs.values():
+        path = Path(v)
+        if v.numbered:
+            continue
+        if not v.directory and path.is_file():
+            raise ValueError(f"{v.flag} {v}: exists (give another name, or --force to overwrite it)")
+        if v.directory and v.files and path.is_dir() and next(path.glob(v.files), None) is not None:
+            raise ValueError(f"{v.flag} {v}: already holds {v.files} files (give another folder, or --force to "
+                             f"overwrite them)")
+
+
+FORCE_HELP = "overwrite output files that exist (default: refuse, naming the file)"
+
+
+def add_force(p: argparse.ArgumentParser) -> None:
+    """``--force``, for a command that writes files (:func:`claim_outputs`)."""
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)

@@ -30,8 +30,12 @@ LATENCY_PRESETS = {"normal": (KeyframeParams.interval, PlannerParams.lookahead, 
 
 def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("stabilizer settings")
-    g.add_argument("--group", choices=sorted(GROUPS), default="se3")
-    g.add_argument("--estimator", choices=ESTIMATORS, default="exact")
+    g.add_argument("--group", choices=sorted(GROUPS), default="se3",
+                   help="Lie group of the camera motion: se3 rigid, sim3 + scale, sa3 + per-axis scale, "
+                        "ga3 general affine (default se3)")
+    g.add_argument("--estimator", choices=ESTIMATORS, default="exact",
+                   help="motion estimator: exact = robust fit of the group element, induced = the paper's mean "
+                        "of induced twists (default exact)")
     g.add_argument("--latency", choices=sorted(LATENCY_PRESETS), default="normal",
                    help="path latency preset: normal = keyframe interval %d, look-ahead %d, smoothness %g "
                         "(1 s at 30 fps); low = interval %d, look-ahead %d, smoothness %g (0.5 s); "
@@ -65,7 +69,9 @@ def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fill-band", type=float, default=BudgetParams.fill,
                    help="border fill: share of half the short side the smooth path may leave uncovered for the "
                         f"fill (0 = the crop alone removes every border; default {BudgetParams.fill:g})")
-    g.add_argument("--framing", choices=("black", "crop", "auto"), default="auto")
+    g.add_argument("--framing", choices=("black", "crop", "auto"), default="auto",
+                   help="what the output shows past the frame's edge: black = nothing, crop = a fixed "
+                        "--crop-zoom, auto = the planned zoom (default auto)")
     g.add_argument("--crop-zoom", type=float, default=FramingParams.crop_zoom,
                    help=f"zoom for --framing crop, >= 1 (default {FramingParams.crop_zoom:g})")
 

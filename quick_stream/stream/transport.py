@@ -35,23 +35,30 @@ import zenoh
 
 def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("zenoh")
-    g.add_argument("-m", "--mode", choices=("peer", "client", "router"), help="session mode (default peer)")
+    g.add_argument("-m", "--mode", choices=("peer", "client", "router"),
+                   help="session mode (default: peer, or $QUICK_STREAM_ZENOH_MODE, or the -c file's)")
     g.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (default: none, or "
+                        "$QUICK_STREAM_ZENOH_CONNECT, comma-separated)")
     g.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to listen on (repeatable)")
-    g.add_argument("-c", "--config", metavar="FILE", help="zenoh JSON5 configuration file")
+                   help="endpoint to listen on; repeatable (default: none, or $QUICK_STREAM_ZENOH_LISTEN; "
+                        "a peer with -e listens on a free port)")
+    g.add_argument("-c", "--config", metavar="FILE",
+                   help="zenoh JSON5 configuration file (default: none, or $QUICK_STREAM_ZENOH_CONFIG)")
     g.add_argument("--no-multicast-scouting", action="store_true",
                    help="disable multicast scouting (the default here: see --multicast-scouting)")
     g.add_argument("--multicast-scouting", action="store_true",
                    help="discover peers and routers by UDP multicast (off unless asked for, or set by the -c file: "
                    "separate deployments on one network would otherwise join)")
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
-                   help="set a configuration key to a JSON5 value (repeatable)")
+                   help="set a configuration key to a JSON5 value, e.g. transport/shared_memory/enabled:false; "
+                   "repeatable (default: none)")
     g.add_argument("--tls-dir", default=None, metavar="DIR",
-                   help="TLS with mutual authentication: DIR/ca.pem and DIR/<--tls-name>.pem/.key")
+                   help="TLS with mutual authentication: DIR/ca.pem and DIR/<--tls-name>.pem/.key (default: no TLS, "
+                   "or $QUICK_STREAM_ZENOH_TLS_DIR)")
     g.add_argument("--tls-name", default=None, metavar="NAME",
-                   help="this process's certificate name in --tls-dir (e.g. flow, router)")
+                   help="this process's certificate name in --tls-dir, e.g. flow, router (default: none, or "
+                   "$QUICK_STREAM_ZENOH_TLS_NAME)")
 
 
 ENV = "QUICK_STREAM_ZENOH_"

@@ -69,6 +69,25 @@ def test_processes_refuse_bad_input_quickly(d: Path, tmp_path: Path) -> None:
         (["quick_stream", "up", "--source", "bogus:x", "--out", str(tmp_path / "up")], {}, ["--source", "'bogus'"]),
         (["quick_stream", "router", "-l", "tcp/nohost"], {}, ["--listen", "'tcp/nohost'"]),
     ]
+    refused_as_processes(rows)
+    assert not (tmp_path / "up").exists(), "up started something before refusing its source"
+
+
+def test_command_line_conventions_as_processes(d: Path) -> None:
+    """Router mode, evaluate's clip, an output that exists or cannot be created: exit 2, named, no traceback."""
+    rows = [
+        (["quick_stream", "router", "-m", "peer"], {}, ["--mode", "'peer'"]),
+        (["quick_stream", "evaluate", f"mcap:{d}/rec.mcap"], {}, ["tum:PATH"]),
+        (["quick_stream", "recover", f"{d}/rec.mcap", f"{d}/file.txt"], {}, ["DST", "file.txt", "exists", "--force"]),
+    ]
+    if Path("/proc/self").exists():  # where no file can be created, whatever the permission bits say
+        rows += [(["quick_stream", "up", "--out", "/proc/foo"], {}, ["--out /proc/foo", "cannot create"]),
+                 (["quick_stream", "stabilize", "--output", "/proc/x.mp4"], {}, ["--output /proc/x.mp4",
+                                                                                 "cannot create"])]
+    refused_as_processes(rows)
+
+
+def refused_as_processes(rows: list[tuple[list[str], dict[str, str], list[str]]]) -> None:
     with processes() as launch:
         procs = [(launch(args, env), names) for args, env, names in rows]
         for p, names in procs:
@@ -76,7 +95,6 @@ def test_processes_refuse_bad_input_quickly(d: Path, tmp_path: Path) -> None:
             assert code == 2 and "Traceback" not in out, f"{shlex.join(p.args)}: exit {code}\n{out}"
             for name in names:
                 assert name in out, f"{shlex.join(p.args)}: {name!r} not named in:\n{out}"
-    assert not (tmp_path / "up").exists(), "up started something before refusing its source"
 
 
 def test_listen_endpoint_in_use_is_named_not_a_traceback() -> None:
@@ -91,3 +109,16 @@ def test_listen_endpoint_in_use_is_named_not_a_traceback() -> None:
             code, out = finish(p)
             assert code == 2 and "Traceback" not in out, f"{shlex.join(p.args)}: exit {code}\n{out}"
             assert endpoint in out and "in use" in out, out
+
+
+def test_service_modules_name_their_installed_command() -> None:
+    """``python -m quick_stream.services.NAME -h`` shows the console script's name, which is installed."""
+    import shutil
+
+    with processes() as launch:
+        procs = {name: launch([f"quick_stream.services.{name}", "-h"])
+                 for name in ("capture", "flow", "motion", "render", "recorder")}
+        for name, p in procs.items():
+            code, out = finish(p)
+            assert code == 0 and out.startswith(f"usage: quick-stream-{name} "), out
+            assert shutil.which(f"quick-stream-{name}", path=str(Path(sys.executable).parent)), name

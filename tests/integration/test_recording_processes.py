@@ -110,7 +110,7 @@ def test_recording_stats_per_channel_rates(tmp_path, capsys):
     assert main(["recording-stats", str(path), "--fps", "30"]) == 0
     text = capsys.readouterr().out
     assert "quick/@v1/cam0/frame" in text and "80.0%" in text and "MB/s@30fps" in text
-    assert main(["recording-stats", "--json", str(path)]) == 0
+    assert main(["recording-stats", "--json", "-", str(path)]) == 0
     assert json.loads(capsys.readouterr().out)[0]["frames"] == 11
     # a file cut short (a killed writer) is measured up to where it stops; a non-MCAP file is an error
     cut = tmp_path / "cut.mcap"

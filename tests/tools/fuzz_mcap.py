@@ -309,7 +309,7 @@ def entry_read(path: Path, out: Path) -> Outcome:
 def entry_recover(path: Path, out: Path) -> Outcome:
     """recover into ``out``; its output must read back with exactly the messages it reports."""
     try:
-        rep = recover(path, out)
+        rep = recover(path, out, overwrite=True)  # one output file reused for every input
     except RecordingError as e:
         _named(str(e), path, "RecordingError")
         return "RecordingError", str(e)

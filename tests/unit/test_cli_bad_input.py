@@ -273,7 +273,8 @@ COMMANDS = [
     c("qs", "bench quality --data {d}/nosuchfolder --no-baselines", "bench quality", "nosuchfolder"),
     c("qs", "bench moving-objects --data {d}/nosuchfolder", "bench moving-objects", "nosuchfolder"),
     c("qs", "recover {d}/missing.mcap", "missing.mcap", "cannot open"),
-    c("qs", "recover {d}/rec.mcap {d}/rec.mcap", "rec.mcap", "different output file"),
+    c("qs", "recover {d}/rec.mcap {d}/rec.mcap", "rec.mcap", "exists"),
+    c("qs", "recover {d}/rec.mcap {d}/rec.mcap --force", "rec.mcap", "different output file"),
     c("qs", "recover {d}/bad.mcap {d}/bad-recovered.mcap", "bad.mcap", "not a valid MCAP file"),
     c("qs", "recover {d}/rec.mcap {d}/file.txt/x.mcap", "DST", "file.txt", "not a directory"),
     c("qs", "recover {d}", "Is a directory"),
@@ -304,6 +305,16 @@ COMMANDS = [
     c("qs", "up --router-config {d}/rec.mcap", "--router-config goes with --tls-dir"),
     *(c("qs", f"acl --streams {v}", "--streams", f"'{v}'") for v in ("a/b", "cam0,cam0")),
     c("qs", "acl --streams ''", "--streams", "got ''"),
+    # outputs are never overwritten silently; --json takes FILE or -; evaluate reads tum:PATH; a router is a router
+    c("qs", "recover {d}/rec.mcap {d}/file.txt", "DST", "file.txt", "exists", "--force"),
+    c("qs", "acl --output {d}/file.txt", "--output", "file.txt", "exists", "--force"),
+    c("qs", f"stabilize {SMALL} --report {{d}}/file.txt", "--report", "file.txt", "exists", "--force"),
+    c("qs", f"motion {SMALL} --json", "--json", "expected one argument"),
+    c("qs", f"motion {SMALL} --json ''", "--json", "- for standard output"),
+    c("qs", "evaluate mcap:{d}/rec.mcap", "CLIP", "tum:PATH"),
+    c("qs", "evaluate tum:{d}/tum_norgb,count=3", "CLIP", "without options"),
+    c("qs", "router -m peer", "--mode", "'peer'"),
+    c("qs", "bench path --seed -1", "--seed", "'-1'"),
 ]
 
 CASES = ZENOH + STREAMS + SETTINGS + CAPTURE + SOURCES + RENDER_RECORDER_QUEUES + COMMANDS

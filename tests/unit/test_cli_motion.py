@@ -11,7 +11,7 @@ from quick_stream.io.sources.trajectory import matrix_to_quat, read_tum_trajecto
 
 
 def run_json(capsys, *argv) -> dict:
-    assert main(["motion", *argv, "--json"]) == 0
+    assert main(["motion", *argv, "--json", "-", "--quiet"]) == 0
     return json.loads(capsys.readouterr().out)
 
 

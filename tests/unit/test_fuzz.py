@@ -63,7 +63,9 @@ def test_damaged_recordings_give_named_errors_never_crashes(tmp_path):
     read, rec, src = (r.outcomes[e] for e in fuzz_mcap.ENTRIES)
     assert read["RecordingError"] > 100 and read["ok"] > 100
     assert rec["RecordingError"] > 100 and rec["ok (partial)"] > 100 and rec["ok (complete)"] > 100
-    assert src["SourceError"] > 100 and src["opened"] > 100 and src["opened, BadFrames"] > 100
+    # BadFrames come from damaged frame messages only: the base recordings' end marker ends the replay
+    # (it was one false BadFrame in every file that opened; 95 of these 1,300 files have real ones)
+    assert src["SourceError"] > 100 and src["opened"] > 100 and src["opened, BadFrames"] > 50
     assert r.rss_growth_mb < 100 and not (tmp_path / "kept").exists()
 
 
@@ -103,7 +105,7 @@ def _flip_in_chunk(bases, comp, nth=0):
 def _all_entry_points(path, tmp_path):
     """Every reader on ``path``: the named errors are fine, anything else fails the test."""
     errors = []
-    for call in (lambda: list(read_messages(path)), lambda: recover(path, tmp_path / "out.mcap")):
+    for call in (lambda: list(read_messages(path)), lambda: recover(path, tmp_path / "out.mcap", overwrite=True)):
         try:
             call()
         except RecordingError as e:

@@ -161,3 +161,30 @@ def test_frames_whose_jpeg_was_stored_apart_replay_byte_for_byte(tmp_path, origi
     assert not src.indexed
     items = list(src.iter_with_messages())
     assert [d for _, d in items] == sent and all(isinstance(f, RGBDFrame) for f, _ in items)
+
+
+def test_end_marker_ends_the_replay_cleanly(tmp_path, originals, caplog):
+    """The capture's ``end`` follows its last frame on the frame channel (every recording ``up`` makes
+    holds one): no bad frame and not counted, indexed or streamed (no footer), decoded or not."""
+    from quick_stream.stream.wire import EndOfStream, encode_end
+
+    path = tmp_path / "up.mcap"
+    with Recorder(path, chunk_size=1) as rec:
+        for f in originals:
+            rec.write(key("cam0", "frame"), encode_frame(f, "cam0", color="raw", depth="raw"),
+                      log_time_ns=10**9 + f.timestamp_ns)
+        rec.write(key("cam0", "frame"), encode_end(EndOfStream(originals[-1].seq, "source exhausted"), "cam0"),
+                  log_time_ns=2 * 10**9 + originals[-1].timestamp_ns)
+    data = path.read_bytes()
+    cut = tmp_path / "killed.mcap"
+    cut.write_bytes(data[: len(data) - 200])  # footer and summary gone, every chunk intact
+    for spec, indexed in ((f"mcap:{path}", True), (f"mcap:{cut}", False)):
+        with caplog.at_level(logging.WARNING, logger="quick_stream.io.sources.mcap_replay"):
+            caplog.clear()
+            src = open_source(spec)
+            got = list(src)
+            raw = [item for item, _data in src.iter_with_messages(pixels=False)]
+        assert src.indexed == indexed and len(src) == len(got) == len(raw) == 5
+        assert not [g for g in got + raw if isinstance(g, BadFrame)]
+        assert [g.seq for g in got] == [f.seq for f in originals]
+        assert "'end'" not in caplog.text and "expected a 'frame'" not in caplog.text

@@ -40,6 +40,20 @@ def test_recover_refuses_garbage_and_same_file(tmp_path):
         recover(bad, tmp_path / "out.mcap")
     with pytest.raises(RecordingError, match="different output"):
         recover(bad, bad)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.mcap"]  # no empty or partial output left
+
+
+def test_recover_writes_its_output_whole_or_not_at_all(tmp_path):
+    src = tmp_path / "a.mcap"
+    with Recorder(src) as rec:
+        rec.write("quick/@v1/cam0/stats", b"x", log_time_ns=1)
+    dst = tmp_path / "b.mcap"
+    dst.write_bytes(b"an earlier recovery")
+    with pytest.raises(RecordingError, match="b.mcap: exists"):
+        recover(src, dst)
+    assert dst.read_bytes() == b"an earlier recovery"
+    assert recover(src, dst, overwrite=True).messages == 1 and len(list(read_messages(dst))) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap", "b.mcap"]  # no .part left
 
 
 def test_split_recorder_finishes_each_file_and_loses_nothing_at_the_seams(tmp_path):

@@ -9,6 +9,9 @@ the recording must hold exactly one stream with frame messages.
 * A message that does not decode (or whose frame fails validation) becomes a
   :class:`~quick_stream.core.frame.BadFrame` whose error names the file, the message's
   index on the channel, its log time and the problem; iteration goes on.
+* The ``end`` marker the capture sends after its last frame (on the frame channel, so
+  a recording holds it) ends the replay cleanly: it is neither a frame nor a bad
+  frame, and ``len`` does not count it.
 * An intact (indexed) file is read through its index; ``len`` comes from the
   summary statistics. A file without a footer (a killed writer) or with a damaged
   summary is read by streaming records up to the first damaged one, which is what
@@ -111,6 +114,14 @@ def _is_stage_topic(topic: str, stage: str | None) -> bool:
     return s is not None and (stage is None or s == stage)
 
 
+def _is_end(data: bytes) -> bool:
+    """Whether a message on a frame channel is the stream's ``end`` marker (envelope only, no pixels)."""
+    try:
+        return unpack(data).type == "end"
+    except WireError:
+        return False
+
+
 def _frame_counts(path: Path, on_stop: Callable[[str], None],
                   stage: str | None = "frame") -> tuple[dict[str, int], bool, str]:
     """({topic of ``stage``: count}, indexed, why not indexed); footer-less files are scanned once."""
@@ -119,8 +130,8 @@ def _frame_counts(path: Path, on_stop: Callable[[str], None],
         return counts, True, ""
     log.warning("%s: %s; reading it by streaming up to the first damaged record", path, problem)
     counts = {}
-    for t, _, _ in _stream_records(path, None, on_stop):
-        if _is_stage_topic(t, stage):
+    for t, _, data in _stream_records(path, None, on_stop):
+        if _is_stage_topic(t, stage) and not _is_end(data):
             counts[t] = counts.get(t, 0) + 1
     return counts, False, problem
 
@@ -151,7 +162,7 @@ class McapSource:
         streams = {parse(t)[0]: n for t, n in sorted(counts.items()) if n > 0}  # one frame topic a stream
         self.stream = self._choose(streams, stream)
         self.topic = key(self.stream, "frame")
-        self._count = streams[self.stream]
+        self._count = streams[self.stream] - self._trailing_ends()
         self.name = f"mcap:{self.path},stream={self.stream}"
         self._probe()
 
@@ -232,6 +243,9 @@ class McapSource:
         for index, (log_time, data) in enumerate(self._messages()):
             try:
                 msg = decode(data, pixels=pixels)
+                if msg.type == "end":  # the capture's end marker: not a frame (a later run's frames may follow)
+                    log.debug("%s: end marker at message %d", self.path, index)
+                    continue
                 if msg.type != "frame":
                     raise WireError(f"expected a 'frame' message, got {msg.type!r}", stream=msg.stream, seq=msg.seq)
                 frame: RGBDFrame = msg.obj.validate() if pixels else msg.obj
@@ -249,6 +263,24 @@ class McapSource:
                 f"fps={self.fps:.3g}, depth_scale={self.depth_scale:g}, indexed={self.indexed})")
 
     # -- internals ---------------------------------------------------------------
+    def _trailing_ends(self) -> int:
+        """How many of the channel's last messages are end markers (the count from the summary holds
+        them): read from the end of an indexed file, which costs one message; streamed files were
+        counted without them already."""
+        if not self.indexed:
+            return 0
+        n = 0
+        try:
+            with open_recording(self.path) as f:
+                reader = SeekingReader(f, record_size_limit=max(f.size, 1))
+                for _schema, _channel, message in reader.iter_messages(topics=[self.topic], reverse=True):
+                    if not _is_end(message.data):
+                        break
+                    n += 1
+        except Exception as e:  # noqa: BLE001 - a damaged index: iteration finds it and says so
+            log.debug("%s: cannot read the last messages for end markers: %s", self.path, describe_damage(e))
+        return n
+
     def _stop(self, why: str) -> None:
         self.stopped_at = why
         log.warning("%s", why)
