@@ -71,7 +71,7 @@ def test_replaying_the_recording_reproduces_the_output(live_run, tmp_path):
 
 
 def test_recording_has_every_stage_and_valid_foxglove_channels(live_run):
-    from quick_stream import foxglove as fx
+    from quick_stream.io import foxglove as fx
 
     with open(live_run / "recording.mcap", "rb") as f:
         reader = make_reader(f)

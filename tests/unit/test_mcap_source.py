@@ -140,7 +140,7 @@ def test_open_errors(tmp_path):
 def test_frames_whose_jpeg_was_stored_apart_replay_byte_for_byte(tmp_path, originals):
     """As the recorder stores them: each JPEG in its Foxglove image record, the frame message
     referencing it; the source hands out the exact wire bytes, indexed or streamed (no footer)."""
-    from quick_stream import foxglove
+    from quick_stream.io import foxglove
     from quick_stream.io.recording_images import write_message
 
     path = tmp_path / "apart.mcap"
