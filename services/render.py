@@ -24,7 +24,8 @@ from collections.abc import Iterable
 
 import zenoh
 
-from quick_stream.core.render_stage import ReleaseGroups, RenderStage, StabilizedFrame
+from quick_stream.core.release import ReleaseGroups
+from quick_stream.core.render_stage import RenderStage, StabilizedFrame
 from quick_stream.io.sinks import BackgroundSink, VideoSink
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import Percentiles, RateMeter
