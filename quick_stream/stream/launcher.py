@@ -27,7 +27,7 @@ from typing import Any
 import zenoh
 
 from . import keys
-from .runtime import RESTARTED_ENV
+from .cursor import RESTARTED_ENV
 from .wire import WireError, check
 
 log = logging.getLogger(__name__)

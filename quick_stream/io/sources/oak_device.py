@@ -45,6 +45,22 @@ def list_devices() -> list[dict[str, str]]:
     return out
 
 
+def print_devices() -> int:
+    """``quick-stream-capture --list-devices``: one line per OAK device this host sees (id, name,
+    state, platform); exit 1 when there is none, 2 without depthai."""
+    try:
+        found = list_devices()
+    except ImportError as e:
+        log.error("%s", e)
+        return 2
+    if not found:
+        print("no OAK device found (check the USB cable, the udev rule, or Docker's /dev/bus/usb mapping)")
+        return 1
+    for d in found:
+        print(f"{d['id']}  {d['name']}  {d['state']}  {d['platform']}")
+    return 0
+
+
 class PipelineBackend:
     """A started depthai pipeline with a colour and a depth output queue: ``open``/``read``/``close``.
 
