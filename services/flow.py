@@ -2,34 +2,35 @@
 
 Reads frames through a drop-oldest inbox (``--queue``, default 30: if this stage
 falls that far behind, the oldest frames are dropped and counted, and the next
-flow spans the gap), runs :class:`quick_stream.core.stages.FlowStage` and publishes
+flow spans the gap), runs :class:`quick_stream.core.stages.FlowDriver` and publishes
 each pair's ``flow`` message (lossless: the motion stage needs every pair it can
 get; a receiver whose link dropped flows fetches them back from the publisher's
 cache, and no subscriber can make the put wait). Undecodable or out-of-order frames
 are logged and counted; a stream whose numbering restarts lower is followed once a
 run of frames confirms it (an empty flow naming the renumbering: the path restarts
-there; ``renumberings``). The ``end``
-marker is forwarded once the last flow is out.
+there; ``renumberings``). The ``end`` marker is forwarded once the last flow is out.
 """
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 import time
 
 import zenoh
 
-from quick_stream.core.stages import FlowStage
+from quick_stream.core.stages import FlowDriver
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import RateMeter
-from quick_stream.stream.runtime import ServiceRuntime, service_main, service_parser
+from quick_stream.stream.process import service_main, service_parser
+from quick_stream.stream.runtime import Input, ServiceRuntime
 from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
-from quick_stream.stream.wire import encode_end, encode_flow
+from quick_stream.stream.wire import Decoded, encode_end, encode_flow
 
 log = logging.getLogger("flow")
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     p = service_parser("flow", __doc__)
     p.add_argument("--queue", type=at.positive_int, default=30,
                    help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)")
@@ -43,9 +44,9 @@ def build_parser():
     return p
 
 
-def run(args, conf: zenoh.Config) -> int:
+def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
-    stage = FlowStage(params.flow, params.continuity)
+    driver = FlowDriver(params.flow, params.continuity, log=log)
     with ServiceRuntime("flow", args.stream, conf) as rt:
         resume_after = rt.stream_cursor("flow")  # not None: a restarted flow; take over after the last flow out
         if resume_after is not None:
@@ -58,42 +59,22 @@ def run(args, conf: zenoh.Config) -> int:
         rt.serve_cursor()
         rt.ready()
         meter = RateMeter()
-        errors = {"decode_errors": 0, "refused_frames": 0, "empty_flows": 0, "internal_errors": 0}
 
-        def stats():
-            # taken over: frames whose flow was out before the restart, skipped by the inbox (a replay of
-            # the capture's history; a frame published after those queued is live, a renumbered stream)
-            return {"state": "running", **errors, "taken_over": inbox.skipped, **stage.check.counts,
-                    **meter.take("flow")}
-
-        def take(frame, pub_ns: int | None) -> None:
+        def on_frame(msg: Decoded) -> None:
             t0 = time.perf_counter()
-            try:
-                flow = stage.push(frame, pub_ns)
-            except ValueError as e:
-                errors["refused_frames"] += 1
-                log.error("refused: %s", e)
-                return
-            for note in stage.notes:
-                log.warning("%s", note)
-            if flow is None:
-                return
-            if flow.problem:
-                errors["empty_flows"] += 1
-                log.warning("flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
-            pub.put(encode_flow(flow, args.stream))
-            meter.add((time.perf_counter() - t0) * 1e3)
+            if (flow := driver.push(msg.obj, msg.extra.get("pub_ns"))) is not None:
+                pub.put(encode_flow(flow, args.stream))
+                meter.add((time.perf_counter() - t0) * 1e3)
 
-        for msg in rt.receive(inbox, "frame", errors, stats):
-            if msg.type == "end":
-                pub.put(encode_end(msg.obj, args.stream))
-                log.info("end of stream after frame %d", msg.obj.seq)
-                stage.restart()  # a new stream may follow
-                inbox.skip_through = None
-                continue
-            with rt.contained(f"frame {msg.seq}", errors):
-                take(msg.obj, msg.extra.get("pub_ns"))
-        rt.publish_stats({**stats(), "state": "stopped"})
+        def on_end(msg: Decoded) -> None:
+            pub.put(encode_end(msg.obj, args.stream))
+            log.info("end of stream after frame %d", msg.obj.seq)
+            driver.restart()  # a new stream may follow
+
+        # taken over: frames whose flow was out before the restart, skipped by the inbox (a replay of the
+        # capture's history; a frame published after those queued is live, a renumbered stream)
+        rt.serve([Input(inbox, {"frame": on_frame, "end": on_end})],
+                 lambda: {"taken_over": inbox.skipped, **driver.stats(), **meter.take("flow")})
     return 0
 
 

@@ -7,8 +7,9 @@ planner call released, :mod:`quick_stream.core.stages`), then warps, frames and 
 whole (one zoom track, :func:`~quick_stream.core.render.segment_zooms`), filling uncovered borders from
 its neighbours. A frame that no correction will ever reach (an *orphan*, skipped upstream) is
 rendered with no correction, flagged, instead of being held forever; a stream renumbered lower
-keeps the old numbering's frames apart from the new one's. :class:`ReleaseGroups` regroups the
-corrections a service receives one message at a time into the planner's releases.
+keeps the old numbering's frames apart from the new one's. The policy around it (corrections
+regrouped into the planner's releases, when a release renders, latency stamps, the end of a stream)
+is :mod:`quick_stream.core.release`.
 """
 from __future__ import annotations
 
@@ -326,65 +327,3 @@ class RenderStage:
             self.timer.add("warp", (t1 - t0) * 1e3 / n)
             self.timer.add("framing", (t2 - t1) * 1e3 / n)
         return [(c, f, mesh, float(z)) for (c, f, mesh), z in zip(items, zooms)]
-
-
-class ReleaseGroups:
-    """Corrections grouped by planner release; yields complete releases in order.
-
-    The motion service sends a release's corrections back to back, so a release still
-    incomplete when another one starts arriving lost its sender mid-way (a killed motion
-    service): it is handed over with what arrived (``abandoned``). A restarted motion
-    service numbers releases from 0 again; a correction that does not fit the open release
-    of that number (other size, or an index already there) starts a new one.
-
-    ``ready`` holds (release, batch, completed at, numbering), in seq order within a numbering:
-    the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.restarts_numbering`,
-    going back) starts the next numbering, whose releases follow every release of the old one.
-    """
-
-    def __init__(self) -> None:
-        self._open: dict[int, tuple[int, dict[int, Correction], int]] = {}
-        self.ready: list[tuple[int, list[Correction], float, int]] = []
-        self.unbatched = 0
-        self.abandoned = 0
-        self.numbering = 0  # renumberings the corrections announced
-        self._newest: int | None = None  # the newest correction seq of the current numbering
-
-    def _hand_over(self, rel: int) -> None:
-        _, got, numbering = self._open.pop(rel)
-        self.ready.append((rel, [got[i] for i in sorted(got)], time.monotonic(), numbering))
-        self.ready.sort(key=lambda r: (r[3], r[1][0].seq))
-
-    def _numbering(self, c: Correction) -> int:
-        """The numbering ``c`` belongs to (a restart correction going back starts the next one)."""
-        if not c.valid and restarts_numbering(c.reason) and self._newest is not None and c.seq <= self._newest:
-            self.numbering += 1
-            self._newest = None
-        self._newest = c.seq if self._newest is None else max(self._newest, c.seq)
-        return self.numbering
-
-    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
-        numbering = self._numbering(c)
-        if batch is None:  # a sender without release tags: each correction is its own batch
-            self.unbatched += 1
-            self.ready.append((-1, [c], time.monotonic(), numbering))
-            return
-        rel, idx, size = batch
-        for other in [r for r in self._open if r != rel]:
-            self.abandoned += 1
-            self._hand_over(other)
-        if rel in self._open and (self._open[rel][0] != size or idx in self._open[rel][1]
-                                  or self._open[rel][2] != numbering):
-            self.abandoned += 1
-            self._hand_over(rel)
-        _, got, _ = self._open.setdefault(rel, (size, {}, numbering))
-        got[idx] = c
-        if len(got) == size:
-            self._hand_over(rel)
-
-    def flush_incomplete(self) -> int:
-        """End of stream: hand over partial releases (what arrived of them); returns how many."""
-        n = len(self._open)
-        for rel in sorted(self._open):
-            self._hand_over(rel)
-        return n

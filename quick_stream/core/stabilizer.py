@@ -2,10 +2,15 @@
 
 Frames go in one at a time (:meth:`Stabilizer.push`); stabilized frames come out
 one segment later, when the planner has solved the segment their corrections
-belong to. Stages, each the library object the matching service calls (quick_stream/core/stages.py):
+belong to. Stages, each driven by the library object the matching service runs
+(quick_stream/core/stages.py, quick_stream/core/release.py):
 
-    FlowStage (scene flow) -> MotionStage (motion, keyframes, optimal path)
-        -> RenderStage (content-preserving warp, framing, render)
+    FlowStage (scene flow) -> MotionDriver (motion, keyframes, optimal path; releases tagged)
+        -> RenderDriver (releases regrouped, rendered when due: content-preserving warp, framing,
+           render; at the end, what is still held)
+
+In one process every frame is in before its release, so a release renders as soon as it comes
+(``force``): what the render service waits ``--frame-wait`` for cannot be missing here.
 
 Only the frames of the open segment are buffered (at most one keyframe interval).
 Bad frames are skipped and reported; frames whose correction fell back (invalid
@@ -21,10 +26,11 @@ from .continuity import ContinuityParams
 from .frame import BadFrame, RGBDFrame
 from .motion import MotionParams
 from .path.planner import Correction, PathPlanner, PlannerParams
+from .release import RenderDriver, Tag
 from .render import FramingParams, WarpParams
 from .render_stage import RenderStage, StabilizedFrame
 from .sceneflow import SceneFlowParams
-from .stages import FlowStage, MotionStage
+from .stages import FlowStage, MotionDriver, MotionStage
 from .timing import StageTimer
 
 __all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]
@@ -53,12 +59,20 @@ class Stabilizer:
         record every motion estimate (reports, plots). Both off, memory stays bounded by one segment."""
         self.params = p = params or StabilizerParams()
         self.flow = FlowStage(p.flow, p.continuity)
-        self.motion = MotionStage(p.motion, p.planner, p.warp)
-        self.render = RenderStage(p.warp, p.framing, max_frames=1 << 30, keep_inputs=keep_inputs)
+        self.motion_driver = MotionDriver(p.motion, p.planner, p.warp)
+        self.render_driver = RenderDriver(p.warp, p.framing, max_frames=1 << 30, keep_inputs=keep_inputs)
         self.timer = StageTimer()
         self.keep_motions = keep_motions
         self.bad_frames: list[dict] = []
         self.motions: list = []
+
+    @property
+    def motion(self) -> MotionStage:
+        return self.motion_driver.stage
+
+    @property
+    def render(self) -> RenderStage:
+        return self.render_driver.stage
 
     @property
     def planner(self) -> PathPlanner:
@@ -75,30 +89,39 @@ class Stabilizer:
             t1 = time.perf_counter()
         except ValueError as e:
             self.bad_frames.append({"seq": frame.seq, "origin": frame.origin, "error": str(e)})
-            try:  # as the render service does: a refused frame it can hold is rendered uncorrected, flagged
-                self.render.add_frame(frame.seq, frame)
-            except ValueError:
-                pass  # duplicate or out of order: not rendered twice
+            # as the render service does: a refused frame it can hold is rendered uncorrected, flagged
+            # (a duplicate or one out of order it refuses too: not rendered twice)
+            self.render_driver.add_frame(frame.seq, frame)
             return []
-        self.render.add_frame(frame.seq, frame)
+        self.render_driver.add_frame(frame.seq, frame)
         if flow is None:
-            return self._render(self.motion.start(frame.seq))
+            return self._render(self.motion_driver.start(frame.seq))
         self.timer.add("flow", (t1 - t0) * 1e3)
-        motions, batches = self.motion.push(flow)
+        out = self.motion_driver.push(flow)
+        if out is None:
+            return []
         if self.keep_motions:
-            self.motions.extend(motions)
-        return self._render(*batches)
+            self.motions.extend(out[0])
+        return self._render(out[1])
 
     def finish(self) -> list[StabilizedFrame]:
         """End of stream: close the last segment and render what is left."""
-        return self._render(*self.motion.finish())
+        frames = self._render(self.motion_driver.finish())
+        self.render_driver.end()
+        for _, group in self.render_driver.finish():
+            frames += [r.frame for r in group]
+        self._merge_timers()
+        return frames
 
-    def _render(self, *batches: list[Correction]) -> list[StabilizedFrame]:
-        out: list[StabilizedFrame] = []
-        for b in batches:
-            out.extend(self.render.render_batch(b))
+    def _render(self, corrections: list[tuple[Correction, Tag]]) -> list[StabilizedFrame]:
+        for c, tag in corrections:
+            self.render_driver.add_correction(c, tag)
+        out = [r.frame for rel in self.render_driver.due(force=True) for r in self.render_driver.render(rel)]
+        self._merge_timers()
+        return out
+
+    def _merge_timers(self) -> None:
         for stage in (self.motion, self.render):
             for k, v in stage.timer.samples.items():
                 self.timer.samples.setdefault(k, []).extend(v)
                 v.clear()
-        return out

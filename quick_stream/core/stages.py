@@ -12,7 +12,14 @@ stream run through the services gives bit-for-bit the offline result
 A *correction batch* is what one planner call released (the first frame's
 correction; a closed segment; a segment closed early by an invalid motion plus
 the restart frame). The renderer frames each batch as a whole (one zoom track,
-:func:`~quick_stream.core.render.segment_zooms`), so the batches travel as batches.
+:func:`~quick_stream.core.render.segment_zooms`), so the batches travel as batches: tagged as
+releases (:mod:`quick_stream.core.release`).
+
+:class:`FlowDriver` and :class:`MotionDriver` are the flow and motion stages over a service's life
+(what each refuses, counted and reported; taking over after a restarted service's predecessor; one
+stream after another, the counters going on); the services, the in-process
+:class:`~quick_stream.core.stabilizer.Stabilizer` and ``quick-stream rerun`` run them
+(docs/architecture.md), the render side is :class:`~quick_stream.core.release.RenderDriver`.
 
 Streams with holes: :class:`MotionStage` turns a gap between consecutive flows
 (the flow stage skipped frames or was restarted) into an invalid motion, so the
@@ -25,13 +32,16 @@ the flow goes back, :class:`MotionStage` restarts the path there, and
 """
 from __future__ import annotations
 
+import logging
 import time
+from typing import Any
 
 from .continuity import ContinuityCheck, ContinuityParams, published_after, restarts_numbering
 from .frame import RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .path.budget import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
+from .release import ReleaseNumbering, Tag
 from .render import WarpParams
 from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
 from .timing import StageTimer
@@ -169,3 +179,111 @@ def split_numberings(batch: list[Correction]) -> list[list[Correction]]:
     numbering), so no correction batch mixes two numberings."""
     cuts = [i for i in range(1, len(batch)) if batch[i].seq <= batch[i - 1].seq]
     return [batch[a:b] for a, b in zip([0, *cuts], [*cuts, len(batch)])]
+
+
+class FlowDriver:
+    """The flow stage over a service's life: a frame refused (``refused_frames``) or a flow made empty
+    by a discontinuity (``empty_flows``) is counted and reported on ``log`` (None: silent), with what
+    the continuity check noted; one stream after another (:meth:`restart`)."""
+
+    def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None,
+                 log: logging.Logger | None = None) -> None:
+        self.stage = FlowStage(params, continuity)
+        self.log = log
+        self.refused = self.empty = 0
+
+    def _say(self, level: int, msg: str, *args: Any) -> None:
+        if self.log is not None:
+            self.log.log(level, msg, *args)
+
+    def push(self, frame: RGBDFrame, pub_ns: int | None = None) -> SceneFlowResult | None:
+        """The flow from the previous good frame to ``frame`` (:meth:`FlowStage.push`); None for the
+        first frame of a stream and for a refused one."""
+        try:
+            flow = self.stage.push(frame, pub_ns)
+        except ValueError as e:
+            self.refused += 1
+            self._say(logging.ERROR, "refused: %s", e)
+            return None
+        for note in self.stage.notes:
+            self._say(logging.WARNING, "%s", note)
+        if flow is not None and flow.problem:
+            self.empty += 1
+            self._say(logging.WARNING, "flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
+        return flow
+
+    def restart(self) -> None:
+        """End of stream: the next frame starts a new chain (the counters go on)."""
+        self.stage.restart()
+
+    def stats(self) -> dict[str, int]:
+        return {"refused_frames": self.refused, "empty_flows": self.empty, **self.stage.check.counts}
+
+
+class MotionDriver:
+    """The motion stage over a service's life: flows in; motions and the correction batches released,
+    tagged with their release (:class:`~quick_stream.core.release.ReleaseNumbering`), out.
+
+    ``resume_after``: a restarted motion service starts a new path after the last correction its
+    predecessor released (flows up to it are skipped, ``taken_over``, until a renumbering or the
+    end of the stream). A stale or duplicate flow is refused (``refused_flows``), an invalid
+    motion counted (``invalid_motions``), both reported on ``log`` (None: silent). At the end of a
+    stream :meth:`finish` closes the last segment; :meth:`restart` starts the next stream (the
+    release numbers and the counters go on)."""
+
+    def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None,
+                 warp: WarpParams | None = None, *, resume_after: int | None = None,
+                 log: logging.Logger | None = None) -> None:
+        self._make = lambda: MotionStage(motion, planner, warp)
+        self.stage = self._make()
+        self.releases = ReleaseNumbering()
+        self.resume_after, self.log = resume_after, log
+        self.refused = self.invalid = self.taken_over = 0
+        self._renumberings = 0  # of the streams already ended
+
+    def _say(self, level: int, msg: str, *args: Any) -> None:
+        if self.log is not None:
+            self.log.log(level, msg, *args)
+
+    def start(self, seq: int) -> list[tuple[Correction, Tag]]:
+        """The stream's first frame, before any flow (in-process): its correction, released at once."""
+        return self.releases.number([self.stage.start(seq)])
+
+    def push(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[tuple[Correction, Tag]]] | None:
+        """The motions made and the tagged corrections released by one flow; None when the flow is
+        skipped (taken over) or refused."""
+        if self.resume_after is not None and flow.seq <= self.resume_after:
+            self.taken_over += 1  # its frames were corrected before the restart
+            return None
+        try:
+            motions, batches = self.stage.push(flow)
+        except ValueError as e:
+            self.refused += 1
+            self._say(logging.ERROR, "flow %d->%d refused: %s", flow.seq, flow.seq_next, e)
+            return None
+        if flow.seq_next <= flow.seq:
+            self.resume_after = None  # a new numbering: the predecessor's cursor says nothing of it
+        for m in motions:
+            if not m.valid:
+                self.invalid += 1
+                self._say(logging.WARNING, "motion %d->%d invalid: %s", m.seq, m.seq_next, m.reason)
+        return motions, self.releases.number(batches)
+
+    def finish(self) -> list[tuple[Correction, Tag]]:
+        """End of stream: the last segment's corrections, tagged."""
+        out = self.releases.number(self.stage.finish())
+        self._say(logging.INFO, "end of stream: %d segments, %d corrections", len(self.stage.planner.segments),
+                  self.releases.sent)
+        return out
+
+    def restart(self) -> None:
+        """After :meth:`finish`: a new stream may follow (a new path; the counters go on)."""
+        self._renumberings += self.stage.renumberings
+        self.stage = self._make()
+        self.resume_after = None
+
+    def stats(self) -> dict[str, int]:
+        st = self.stage
+        return {"refused_flows": self.refused, "invalid_motions": self.invalid, "taken_over": self.taken_over,
+                "gaps": st.gaps, "segments": len(st.planner.segments), "corrections": self.releases.sent,
+                "renumberings": self._renumberings + st.renumberings}

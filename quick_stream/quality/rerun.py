@@ -1,17 +1,19 @@
 """Re-run one stage from a recording's logged inputs and compare with its logged outputs.
 
-The services add only transport to the library stages (:mod:`quick_stream.core.stages`), so a
-stage re-run from what the recorder logged must reproduce what it logged. ``flow``: each
-logged flow (seq -> seq_next) from exactly the two logged frames it names (the service may
-have dropped frames between). ``motion``: the logged flows in order through one
-``MotionStage`` (``end``: finish); motions and release-numbered corrections
-(:class:`ReleaseNumbering`), the forwarded ``end`` included, compared in order. Both
-compare bytes. ``render``: corrections grouped into releases as the service does
-(:class:`~quick_stream.core.render_stage.ReleaseGroups`), rendered by one ``RenderStage`` per stream fed the logged frames
-each release needs (orphans as the service renders them), each frame encoded as its logged
-message was and compared decoded (seq, t_ns, image, zoom, flags; the bytes carry wall-clock
-latency stamps). ``end`` messages split a channel into stream runs, paired in order across
-channels. Bit-exact results need OpenCV run as the services run it (``cv2.setNumThreads(1)``).
+The services add only transport to the library (:mod:`quick_stream.core.stages`,
+:mod:`quick_stream.core.release`), so a stage re-run from what the recorder logged must reproduce
+what it logged, and it runs the service's own objects. ``flow``: each logged flow (seq ->
+seq_next) from exactly the two logged frames it names (the service may have dropped frames
+between). ``motion``: the logged flows in order through one
+:class:`~quick_stream.core.stages.MotionDriver`, as the motion service runs it (``end``: finish
+and restart); motions and release-tagged corrections, the forwarded ``end`` included, compared
+in order. Both compare bytes. ``render``: the logged corrections through one
+:class:`~quick_stream.core.release.RenderDriver`, as the render service runs it, fed the logged
+frames each release needs (orphans as the service renders them; ``end``: the stream's finish),
+each frame encoded as its logged message was and compared decoded (seq, t_ns, image, zoom, flags;
+the bytes carry wall-clock latency stamps). ``end`` messages split a channel into stream runs,
+paired in order across channels. Bit-exact results need OpenCV run as the services run it
+(``cv2.setNumThreads(1)``).
 """
 from __future__ import annotations
 
@@ -24,11 +26,12 @@ from typing import Any
 import numpy as np
 from mcap.reader import make_reader
 
+from ..core.release import RenderDriver, Tag
 from ..core.path.planner import Correction
-from ..core.render_stage import ReleaseGroups, RenderStage, StabilizedFrame
+from ..core.render_stage import StabilizedFrame
 from ..core.sceneflow import SceneFlow
 from ..core.stabilizer import StabilizerParams
-from ..core.stages import MotionStage
+from ..core.stages import MotionDriver
 from ..io.recording import RecordingError, read_messages
 from ..stream import keys
 from ..stream.wire import StabilizedImage, WireError, decode
@@ -92,21 +95,6 @@ class RerunResult:
     @property
     def identical(self) -> int:
         return sum(t.identical for t in self.outputs)
-
-
-class ReleaseNumbering:
-    """Correction batches encoded as the motion service's ``Releaser`` publishes them: each
-    batch one planner release, numbered from 0 for the service's life (not reset at ``end``)."""
-
-    def __init__(self) -> None:
-        self.release = 0
-
-    def encode(self, batches: list[list[Correction]], stream: str) -> list[bytes]:
-        out = []
-        for b in batches:
-            out.extend(encode_correction(c, stream, batch=(self.release, i, len(b))) for i, c in enumerate(b))
-            self.release += 1
-        return out
 
 
 @dataclass
@@ -238,74 +226,61 @@ def _rerun_flow(ch: dict[str, list[_Msg]], stream: str, params: StabilizerParams
             _compare_bytes(t, encode_flow(sf.compute(*pair), stream), m, res)
 
 
+def _tagged(corrections: list[tuple[Correction, Tag]], stream: str) -> list[bytes]:
+    return [encode_correction(c, stream, batch=tag) for c, tag in corrections]
+
+
 def _rerun_motion(ch: dict[str, list[_Msg]], stream: str, params: StabilizerParams, res: RerunResult) -> None:
-    stage = MotionStage(params.motion, params.planner, params.warp)
-    numbering = ReleaseNumbering()
+    driver = MotionDriver(params.motion, params.planner, params.warp)
     motions: list[bytes] = []
     corrections: list[bytes] = []
-    refused = 0
     for m in ch["flow"]:
         try:
             msg = decode(m.data)
         except WireError:
             continue  # the service logs and skips it too
         if msg.type == "end":
-            corrections.extend(numbering.encode(stage.finish(), stream))
+            corrections.extend(_tagged(driver.finish(), stream))
             corrections.append(encode_end(msg.obj, stream))
-            stage = MotionStage(params.motion, params.planner, params.warp)
-            continue
-        if msg.type != "flow":
-            continue
-        try:
-            made, batches = stage.push(msg.obj)
-        except ValueError:
-            refused += 1
-            continue
-        motions.extend(encode_motion(x, stream) for x in made)
-        corrections.extend(numbering.encode(batches, stream))
-    if refused:
-        res.notes.append(f"{refused} flows refused (stale or duplicate), as the service refuses them")
+            driver.restart()
+        elif msg.type == "flow" and (out := driver.push(msg.obj)) is not None:
+            motions.extend(encode_motion(x, stream) for x in out[0])
+            corrections.extend(_tagged(out[1], stream))
+    if driver.refused:
+        res.notes.append(f"{driver.refused} flows refused (stale or duplicate), as the service refuses them")
     for name, got in (("motion", motions), ("correction", corrections)):
         t = TopicResult(keys.key(stream, name))
         res.outputs.append(t)
         _compare_sequence(t, got, ch[name], res)
 
 
-def _render_run(frames: list[_Msg], corrections: list[_Msg], ended: bool, params: StabilizerParams,
-                max_frames: int) -> tuple[list[StabilizedFrame], RenderStage]:
-    """One stream run through the render service's logic, frames fed as the releases need them."""
-    stage = RenderStage(params.warp, params.framing, max_frames=max_frames)
+def _render_run(driver: RenderDriver, frames: list[_Msg], corrections: list[_Msg], ended: bool) -> list[StabilizedFrame]:
+    """One stream run through the render service's driver, frames fed as its releases need them
+    (every frame of a release there: each renders as soon as it is complete, as in the service)."""
     held = deque((m.seq, m.data) for m in frames if m.type == "frame")
-    groups = ReleaseGroups()
     out: list[StabilizedFrame] = []
 
     def feed(upto: int | None) -> None:
         while held and (upto is None or held[0][0] <= upto):
             seq, data = held.popleft()
-            try:
-                stage.add_frame(seq, lambda d=data: decode(d).obj)
-            except ValueError:
-                pass  # out of order or duplicate: refused by the service too
-
-    def render_ready() -> None:
-        while groups.ready:
-            _, batch, *_ = groups.ready.pop(0)
-            feed(max(c.seq for c in batch))
-            out.extend(stage.render_batch(batch))
+            driver.add_frame(seq, lambda d=data: decode(d).obj)  # refused (out of order, duplicate) as by the service
 
     for m in corrections:
         try:
             msg = decode(m.data)
         except WireError:
             continue
-        groups.add(msg.obj, msg.extra.get("batch"))
-        render_ready()
+        driver.add_correction(msg.obj, msg.extra.get("batch"))
+        for rel in driver.due(force=True):
+            feed(max(c.seq for c in rel.batch))
+            out.extend(r.frame for r in driver.render(rel))
     if ended:
         feed(None)
-        groups.flush_incomplete()
-        render_ready()
-        out.extend(stage.flush())
-    return out, stage
+        driver.end()
+        for _, group in driver.finish():
+            out.extend(r.frame for r in group)
+        driver.restart()
+    return out
 
 
 def _compare_image(t: TopicResult, sf: StabilizedFrame, m: _Msg, stream: str, quality: int,
@@ -333,12 +308,9 @@ def _rerun_render(ch: dict[str, list[_Msg]], stream: str, params: StabilizerPara
     t = TopicResult(keys.key(stream, "stabilized"))
     res.outputs.append(t)
     frame_runs, logged_runs = _runs(ch["frame"], "frame"), _runs(ch["stabilized"], "stabilized")
-    totals: dict[str, int] = defaultdict(int)
+    driver = RenderDriver(params.warp, params.framing, max_frames=max_frames)
     for i, (corrections, ended) in enumerate(_runs(ch["correction"], "correction")):
-        made, stage = _render_run(_nth(frame_runs, i), corrections, ended, params, max_frames)
-        for k, v in (("orphans", stage.orphans), ("missing", stage.missing), ("dropped", stage.dropped),
-                     ("bad frames", len(stage.bad))):
-            totals[k] += v
+        made = _render_run(driver, _nth(frame_runs, i), corrections, ended)
         by_seq: dict[int, deque[StabilizedFrame]] = defaultdict(deque)
         for sf in made:
             by_seq[sf.seq].append(sf)
@@ -351,6 +323,8 @@ def _rerun_render(ch: dict[str, list[_Msg]], stream: str, params: StabilizerPara
         for seq, left in sorted(by_seq.items()):
             t.extra += len(left)
             res.mismatches.extend(Mismatch(t.topic, seq, ("extra",), "rendered but never logged") for _ in left)
+    st = driver.stats()
+    totals = {"orphans": st["orphans"], "missing": st["missing"], "dropped": st["dropped"], "bad frames": st["bad_frames"]}
     if any(totals.values()):
         res.notes.append("render stage: " + ", ".join(f"{v} {k}" for k, v in totals.items() if v))
 

@@ -4,7 +4,10 @@
   quick_stream.services.<name>``; never a fork of a process holding a zenoh
   session: zenoh's runtime does not survive a fork), writes its output to ``<log_dir>/<name>.log``, restarts
   it when it dies (any exit but a clean one of a service allowed to finish),
-  and stops everything in order: SIGTERM, then SIGKILL after a grace period.
+  and stops everything in order: SIGTERM, then SIGKILL after a grace period. Each child runs in
+  its own session (a Ctrl-C at the terminal reaches the supervisor only, which stops the children
+  in order) and dies with the supervisor: it gets SIGTERM when the supervisor dies, however it
+  dies (:data:`PARENT_DEATH`; a SIGKILLed ``up`` leaves no service running).
 * :class:`StatusBoard` listens to every service's ``stats`` messages and keeps
   the latest per service, for the live status and the final summary.
 * :func:`free_port`, :func:`open_when_up`: a loopback port for a router, and a
@@ -27,10 +30,32 @@ from typing import Any
 import zenoh
 
 from . import keys
-from .runtime import RESTARTED_ENV
+from .cursor import RESTARTED_ENV
 from .wire import WireError, check
 
 log = logging.getLogger(__name__)
+
+# Run by each child before it execs its service (``python -I -S -c PARENT_DEATH SUPERVISOR_PID ARGV...``):
+# Linux's parent-death signal (prctl PR_SET_PDEATHSIG = 1, kept across exec) sends it SIGTERM when the
+# supervisor dies, so it stops cleanly as on Ctrl-C. If the supervisor died before that call (the child
+# was re-parented), there is nothing to run for. Not in Popen's preexec_fn: the supervisor has zenoh's
+# threads, and Python code between fork and exec may then deadlock. Linux sends the signal when the
+# *thread* that started the child ends: start and restart children from a thread that lives as long
+# as the supervisor (``up``: its main thread). Elsewhere (no prctl) the child runs without it.
+PARENT_DEATH = """\
+import ctypes, os, signal, sys
+supervisor = int(sys.argv[1])
+try:
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
+except (OSError, AttributeError):
+    pass
+if os.getppid() != supervisor:
+    try:
+        os.kill(supervisor, 0)
+    except ProcessLookupError:
+        sys.exit(0)
+os.execv(sys.argv[2], sys.argv[2:])
+"""
 
 
 @dataclass
@@ -73,7 +98,8 @@ class Supervisor:
         # a restarted service is told so (it waits longer for the others before deciding that no
         # stream is under way: killed with the router, they may take seconds to reconnect)
         env = {**self.env, RESTARTED_ENV: str(c.restarts)} if c.restarts else self.env
-        c.proc = subprocess.Popen([*c.spec.prefix, sys.executable, *c.spec.argv], stdout=logf, stderr=subprocess.STDOUT,
+        argv = [sys.executable, "-I", "-S", "-c", PARENT_DEATH, str(os.getpid()), sys.executable, *c.spec.argv]
+        c.proc = subprocess.Popen([*c.spec.prefix, *argv], stdout=logf, stderr=subprocess.STDOUT,
                                   stdin=subprocess.DEVNULL, env=env, start_new_session=True)
         logf.close()
         c.started = time.monotonic()

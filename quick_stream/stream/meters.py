@@ -1,4 +1,4 @@
-"""Per-period measurements a service reports in its stats: item rates and latency percentiles."""
+"""Per-period measurements a service reports in its stats: item rates, percentiles, frame latencies."""
 from __future__ import annotations
 
 import time
@@ -51,3 +51,22 @@ class Percentiles:
         return {f"{prefix}_p50": round(float(np.percentile(a, 50)), 2),
                 f"{prefix}_p99": round(float(np.percentile(a, 99)), 2),
                 f"{prefix}_max": round(float(a.max()), 2), f"{prefix}_n": int(a.size)}
+
+
+class Latency:
+    """A stabilized frame's latencies from its stamps (docs/wire-format.md), over the last stats
+    period: processing (since the frame that closed its release was published, ``lat_proc_ms``)
+    and total (since the frame itself was published, ``lat_total_ms``)."""
+
+    def __init__(self) -> None:
+        self.proc, self.total = Percentiles(), Percentiles()
+
+    def add(self, src_pub_ns: int | None, ready_pub_ns: int | None, now_ns: int | None = None) -> None:
+        now = time.time_ns() if now_ns is None else now_ns
+        if ready_pub_ns:
+            self.proc.add((now - ready_pub_ns) / 1e6)
+        if src_pub_ns:
+            self.total.add((now - src_pub_ns) / 1e6)
+
+    def take(self) -> dict[str, float]:
+        return {**self.proc.take("lat_proc_ms"), **self.total.take("lat_total_ms")}

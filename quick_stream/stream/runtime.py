@@ -1,175 +1,58 @@
-"""What every service process shares: session, liveliness, inboxes, stop signal, stats.
+"""What every service process shares: session, liveliness, inboxes, the service loop, stop, stats.
 
-A service is ``main(argv)`` in ``quick_stream.services`` (the repo's ``services/``): it
-parses the standard zenoh flags (:mod:`quick_stream.stream.transport`) plus its own, opens a
-:class:`ServiceRuntime`, and loops: take messages from its inboxes, call the library stage,
-publish.
+A service is ``main(argv)`` in ``quick_stream.services`` (the repo's ``services/``): it parses the
+standard zenoh flags (:mod:`quick_stream.stream.transport`) plus its own
+(:func:`~quick_stream.stream.process.service_main`), opens a :class:`ServiceRuntime`, declares its
+inboxes and publishers, and hands the runtime one handler per message type
+(:meth:`~quick_stream.stream.loop.Loop.serve`: the loop that receives, decodes, checks, dispatches,
+contains errors, publishes stats and stops is the runtime's; docs/architecture.md).
 
-* **Inbox**: a callback subscriber that appends each payload to a bounded deque.
-  When full it drops the *oldest* and counts it (zenoh's ``RingChannel`` drops
-  silently; we report drops in the stats). Lossless inboxes are the same with a
-  bound no healthy stream reaches. Every inbox recovers what its own link dropped
-  from the lossless publishers' caches (zenoh-ext sample-miss recovery), in order;
-  what the cache no longer held is counted (``inbox<i>_lost``).
-* **Publishers never wait for a subscriber**: all of them drop for a congested link
-  (``CongestionControl.DROP``), so a slow foreign subscriber, peer or client, can only
-  slow itself; the pipeline's own lossless keys are numbered, cached and recovered
-  (docs/deployment.md, "Delivery guarantees per key").
+* **Inboxes and publishers** (:mod:`quick_stream.stream.inbox`): drop-oldest inboxes that recover
+  what their link dropped from the lossless publishers' caches; publishers that never wait for a
+  subscriber (docs/deployment.md, "Delivery guarantees per key").
 * **Stop**: SIGTERM and SIGINT set a flag; the loop ends, then the runtime
   undeclares everything and closes the session in ``finally``
   (measured: without a handler SIGTERM kills the process before cleanup).
 * **Liveliness**: a token on ``quick/@v1/<stream>/health/<service>``, so the
   launcher and other services see who is up (and who went away, in milliseconds).
 * **Stats**: a ``stats`` message about once a second (``values`` the service fills, rates from
-  :mod:`quick_stream.stream.meters`:
-  counters, fps, ms per item, drops, errors).
+  :mod:`quick_stream.stream.meters`; the runtime adds its own counters, ``decode_errors`` and
+  ``internal_errors``, and each inbox's and publisher's).
 * **Taking over**: publishers may keep a history cache; every service answers cursor
   queries (newest seq per stage received); a service restarted mid-stream asks how far its
-  predecessor's output got and subscribes to its inputs with history (docs/architecture.md).
+  predecessor's output got and subscribes to its inputs with history
+  (:mod:`quick_stream.stream.cursor`).
 * **Containment**: :meth:`ServiceRuntime.contained` logs and counts an unexpected exception
   while handling one message, and the service goes on.
 """
 from __future__ import annotations
 
-import argparse
-import atexit
 import gc
 import logging
-import os
 import signal
 import threading
 import time
-from collections import deque
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import zenoh
 import zenoh.ext
 
 from . import keys
-from .arrivals import ArrivalLedger, Gap
+from .arrivals import Gap
+from .cursor import Cursors
+from .inbox import HEARTBEAT_S, LOSSLESS_STAGES, RECOVERY_CACHE, Inbox, TimedPublisher
+from .loop import Input, Loop
+from .process import TRIM_EVERY, trim_heap
 from .wire import Decoded, Stats, WireError, decode, encode_stats
-from .wire.codec import set_max_image_side
 
-# Set by the supervisor (quick_stream/stream/launcher.py) for a service it restarted: how many times.
-RESTARTED_ENV = "QUICK_STREAM_RESTARTED"
+__all__ = ["ServiceRuntime", "Input", "Inbox", "TimedPublisher"]
 
 log = logging.getLogger(__name__)
 
 
-class Inbox:
-    """Bounded drop-oldest queue of (key, payload bytes, arrival ns) fed by a zenoh callback subscriber.
-
-    It also keeps ``arrivals``: per (stream, stage) of the key the highest seq of the data
-    messages that arrived since that stage's last ``end`` and the seqs skipped on the way
-    (read from the envelope on arrival, so a busy service still answers cursor queries
-    exactly; :class:`~quick_stream.stream.arrivals.ArrivalLedger`). ``on_gap`` hears each gap."""
-
-    def __init__(self, capacity: int, cond: threading.Condition,
-                 on_arrival: Callable[[str, bytes, int], None] | None = None,
-                 on_gap: Callable[[Gap], None] | None = None) -> None:
-        self.capacity = self.base_capacity = self.catch_up = capacity
-        self.catch_up_until = 0.0  # monotonic time before which a drained queue keeps the catch-up bound
-        self.on_arrival = on_arrival
-        self.on_gap = on_gap
-        self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
-        self._cond = cond
-        self.received = 0
-        self.dropped = 0
-        self.skipped = 0
-        self.lost = 0  # messages of a lossless publisher that never arrived and were no longer in its cache
-        self.skip_through: int | None = None  # data messages with a seq <= this are not queued (taken over)
-        self._newest: int | None = None  # taking over: the newest data seq queued so far
-        self._newest_pub: int | None = None  # taking over: the latest publication time queued so far (frames)
-        self.arrivals = ArrivalLedger()
-
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        key, data = str(sample.key_expr), sample.payload.to_bytes()
-        item = (key, data, time.time_ns())
-        # Checked before any bookkeeping reads it (a malformed message's seq must not move the
-        # ledger, the cursor or the skips); queued all the same: its consumer logs why it is refused.
-        env = self.arrivals.checked(key, data)
-        if env is not None and (gap := self.arrivals.account(key, *env)) is not None and self.on_gap is not None:
-            self.on_gap(gap)
-        if self.on_arrival is not None:
-            self.on_arrival(*item)
-        if self.skip_through is not None:
-            # A service taking over skips what its predecessor already handled; a history
-            # replay of many of those must not push the ones it needs out of the queue.
-            if env is not None and env[0] != "end":
-                if env[1] <= self.skip_through and not (env[2] is not None and self._newest_pub is not None
-                                                        and env[2] > self._newest_pub):
-                    # (one published after everything queued is live, not a replay: a stream renumbered
-                    # below the cursor, which the stage takes as a new numbering once a run confirms it)
-                    self.skipped += 1
-                    return
-                if env[2] is not None:
-                    self._newest_pub = max(env[2], self._newest_pub or env[2])
-                if self._newest is not None and env[1] < self._newest:
-                    # older than what already came: the history replay, delivered after live messages
-                    # (and after the queue first drained); it is owed, so hold it as during catch-up
-                    self.capacity = max(self.capacity, self.catch_up)
-                self._newest = env[1] if self._newest is None else max(self._newest, env[1])
-        with self._cond:
-            if len(self._q) >= self.capacity:
-                self._q.popleft()
-                self.dropped += 1
-            self._q.append(item)
-            self.received += 1
-            self._cond.notify_all()
-
-    def _on_miss(self, miss: Any) -> None:
-        self.lost += miss.nb
-        log.warning("%d messages of publisher %s were lost (no longer in its cache)", miss.nb, miss.source)
-
-    def pop(self) -> tuple[str, bytes, int] | None:
-        with self._cond:
-            if not self._q:
-                return None
-            item = self._q.popleft()
-            if not self._q and self.capacity != self.base_capacity and time.monotonic() >= self.catch_up_until:
-                self.capacity = self.base_capacity  # caught up: back to the live bound
-            return item
-
-    def __len__(self) -> int:
-        return len(self._q)
-
-
-LOSSLESS_STAGES = ("frame", "flow", "motion", "correction")  # the keys published with ``lossless=True``
-RECOVERY_CACHE = 150  # messages every lossless publisher keeps for receivers to recover (5 s at 30 fps)
-HEARTBEAT_S = 0.5  # a lossless publisher's heartbeat: a receiver notices a lost last message within it
-
-
-class TimedPublisher:
-    """A zenoh publisher whose ``put`` is timed: the longest put since the last stats (``put_ms_max``)
-    and the puts that took longer than ``SLOW_PUT_MS`` (``slow_puts``, a running count) go into the
-    service's stats as ``pub_<stage>_put_ms_max`` / ``pub_<stage>_slow_puts``. A put that waits is a
-    congested link (docs/deployment.md, "Delivery guarantees per key")."""
-
-    SLOW_PUT_MS = 100.0
-
-    def __init__(self, pub: Any, stage: str) -> None:
-        self.pub, self.stage = pub, stage
-        self.put_ms_max = 0.0
-        self.slow_puts = 0
-
-    def put(self, payload: bytes, **kw: Any) -> None:
-        t0 = time.perf_counter()
-        self.pub.put(payload, **kw)
-        ms = (time.perf_counter() - t0) * 1e3
-        self.put_ms_max = max(self.put_ms_max, ms)
-        self.slow_puts += ms > self.SLOW_PUT_MS
-
-    def take(self) -> dict[str, Any]:
-        out = {f"pub_{self.stage}_put_ms_max": round(self.put_ms_max, 1), f"pub_{self.stage}_slow_puts": self.slow_puts}
-        self.put_ms_max = 0.0
-        return out
-
-    def undeclare(self) -> None:
-        self.pub.undeclare()
-
-
-class ServiceRuntime:
+class ServiceRuntime(Cursors, Loop):
     """One service process's zenoh session and life cycle (use as a context manager)."""
+
 
     def __init__(self, service: str, stream: str, conf: zenoh.Config, stats_period_s: float = 1.0,
                  install_signals: bool = True) -> None:
@@ -182,6 +65,8 @@ class ServiceRuntime:
         self._pubs: list[Any] = []
         self._timed: list[TimedPublisher] = []
         self._stats_seq = 0
+        self.errors: dict[str, int] = {}  # the runtime's counters: decode_errors, internal_errors (in the stats)
+        self.stats_source: Callable[[], dict[str, Any]] | None = None  # the service's values (serve() sets it)
         self._stats_period = stats_period_s
         self._next_stats = time.monotonic() + stats_period_s
         if install_signals:
@@ -306,10 +191,10 @@ class ServiceRuntime:
         key = f"{keys.PREFIX}/{self.stream}/health/*"
         self._subs.append(self.session.liveliness().declare_subscriber(key, on_token, history=True))
 
-    def wait(self, timeout_s: float) -> None:
-        """Sleep until any inbox has a message, a stop signal, or ``timeout_s``."""
+    def wait(self, timeout_s: float, inboxes: list[Inbox] | None = None) -> None:
+        """Sleep until any inbox (of ``inboxes``, default all) has a message, a stop signal, or ``timeout_s``."""
         with self._cond:
-            if self.stop.is_set() or any(len(b) for b in self._inboxes):
+            if self.stop.is_set() or any(len(b) for b in (self._inboxes if inboxes is None else inboxes)):
                 return
             self._cond.wait(timeout_s)
 
@@ -323,130 +208,6 @@ class ServiceRuntime:
         if self._token is None:
             self._token = self.session.liveliness().declare_token(keys.health_key(self.stream, self.service))
 
-    # --- stream cursor ---------------------------------------------------------------------------------
-
-    def serve_cursor(self, all_streams: bool = False) -> None:
-        """Answer cursor queries (``quick/@v1/<stream>/cursor/<service>``) with, per stage this service
-        receives, the newest seq of the stream under way (its inboxes' ``arrivals``). A service
-        restarted mid-stream asks for its own output stage, so it takes over where its
-        predecessor stopped (:meth:`stream_cursor`). ``all_streams``: for every stream it receives
-        (a recorder of all streams), each answered about its own."""
-        def on_query(query: zenoh.Query) -> None:
-            stream = str(query.key_expr).split("/")[2]
-            newest: dict[str, int] = {}
-            for box in self._inboxes:
-                for (s, stage), seq in box.arrivals.newest().items():
-                    if s == stream:
-                        newest[stage] = max(seq, newest.get(stage, -1))
-            # dropped for a congested link, like every put: the asker asks again (stream_cursor, lagging)
-            query.reply(keys.cursor_key(stream, self.service), encode_stats(Stats(self.service, newest), stream, 0),
-                        congestion_control=zenoh.CongestionControl.DROP)
-
-        key = keys.cursor_key("*" if all_streams else self.stream, self.service)
-        self._subs.append(self.session.declare_queryable(key, on_query))
-
-    def stream_cursor(self, stage: str, timeout_s: float = 3.0, settle_s: float = 1.0) -> int | None:
-        """The newest seq of ``stage`` in this stream that any running service has received, or None
-        (nothing yet: a new stream, or nobody who receives that stage is up).
-
-        A new session sees the others' liveliness tokens before their queryables, and a busy
-        service may answer late, so it asks again (up to ``timeout_s``) while other services of the
-        stream are alive and either none has answered yet or the stream is under way (some stage
-        has a seq) but nobody has answered for ``stage``. With every answer saying no stream is under
-        way it answers None at once; with nobody else alive, once ``settle_s`` has passed (right after
-        connecting, a session may see only some of the others' tokens, or none: a restarted flow
-        once started afresh that way, and the frames of its restart went out uncorrected)."""
-        if os.environ.get(RESTARTED_ENV):
-            # restarted by the supervisor, so a stream was most likely under way: killed together with
-            # the router, the others may take seconds to reconnect (a restarted flow once settled after
-            # 1 s, alone, and started afresh: 77 frames went out uncorrected)
-            timeout_s = settle_s = max(timeout_s, 10.0)
-        t0 = time.monotonic()
-        deadline = t0 + timeout_s
-        self._wait_connected(min(timeout_s, 1.0))
-        while True:
-            answered, under_way, best = self._ask_cursor(stage)
-            if best is not None or (answered and not under_way):
-                return best
-            alone = time.monotonic() - t0 > settle_s and not (self.alive() - {self.service})
-            if time.monotonic() > deadline or self.stop.is_set() or alone:
-                if under_way:
-                    log.warning("%s/%s: the stream is under way but no service reports %s; starting afresh",
-                                self.stream, self.service, stage)
-                elif not answered and not alone:
-                    log.warning("%s/%s: no service answered the cursor query in %.0f s; starting afresh",
-                                self.stream, self.service, timeout_s)
-                return None
-            self.stop.wait(0.1)
-
-    def _wait_connected(self, timeout_s: float) -> None:
-        """Until the session has a router or a peer (``zenoh.open`` returns before it connects)."""
-        deadline = time.monotonic() + timeout_s
-        info = self.session.info
-        while not (list(info.routers_zid()) or list(info.peers_zid())) and time.monotonic() < deadline:
-            time.sleep(0.01)
-
-    def _cursor_answers(self) -> Iterator[tuple[str, dict]]:
-        """(service, {stage: newest seq}) of every service of the stream that answers a cursor query
-        (:meth:`serve_cursor`) within 0.5 s; an answer that does not decode is skipped."""
-        replies = self.session.get(keys.cursor_key(self.stream), target=zenoh.QueryTarget.ALL,
-                                   consolidation=zenoh.ConsolidationMode.NONE, timeout=0.5)
-        for reply in replies:
-            try:
-                values = decode(reply.ok.payload.to_bytes()).obj.values
-                service = str(reply.ok.key_expr).rsplit("/", 1)[-1]
-            except (WireError, AttributeError, zenoh.ZError):
-                continue
-            yield service, values
-
-    def _ask_cursor(self, stage: str) -> tuple[bool, bool, int | None]:
-        """(any service answered, any answer has a seq (a stream is under way), the newest ``stage`` seq)."""
-        answered, under_way, best = False, False, None
-        for service, values in self._cursor_answers():
-            answered = True
-            log.debug("cursor %s: %s answered %s", stage, service, values)
-            under_way = under_way or bool(values)
-            seq = values.get(stage)
-            if isinstance(seq, int) and not isinstance(seq, bool) and (best is None or seq > best):
-                best = seq
-        return answered, under_way, best
-
-    def lagging(self, stage: str, seq: int, timeout_s: float, required: frozenset[str] = frozenset()) -> set[str]:
-        """Wait until every service that has received ``stage`` of this stream, and every service in
-        ``required`` (received or not), reports ``seq`` or a newer one (its inbox's arrivals,
-        :meth:`serve_cursor`), or ``timeout_s`` passes; returns the services still behind (empty:
-        delivered). A publisher asks before it ends the stream and closes, so what it put last is not
-        left in flight, and after its first message, so every consumer has its start (a receiver
-        recovers a message its link dropped only after the first one it got from that publisher)."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            behind: set[str] = set()
-            answered: set[str] = set()
-            for service, values in self._cursor_answers():
-                answered.add(service)
-                got = values.get(stage)
-                if isinstance(got, int) and not isinstance(got, bool) and got < seq:
-                    behind.add(service)
-                elif got is None and service in required:
-                    behind.add(service)
-            # a busy service may not answer in time: one that is alive and silent is not known to be done
-            behind |= (self.alive() | required) - answered - {self.service}
-            if not behind or time.monotonic() > deadline or self.stop.is_set():
-                return behind
-            self.stop.wait(0.05)
-
-    def until_ended(self, stage: str, timeout_s: float) -> set[str]:
-        """After this publisher's ``end`` of ``stage``: wait until no running service of the stream
-        reports ``stage`` in its cursor any more (a receiver's arrival ledger closes the stage on the
-        ``end``), or ``timeout_s`` passes; returns the services still reporting it. The publisher's
-        cache closes with its session, so a receiver whose link dropped the ``end`` for congestion
-        can recover it only while the publisher waits here."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            still = {service for service, values in self._cursor_answers() if stage in values}
-            if not still or time.monotonic() > deadline or self.stop.is_set():
-                return still
-            self.stop.wait(0.05)
 
     # --- liveliness --------------------------------------------------------------------------------
 
@@ -477,9 +238,13 @@ class ServiceRuntime:
     def stats_due(self) -> bool:
         return time.monotonic() >= self._next_stats
 
-    def publish_stats(self, values: dict[str, Any]) -> None:
-        """Publish a ``stats`` message now (inbox drops are added automatically)."""
-        vals = dict(values)
+    def publish_stats(self, values: dict[str, Any] | None = None) -> None:
+        """Publish a ``stats`` message now: ``values`` (default: the service's, ``stats_source()``; ``state``
+        ``running`` unless they say otherwise) plus the runtime's counters and each publisher's and
+        inbox's (drops, invalid, queued, lost, skipped)."""
+        if values is None:
+            values = self.stats_source() if self.stats_source is not None else {}
+        vals = {"state": "running", **self.errors, **values}
         for p in self._timed:
             vals.update(p.take())
         for i, b in enumerate(self._inboxes):
@@ -495,48 +260,39 @@ class ServiceRuntime:
             trim_heap()
         self._next_stats = time.monotonic() + self._stats_period
 
-    def maybe_stats(self, values: Callable[[], dict[str, Any]]) -> None:
+    def maybe_stats(self, values: Callable[[], dict[str, Any]] | None = None) -> None:
+        """:meth:`publish_stats` if a stats period has passed (``values``: default the service's)."""
         if self.stats_due():
-            self.publish_stats(values())
+            self.publish_stats(values() if values is not None else None)
 
-    def receive(self, inbox: Inbox, expect: str, errors: dict[str, int],
-                stats: Callable[[], dict[str, Any]]) -> Iterator[Decoded]:
-        """Decoded ``expect`` and ``end`` messages from ``inbox`` until stopped, publishing stats when
-        due; one that does not decode, or of another type, is logged and counted in
-        ``errors["decode_errors"]`` and skipped (the stream goes on)."""
-        while not self.stop.is_set():
-            self.maybe_stats(stats)
-            item = inbox.pop()
-            if item is None:
-                self.wait(0.2)
-                continue
-            msg = self.decode(item[0], item[1], (expect, "end"), errors)
-            if msg is not None:
-                yield msg
-
-    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], errors: dict[str, int]) -> Decoded | None:
+    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...]) -> Decoded | None:
         """The message decoded, if it is one of the ``expect`` types and of this service's stream;
-        otherwise None, logged (naming the key, field and problem) and counted in ``errors["decode_errors"]``."""
+        otherwise None, logged (naming the key, field and problem) and counted in ``decode_errors``."""
         try:
             msg = decode(data)
             if msg.stream != self.stream:
                 raise WireError(f"message of stream {msg.stream!r} on the key of stream {self.stream!r}",
                                 stream=msg.stream, seq=msg.seq, field="stream", type=msg.type)
         except WireError as e:
-            errors["decode_errors"] += 1
+            self.count("decode_errors")
             log.error("%s message on %s rejected: %s", "/".join(expect), key_expr, e)
             return None
         if msg.type not in expect:
-            errors["decode_errors"] += 1
+            self.count("decode_errors")
             log.error("unexpected %s message on %s", msg.type, key_expr)
             return None
         return msg
 
-    def contained(self, what: str, errors: dict[str, int]) -> "_Contained":
+    def count(self, counter: str, n: int = 1) -> None:
+        """Add ``n`` to one of the runtime's counters (in every stats message)."""
+        self.errors[counter] = self.errors.get(counter, 0) + n
+
+    def contained(self, what: str | Callable[[], str]) -> "_Contained":
         """Context for processing one message: an unexpected exception (a bug or an input no check
-        foresaw) is logged with its traceback and counted in ``errors["internal_errors"]``, and the
-        service goes on with the next message: one bad frame never kills a stream."""
-        return _Contained(f"{self.stream}/{self.service}: {what}", errors)
+        foresaw) is logged with its traceback and counted in ``internal_errors``, and the
+        service goes on with the next message: one bad frame never kills a stream. ``what`` names
+        the message (a callable: asked only when an exception is logged)."""
+        return _Contained(f"{self.stream}/{self.service}", what, self.errors)
 
     # --- shutdown --------------------------------------------------------------------------------------
 
@@ -560,8 +316,8 @@ class ServiceRuntime:
 
 
 class _Contained:
-    def __init__(self, what: str, errors: dict[str, int]) -> None:
-        self.what, self.errors = what, errors
+    def __init__(self, where: str, what: str | Callable[[], str], errors: dict[str, int]) -> None:
+        self.where, self.what, self.errors = where, what, errors
 
     def __enter__(self) -> None:
         return None
@@ -570,108 +326,10 @@ class _Contained:
         if kind is None or not issubclass(kind, Exception):
             return False
         self.errors["internal_errors"] = self.errors.get("internal_errors", 0) + 1
-        log.error("%s failed (%s: %s); skipped, the stream goes on", self.what, kind.__name__, exc,
+        try:
+            what = self.what() if callable(self.what) else self.what
+        except Exception:  # noqa: BLE001 - a message too broken to be named is still contained
+            what = "a message"
+        log.error("%s: %s failed (%s: %s); skipped, the stream goes on", self.where, what, kind.__name__, exc,
                   exc_info=(kind, exc, _tb))
         return True
-
-
-MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's --max-frame-side
-
-
-def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
-    """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
-    from .argtypes import stream_id
-    from .transport import add_zenoh_args
-
-    p = argparse.ArgumentParser(prog=f"quick-stream-{service}", description=description,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--stream", type=stream_id, default="cam0",
-                   help="stream (camera) id, 1-64 of [A-Za-z0-9_-]; one per camera (default cam0)")
-    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
-    p.add_argument("--max-frame-side", type=int, default=int(os.environ.get(MAX_SIDE_ENV, 4096)), metavar="PX",
-                   help=f"largest image width or height accepted, checked from the header before decoding "
-                   f"(default 4096, or ${MAX_SIDE_ENV})")
-    add_zenoh_args(p)
-    return p
-
-
-TRIM_EVERY = 10  # stats periods (about 10 s)
-
-
-def _libc_trim() -> Callable[[int], int] | None:
-    try:
-        import ctypes
-
-        return ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return None  # not glibc: nothing to do
-
-
-_MALLOC_TRIM = _libc_trim()
-
-
-def trim_heap() -> None:
-    """Hand freed heap pages back to the OS (glibc ``malloc_trim``). Frames and messages of many
-    sizes, allocated in zenoh's threads and freed in the service's, leave free memory spread over
-    several malloc arenas; without this the resident size of a long run creeps up by several
-    percent (10-minute soak, docs/reliability.md). A few milliseconds, every ``TRIM_EVERY`` stats."""
-    if _MALLOC_TRIM is not None:
-        _MALLOC_TRIM(0)
-
-
-def lower_priority(niceness: int) -> None:
-    """Raise this process's nice value by ``niceness`` (background work such as recording yields
-    the CPU to the live path on a busy machine; its queue absorbs the wait)."""
-    if niceness > 0:
-        os.nice(niceness)
-
-
-def setup_logging(service: str, verbose: bool) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format=f"%(asctime)s {service} %(levelname)s: %(message)s")
-
-
-def _ignore_term_while_exiting() -> None:
-    """At interpreter exit, after the service's work and clean-up are done: ignore SIGTERM.
-    CPython puts the default (fatal) handler back while it finalises, so a supervisor's SIGTERM
-    arriving in those last moments (zenoh's objects are dropped there, slowly on a busy machine)
-    turned a clean exit into -15; an ignored signal is left alone (tests/test_runtime.py)."""
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-
-
-def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace, zenoh.Config], int],
-                 argv: list[str] | None, check: Callable[[argparse.Namespace], Any] | None = None,
-                 early: Callable[[argparse.Namespace], int | None] | None = None) -> int:
-    """A service's ``main``: parse, log, one OpenCV thread, build the zenoh config (and ``check`` the
-    service's own settings and that its output paths can be written), then ``run(args, conf)``; a bad
-    flag or config exits 2 with its message, before any session is opened. A session zenoh refuses
-    to open (e.g. a listen endpoint already in use) is logged with zenoh's reason, exit 2.
-    ``early`` may answer without a session (e.g. ``--list-devices``) by returning an exit code."""
-    import cv2
-
-    from .argtypes import check_outputs
-    from .transport import config_from_args, zenoh_message
-
-    args = parser.parse_args(argv)
-    setup_logging(service, args.verbose)
-    atexit.unregister(_ignore_term_while_exiting)  # once, however often main() runs in one process
-    atexit.register(_ignore_term_while_exiting)
-    if early is not None and (code := early(args)) is not None:
-        return code
-    cv2.setNumThreads(1)
-    try:
-        if hasattr(args, "max_frame_side"):
-            set_max_image_side(args.max_frame_side)
-        conf = config_from_args(args)
-        check_outputs(args)
-        if check is not None:
-            check(args)
-    except ValueError as e:
-        logging.getLogger(service).error("%s", e)
-        return 2
-    try:
-        return run(args, conf)
-    except zenoh.ZError as e:
-        logging.getLogger(service).error("zenoh: %s (check -e/-l/-c/--cfg and the QUICK_STREAM_ZENOH_* variables)",
-                                         zenoh_message(e))
-        return 2

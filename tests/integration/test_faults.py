@@ -109,7 +109,7 @@ def test_under_tls_and_access_control(tmp_path, certs, case):
 
 _SLOW_EXIT = """
 import sys, time
-from quick_stream.stream.runtime import service_main, service_parser
+from quick_stream.stream.process import service_main, service_parser
 
 class SlowToDrop:  # stands in for zenoh objects dropped slowly while the interpreter finalises
     def __del__(self):

@@ -1,8 +1,9 @@
 """The real render service with every rendered frame slowed down (backpressure tests).
 
 ``python -m tests.tools.slow_render --slow-ms MS [render flags]`` runs
-:func:`quick_stream.services.render.main` with the render flags, unchanged, except that its
-:class:`~quick_stream.core.render_stage.RenderStage` (wrapped by :func:`slowed`) spends ``MS``
+:func:`quick_stream.services.render.main` with the render flags, unchanged, except that the
+:class:`~quick_stream.core.render_stage.RenderStage` its driver makes
+(:class:`~quick_stream.core.release.RenderDriver`; wrapped by :func:`slowed`) spends ``MS``
 milliseconds more on every frame it renders. A bad ``--slow-ms`` exits 2 naming it, as a
 service's flags do. The launcher starts it in place of ``quick_stream.services.render`` wherever a
 test needs a slow stage (tests/integration/test_backpressure.py).
@@ -14,6 +15,7 @@ import sys
 import time
 from collections.abc import Iterator
 
+from quick_stream.core import release
 from quick_stream.services import render
 from quick_stream.stream import argtypes as at
 
@@ -43,13 +45,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--slow-ms", type=at.nonneg_float, default=0.0,
                    help="spend this much longer on every rendered frame")
     known, rest = p.parse_known_args(sys.argv[1:] if argv is None else argv)
-    real = render.RenderStage
+    real = release.RenderStage
     if known.slow_ms > 0:
-        render.RenderStage = slowed(real, known.slow_ms)
+        release.RenderStage = slowed(real, known.slow_ms)  # what the render driver makes each stream's stage of
     try:
         return render.main(rest)
     finally:
-        render.RenderStage = real  # in-process callers (tests) get the real stage back
+        release.RenderStage = real  # in-process callers (tests) get the real stage back
 
 
 if __name__ == "__main__":

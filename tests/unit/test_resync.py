@@ -13,7 +13,8 @@ import pytest
 
 from quick_stream.core.continuity import ContinuityParams, FrameRefused, JumpGuard, RENUMBERED
 from quick_stream.core.path.planner import Correction
-from quick_stream.core.render_stage import ReleaseGroups, RenderStage, STALE
+from quick_stream.core.release import ReleaseGroups
+from quick_stream.core.render_stage import RenderStage, STALE
 from quick_stream.core.stabilizer import Stabilizer
 from quick_stream.core.stages import FlowStage, MotionStage
 from quick_stream.io.sources import open_source

@@ -127,7 +127,7 @@ def test_release_groups_hand_over_releases_whose_sender_died():
     import numpy as np
 
     from quick_stream.core.path.planner import Correction
-    from quick_stream.core.render_stage import ReleaseGroups
+    from quick_stream.core.release import ReleaseGroups
 
     def c(seq):
         return Correction(seq, np.eye(4), 0, False)

@@ -67,6 +67,22 @@ def synced_queue(dai: Any, pipeline: Any, color: Any, depth: Any, tolerance_ms: 
     return sync.out.createOutputQueue(maxSize=queue_size, blocking=False)
 
 
+def print_devices() -> int:
+    """``quick-stream-capture --list-devices``: one line per OAK device this host sees (id, name,
+    state, platform); exit 1 when there is none, 2 without depthai."""
+    try:
+        found = list_devices()
+    except ImportError as e:
+        log.error("%s", e)
+        return 2
+    if not found:
+        print("no OAK device found (check the USB cable, the udev rule, or Docker's /dev/bus/usb mapping)")
+        return 1
+    for d in found:
+        print(f"{d['id']}  {d['name']}  {d['state']}  {d['platform']}")
+    return 0
+
+
 class PipelineBackend:
     """A started depthai pipeline whose one output queue gives colour and depth frames already
     paired (:func:`synced_queue`): ``open``/``read``/``close``.

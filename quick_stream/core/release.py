@@ -1,0 +1,291 @@
+"""Releases: correction batches from the motion stage to the render stage, and the render policy.
+
+    MotionStage batches -> ReleaseNumbering -> (correction, (release, index, size)) -> wire ->
+        ReleaseGroups -> RenderDriver -> Rendered (stabilized frame + latency stamps)
+
+A *release* is what one planner call released (:mod:`quick_stream.core.stages`); the renderer frames
+each as a whole, so the corrections travel tagged with their release. :class:`ReleaseNumbering`
+tags them (the motion service publishes the tags), :class:`ReleaseGroups` regroups what arrives one
+message at a time, and :class:`RenderDriver` is the render side over a service's life: which
+frames are taken, when a release renders (all its frames here, a newer one arrived, or
+``frame_wait`` passed), the latency stamps of each frame (docs/wire-format.md), the end of a
+stream (frames the corrections' end overtook get ``frame_wait``; then every release left and
+every frame still held are rendered) and the counters carried from one stream to the next.
+
+The render service, :class:`~quick_stream.core.stabilizer.Stabilizer` and ``quick-stream rerun``
+run these same objects (docs/architecture.md), so a re-run checks the service's own policy.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
+
+from .continuity import restarts_numbering
+from .frame import RGBDFrame
+from .path.planner import Correction
+from .render import FramingParams, WarpParams
+from .render_stage import FrameLoader, RenderStage, StabilizedFrame
+
+Tag = tuple[int, int, int]  # (release, index in it, its size)
+
+
+class ReleaseNumbering:
+    """Correction batches tagged as the motion service publishes them: each batch one release,
+    numbered from 0 for the service's life (not reset at the end of a stream)."""
+
+    def __init__(self) -> None:
+        self.release = 0
+        self.sent = 0  # corrections tagged
+
+    def number(self, batches: list[list[Correction]]) -> list[tuple[Correction, Tag]]:
+        out: list[tuple[Correction, Tag]] = []
+        for b in batches:
+            out += [(c, (self.release, i, len(b))) for i, c in enumerate(b)]
+            self.sent += len(b)
+            self.release += 1
+        return out
+
+
+class ReleaseGroups:
+    """Corrections grouped by planner release; yields complete releases in order.
+
+    The motion service sends a release's corrections back to back, so a release still
+    incomplete when another one starts arriving lost its sender mid-way (a killed motion
+    service): it is handed over with what arrived (``abandoned``). A restarted motion
+    service numbers releases from 0 again; a correction that does not fit the open release
+    of that number (other size, or an index already there) starts a new one.
+
+    ``ready`` holds (release, batch, completed at, numbering), in seq order within a numbering:
+    the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.restarts_numbering`,
+    going back) starts the next numbering, whose releases follow every release of the old one.
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock  # when a release completed (how long it has waited for its frames)
+        self._open: dict[int, tuple[int, dict[int, Correction], int]] = {}
+        self.ready: list[tuple[int, list[Correction], float, int]] = []
+        self.unbatched = 0
+        self.abandoned = 0
+        self.numbering = 0  # renumberings the corrections announced
+        self._newest: int | None = None  # the newest correction seq of the current numbering
+
+    def _hand_over(self, rel: int) -> None:
+        _, got, numbering = self._open.pop(rel)
+        self.ready.append((rel, [got[i] for i in sorted(got)], self.clock(), numbering))
+        self.ready.sort(key=lambda r: (r[3], r[1][0].seq))
+
+    def _numbering(self, c: Correction) -> int:
+        """The numbering ``c`` belongs to (a restart correction going back starts the next one)."""
+        if not c.valid and restarts_numbering(c.reason) and self._newest is not None and c.seq <= self._newest:
+            self.numbering += 1
+            self._newest = None
+        self._newest = c.seq if self._newest is None else max(self._newest, c.seq)
+        return self.numbering
+
+    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
+        numbering = self._numbering(c)
+        if batch is None:  # a sender without release tags: each correction is its own batch
+            self.unbatched += 1
+            self.ready.append((-1, [c], self.clock(), numbering))
+            return
+        rel, idx, size = batch
+        for other in [r for r in self._open if r != rel]:
+            self.abandoned += 1
+            self._hand_over(other)
+        if rel in self._open and (self._open[rel][0] != size or idx in self._open[rel][1]
+                                  or self._open[rel][2] != numbering):
+            self.abandoned += 1
+            self._hand_over(rel)
+        _, got, _ = self._open.setdefault(rel, (size, {}, numbering))
+        got[idx] = c
+        if len(got) == size:
+            self._hand_over(rel)
+
+    def flush_incomplete(self) -> int:
+        """End of stream: hand over partial releases (what arrived of them); returns how many."""
+        n = len(self._open)
+        for rel in sorted(self._open):
+            self._hand_over(rel)
+        return n
+
+
+@dataclass
+class Release:
+    """One release due for rendering: its id and its corrections."""
+
+    id: int
+    batch: list[Correction]
+
+    @property
+    def label(self) -> str:
+        return f"release {self.id} (frames {self.batch[0].seq}..{self.batch[-1].seq})"
+
+
+@dataclass
+class Rendered:
+    """A stabilized frame with its latency stamps (docs/wire-format.md): when the capture published
+    it (``src_pub_ns``) and the frame whose arrival closed its release (``ready_pub_ns``)."""
+
+    frame: StabilizedFrame
+    src_pub_ns: int | None
+    ready_pub_ns: int | None
+
+
+CARRIED = ("dropped", "missing", "orphans", "bad_frames", "filled", "fill_raised", "renumberings")
+
+
+class RenderDriver:
+    """The render stage over a service's life (module docstring): frames and tagged corrections in,
+    due releases rendered with their latency stamps out, one stream after another.
+
+    ``frame_wait``: seconds a release whose frames are not all here waits for them (unless a newer
+    frame shows they will not come); ``resume_after``: a restarted render takes over after the
+    last frame its predecessor rendered (frames and corrections up to it are skipped, counted in
+    ``taken_over``, until a renumbering or the end of the stream); ``log``: where refusals,
+    renumberings and frames that cannot be rendered are reported (None: silent); ``clock``: seconds,
+    monotonic (how long a release has waited)."""
+
+    def __init__(self, warp: WarpParams | None = None, framing: FramingParams | None = None, *,
+                 max_frames: int = 150, frame_wait: float = 1.0, resume_after: int | None = None,
+                 keep_inputs: bool = False, log: logging.Logger | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._make = lambda: RenderStage(warp, framing, max_frames=max_frames, keep_inputs=keep_inputs)
+        self.stage = self._make()
+        self.releases = ReleaseGroups(clock)  # one for the service's life: a restarted motion renumbers from 0
+        self.max_frames, self.frame_wait, self.resume_after = max_frames, frame_wait, resume_after
+        self.log, self.clock = log, clock
+        self._pub_ns: dict[tuple[int, int], int] = {}  # (numbering, seq) -> when the capture published the frame
+        self.refused = self.taken_over = self.flagged = self.ended = 0
+        self._done = dict.fromkeys(CARRIED, 0)  # counts of the streams already ended
+        self.ending = False  # the corrections' end came: the stream ends once its frames are in
+        self.end_marker: Any = None  # what came with it (forwarded by the service)
+        self._deadline: float | None = None
+
+    def _say(self, level: int, msg: str, *args: Any) -> None:
+        if self.log is not None:
+            self.log.log(level, msg, *args)
+
+    def add_correction(self, c: Correction, tag: Tag | None) -> None:
+        """One correction as it arrives, with its release tag (None: a sender without tags)."""
+        if self.resume_after is None or c.seq > self.resume_after:
+            self.releases.add(c, tag)
+
+    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None) -> bool:
+        """Hold a frame (or its loader) for its release; False when it is not taken: rendered before a
+        restart (``taken_over``) or refused by the stage (``refused_frames``, reported)."""
+        st = self.stage
+        if self.resume_after is not None and seq <= self.resume_after and (st.newest is None or not st.fresh(pub_ns)):
+            # rendered before the restart (the frames' history); once frames are taken, one published
+            # after them is live: a stream renumbered below the cursor, for the stage to confirm
+            self.taken_over += 1
+            return False
+        renumberings = st.renumberings
+        try:
+            st.add_frame(seq, frame, pub_ns)
+        except ValueError as e:
+            self.refused += 1
+            self._say(logging.ERROR, "frame %d: %s", seq, e)
+            return False
+        if st.renumberings > renumberings:
+            self._say(logging.WARNING, "frame %d: the stream's numbering restarts (confirmed by %d frames in a row); "
+                      "%d frames of the old numbering held for their corrections", seq, st.jumps.resync,
+                      st.buffered - 1)
+            self.resume_after = None  # the predecessor's cursor says nothing of the new numbering
+        self._pub_ns[(st.numbering, seq)] = pub_ns or 0
+        while len(self._pub_ns) > self.max_frames + 64:
+            self._pub_ns.pop(next(iter(self._pub_ns)))
+        return True
+
+    def due(self, force: bool = False) -> Iterator[Release]:
+        """The releases to render now, in order, each popped as it is yielded (render it with
+        :meth:`render` before asking for the next): all its frames are here, a newer frame has
+        arrived (a missing one will not come), ``frame_wait`` has passed, or ``force``."""
+        while self.releases.ready:
+            rel, batch, t_done, _ = self.releases.ready[0]
+            if not (force or self.stage.can_render(batch) or self.clock() - t_done > self.frame_wait):
+                return
+            self.releases.ready.pop(0)
+            yield Release(rel, batch)
+
+    def render(self, release: Release) -> Iterator[Rendered]:
+        """Render a release and the orphans it reveals, each frame stamped as it is rendered."""
+        st, seqs = self.stage, [c.seq for c in release.batch]
+        ready = (st.numbering_of(release.batch), max(seqs))
+        nbad = len(st.bad)
+        try:
+            for sf in st.iter_batch(release.batch):
+                yield self._stamped(sf, ready)
+        finally:
+            for b in st.bad[nbad:]:
+                self._say(logging.ERROR, "frame %d cannot be rendered: %s", b["seq"], b["error"])
+
+    def _stamped(self, sf: StabilizedFrame, ready: tuple[int, int] | None) -> Rendered:
+        src = self._pub_ns.pop((sf.numbering, sf.seq), None)
+        self.flagged += bool(sf.flags)
+        return Rendered(sf, src, self._pub_ns.get(ready, src) if ready is not None else src)
+
+    @property
+    def takes_corrections(self) -> bool:
+        """Whether a service reads corrections now: every pending one first (cheap, and what releases
+        frames), then the frames that had arrived by then (under overload frames come faster than
+        they decode: one correction per pass of an endless frame drain starved the corrections), but
+        none while a stream ends (they are the next stream's)."""
+        return not self.ending
+
+    @property
+    def idle_s(self) -> float:
+        """How long a service with nothing to read sleeps before asking again: shorter while a stream
+        ends (the frames its end overtook are awaited)."""
+        return 0.02 if self.ending else 0.05
+
+    def end(self, marker: Any = None) -> None:
+        """The corrections' end: no more corrections of this stream; what arrived of a release is
+        a release (``abandoned``), and the frames the end overtook get ``frame_wait`` (:meth:`end_due`)."""
+        self.ending, self.end_marker, self._deadline = True, marker, None
+        n = self.releases.flush_incomplete()
+        if n:
+            self._say(logging.WARNING, "end of stream with %d incomplete releases", n)
+
+    def end_due(self, stopping: bool = False) -> bool:
+        """After :meth:`end`: whether the stream ends now (:meth:`finish`): every release rendered,
+        ``frame_wait`` passed since the first ask (a frame a congested link dropped comes back later,
+        from its publisher's cache), or ``stopping``."""
+        if not self.ending:
+            return False
+        if self._deadline is None:
+            self._deadline = self.clock() + self.frame_wait
+        return stopping or not self.releases.ready or self.clock() > self._deadline
+
+    def finish(self) -> Iterator[tuple[str, Iterator[Rendered]]]:
+        """End of stream: every release left, as it is, then every frame still held, uncorrected and
+        flagged; (label, frames) per group, each rendered as its frames are asked for (in order).
+        :meth:`restart` then starts the next stream."""
+        for rel in self.due(force=True):
+            yield rel.label, self.render(rel)
+        yield "end of stream", self._flushed()
+
+    def _flushed(self) -> Iterator[Rendered]:
+        for sf in self.stage.flush():
+            yield self._stamped(sf, None)
+
+    def restart(self) -> None:
+        """After :meth:`finish`: the next stream starts afresh; the counters go on."""
+        for k, v in self._per_stream().items():
+            self._done[k] += v
+        self.ended += 1
+        self.stage = self._make()
+        self.ending, self.end_marker, self._deadline, self.resume_after = False, None, None, None
+
+    def _per_stream(self) -> dict[str, int]:
+        st = self.stage
+        return {"dropped": st.dropped, "missing": st.missing, "orphans": st.orphans, "bad_frames": len(st.bad),
+                "filled": st.filled, "fill_raised": st.fill_raised, "renumberings": st.renumberings}
+
+    def stats(self) -> dict[str, int]:
+        """The counters of docs/reliability.md (the stream under way plus those ended)."""
+        return {"refused_frames": self.refused, "taken_over": self.taken_over, "buffered": self.stage.buffered,
+                **{k: self._done[k] + v for k, v in self._per_stream().items()}, "flagged": self.flagged,
+                "pending_releases": len(self.releases.ready), "ended": self.ended,
+                "abandoned_releases": self.releases.abandoned}

@@ -1,0 +1,140 @@
+"""A service's inboxes and publishers: drop-oldest queues fed by zenoh subscribers, timed puts.
+
+* **Inbox**: a callback subscriber that appends each payload to a bounded deque.
+  When full it drops the *oldest* and counts it (zenoh's ``RingChannel`` drops
+  silently; we report drops in the stats). Lossless inboxes are the same with a
+  bound no healthy stream reaches. Every inbox recovers what its own link dropped
+  from the lossless publishers' caches (zenoh-ext sample-miss recovery), in order;
+  what the cache no longer held is counted (``inbox<i>_lost``).
+* **Publishers never wait for a subscriber**: all of them drop for a congested link
+  (``CongestionControl.DROP``), so a slow foreign subscriber, peer or client, can only
+  slow itself; the pipeline's own lossless keys are numbered, cached and recovered
+  (docs/deployment.md, "Delivery guarantees per key"). :class:`TimedPublisher` times each put.
+
+Both are made by :class:`~quick_stream.stream.runtime.ServiceRuntime` (``inbox``, ``publisher``).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from typing import Any, Callable
+
+import zenoh
+
+from .arrivals import ArrivalLedger, Gap
+
+log = logging.getLogger(__name__)
+
+
+class Inbox:
+    """Bounded drop-oldest queue of (key, payload bytes, arrival ns) fed by a zenoh callback subscriber.
+
+    It also keeps ``arrivals``: per (stream, stage) of the key the highest seq of the data
+    messages that arrived since that stage's last ``end`` and the seqs skipped on the way
+    (read from the envelope on arrival, so a busy service still answers cursor queries
+    exactly; :class:`~quick_stream.stream.arrivals.ArrivalLedger`). ``on_gap`` hears each gap."""
+
+    def __init__(self, capacity: int, cond: threading.Condition,
+                 on_arrival: Callable[[str, bytes, int], None] | None = None,
+                 on_gap: Callable[[Gap], None] | None = None) -> None:
+        self.capacity = self.base_capacity = self.catch_up = capacity
+        self.catch_up_until = 0.0  # monotonic time before which a drained queue keeps the catch-up bound
+        self.on_arrival = on_arrival
+        self.on_gap = on_gap
+        self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
+        self._cond = cond
+        self.received = 0
+        self.dropped = 0
+        self.skipped = 0
+        self.lost = 0  # messages of a lossless publisher that never arrived and were no longer in its cache
+        self.skip_through: int | None = None  # data messages with a seq <= this are not queued (taken over)
+        self._newest: int | None = None  # taking over: the newest data seq queued so far
+        self._newest_pub: int | None = None  # taking over: the latest publication time queued so far (frames)
+        self.arrivals = ArrivalLedger()
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key, data = str(sample.key_expr), sample.payload.to_bytes()
+        item = (key, data, time.time_ns())
+        # Checked before any bookkeeping reads it (a malformed message's seq must not move the
+        # ledger, the cursor or the skips); queued all the same: its consumer logs why it is refused.
+        env = self.arrivals.checked(key, data)
+        if env is not None and (gap := self.arrivals.account(key, *env)) is not None and self.on_gap is not None:
+            self.on_gap(gap)
+        if self.on_arrival is not None:
+            self.on_arrival(*item)
+        if self.skip_through is not None:
+            # A service taking over skips what its predecessor already handled; a history
+            # replay of many of those must not push the ones it needs out of the queue.
+            if env is not None and env[0] != "end":
+                if env[1] <= self.skip_through and not (env[2] is not None and self._newest_pub is not None
+                                                        and env[2] > self._newest_pub):
+                    # (one published after everything queued is live, not a replay: a stream renumbered
+                    # below the cursor, which the stage takes as a new numbering once a run confirms it)
+                    self.skipped += 1
+                    return
+                if env[2] is not None:
+                    self._newest_pub = max(env[2], self._newest_pub or env[2])
+                if self._newest is not None and env[1] < self._newest:
+                    # older than what already came: the history replay, delivered after live messages
+                    # (and after the queue first drained); it is owed, so hold it as during catch-up
+                    self.capacity = max(self.capacity, self.catch_up)
+                self._newest = env[1] if self._newest is None else max(self._newest, env[1])
+        with self._cond:
+            if len(self._q) >= self.capacity:
+                self._q.popleft()
+                self.dropped += 1
+            self._q.append(item)
+            self.received += 1
+            self._cond.notify_all()
+
+    def _on_miss(self, miss: Any) -> None:
+        self.lost += miss.nb
+        log.warning("%d messages of publisher %s were lost (no longer in its cache)", miss.nb, miss.source)
+
+    def pop(self) -> tuple[str, bytes, int] | None:
+        with self._cond:
+            if not self._q:
+                return None
+            item = self._q.popleft()
+            if not self._q and self.capacity != self.base_capacity and time.monotonic() >= self.catch_up_until:
+                self.capacity = self.base_capacity  # caught up: back to the live bound
+            return item
+
+    def __len__(self) -> int:
+        return len(self._q)
+
+
+LOSSLESS_STAGES = ("frame", "flow", "motion", "correction")  # the keys published with ``lossless=True``
+RECOVERY_CACHE = 150  # messages every lossless publisher keeps for receivers to recover (5 s at 30 fps)
+HEARTBEAT_S = 0.5  # a lossless publisher's heartbeat: a receiver notices a lost last message within it
+
+
+class TimedPublisher:
+    """A zenoh publisher whose ``put`` is timed: the longest put since the last stats (``put_ms_max``)
+    and the puts that took longer than ``SLOW_PUT_MS`` (``slow_puts``, a running count) go into the
+    service's stats as ``pub_<stage>_put_ms_max`` / ``pub_<stage>_slow_puts``. A put that waits is a
+    congested link (docs/deployment.md, "Delivery guarantees per key")."""
+
+    SLOW_PUT_MS = 100.0
+
+    def __init__(self, pub: Any, stage: str) -> None:
+        self.pub, self.stage = pub, stage
+        self.put_ms_max = 0.0
+        self.slow_puts = 0
+
+    def put(self, payload: bytes, **kw: Any) -> None:
+        t0 = time.perf_counter()
+        self.pub.put(payload, **kw)
+        ms = (time.perf_counter() - t0) * 1e3
+        self.put_ms_max = max(self.put_ms_max, ms)
+        self.slow_puts += ms > self.SLOW_PUT_MS
+
+    def take(self) -> dict[str, Any]:
+        out = {f"pub_{self.stage}_put_ms_max": round(self.put_ms_max, 1), f"pub_{self.stage}_slow_puts": self.slow_puts}
+        self.put_ms_max = 0.0
+        return out
+
+    def undeclare(self) -> None:
+        self.pub.undeclare()

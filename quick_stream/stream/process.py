@@ -1,0 +1,120 @@
+"""A service process around its runtime: flags, logging, ``main``, heap and CPU priority.
+
+:func:`service_main` is every service's ``main`` (parse, log, build the zenoh config, check,
+run); :func:`service_parser` the parser with the standard zenoh flags, ``--stream``, ``-v`` and
+``--max-frame-side``. :func:`trim_heap` hands freed heap pages back to the OS (the runtime calls it
+every ``TRIM_EVERY`` stats), :func:`lower_priority` lowers the process's CPU priority.
+"""
+from __future__ import annotations
+
+import argparse
+import atexit
+import logging
+import os
+import signal
+from typing import Any, Callable
+
+import zenoh
+
+from .wire.codec import set_max_image_side
+
+MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's --max-frame-side
+
+
+def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
+    """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
+    from .argtypes import stream_id
+    from .transport import add_zenoh_args
+
+    p = argparse.ArgumentParser(prog=f"quick-stream-{service}", description=description,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--stream", type=stream_id, default="cam0",
+                   help="stream (camera) id, 1-64 of [A-Za-z0-9_-]; one per camera (default cam0)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.add_argument("--max-frame-side", type=int, default=int(os.environ.get(MAX_SIDE_ENV, 4096)), metavar="PX",
+                   help=f"largest image width or height accepted, checked from the header before decoding "
+                   f"(default 4096, or ${MAX_SIDE_ENV})")
+    add_zenoh_args(p)
+    return p
+
+
+TRIM_EVERY = 10  # stats periods (about 10 s)
+
+
+def _libc_trim() -> Callable[[int], int] | None:
+    try:
+        import ctypes
+
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None  # not glibc: nothing to do
+
+
+_MALLOC_TRIM = _libc_trim()
+
+
+def trim_heap() -> None:
+    """Hand freed heap pages back to the OS (glibc ``malloc_trim``). Frames and messages of many
+    sizes, allocated in zenoh's threads and freed in the service's, leave free memory spread over
+    several malloc arenas; without this the resident size of a long run creeps up by several
+    percent (10-minute soak, docs/reliability.md). A few milliseconds, every ``TRIM_EVERY`` stats."""
+    if _MALLOC_TRIM is not None:
+        _MALLOC_TRIM(0)
+
+
+def lower_priority(niceness: int) -> None:
+    """Raise this process's nice value by ``niceness`` (background work such as recording yields
+    the CPU to the live path on a busy machine; its queue absorbs the wait)."""
+    if niceness > 0:
+        os.nice(niceness)
+
+
+def setup_logging(service: str, verbose: bool) -> None:
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
+                        format=f"%(asctime)s {service} %(levelname)s: %(message)s")
+
+
+def _ignore_term_while_exiting() -> None:
+    """At interpreter exit, after the service's work and clean-up are done: ignore SIGTERM.
+    CPython puts the default (fatal) handler back while it finalises, so a supervisor's SIGTERM
+    arriving in those last moments (zenoh's objects are dropped there, slowly on a busy machine)
+    turned a clean exit into -15; an ignored signal is left alone (tests/test_runtime.py)."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace, zenoh.Config], int],
+                 argv: list[str] | None, check: Callable[[argparse.Namespace], Any] | None = None,
+                 early: Callable[[argparse.Namespace], int | None] | None = None) -> int:
+    """A service's ``main``: parse, log, one OpenCV thread, build the zenoh config (and ``check`` the
+    service's own settings and that its output paths can be written), then ``run(args, conf)``; a bad
+    flag or config exits 2 with its message, before any session is opened. A session zenoh refuses
+    to open (e.g. a listen endpoint already in use) is logged with zenoh's reason, exit 2.
+    ``early`` may answer without a session (e.g. ``--list-devices``) by returning an exit code."""
+    import cv2
+
+    from .argtypes import check_outputs
+    from .transport import config_from_args, zenoh_message
+
+    args = parser.parse_args(argv)
+    setup_logging(service, args.verbose)
+    atexit.unregister(_ignore_term_while_exiting)  # once, however often main() runs in one process
+    atexit.register(_ignore_term_while_exiting)
+    if early is not None and (code := early(args)) is not None:
+        return code
+    cv2.setNumThreads(1)
+    try:
+        if hasattr(args, "max_frame_side"):
+            set_max_image_side(args.max_frame_side)
+        conf = config_from_args(args)
+        check_outputs(args)
+        if check is not None:
+            check(args)
+    except ValueError as e:
+        logging.getLogger(service).error("%s", e)
+        return 2
+    try:
+        return run(args, conf)
+    except zenoh.ZError as e:
+        logging.getLogger(service).error("zenoh: %s (check -e/-l/-c/--cfg and the QUICK_STREAM_ZENOH_* variables)",
+                                         zenoh_message(e))
+        return 2

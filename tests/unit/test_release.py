@@ -1,0 +1,108 @@
+"""The release and render policy the services, ``stabilize`` and ``rerun`` share (quick_stream/core/release.py,
+the drivers of quick_stream/core/stages.py): when a release renders, the end of a stream, the latency
+stamps, taking over, and the counters carried from one stream to the next. Time is a test clock."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quick_stream.core.path.planner import Correction
+from quick_stream.core.release import ReleaseNumbering, RenderDriver
+from quick_stream.core.stages import FlowStage, MotionDriver
+from quick_stream.io.sources import open_source
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return list(open_source("synthetic:frames=40,width=96,height=72"))
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def corrections(*seqs: int) -> list[Correction]:
+    return [Correction(s, np.eye(4), 0, s == seqs[0]) for s in seqs]
+
+
+def test_release_numbering_tags_each_batch_as_one_release_for_the_services_life():
+    n = ReleaseNumbering()
+    tags = [t for _, t in n.number([corrections(0), corrections(1, 2, 3)])] + [t for _, t in n.number([corrections(4)])]
+    assert tags == [(0, 0, 1), (1, 0, 3), (1, 1, 3), (1, 2, 3), (2, 0, 1)] and n.sent == 5
+
+
+def test_a_release_renders_when_its_frames_are_in_a_newer_one_came_or_frame_wait_passed(frames):
+    clock = Clock()
+    d = RenderDriver(max_frames=50, frame_wait=1.0, clock=clock)
+    for f in frames[:3]:
+        d.add_frame(f.seq, f, pub_ns=1000 + f.seq)
+    for c, tag in ReleaseNumbering().number([corrections(0, 1, 2), corrections(3, 4)]):
+        d.add_correction(c, tag)
+    first = list(d.due())  # frames 0-2 are in: the first release renders, the second waits for 3 and 4
+    assert [r.id for r in first] == [0] and [x.frame.seq for x in d.render(first[0])] == [0, 1, 2]
+    d.add_frame(3, frames[3], pub_ns=1003)
+    assert list(d.due()) == []  # 4 may still come
+    clock.t += 1.5  # ... and does not within --frame-wait: rendered without it, counted missing
+    (late,) = list(d.due())
+    out = list(d.render(late))
+    assert [x.frame.seq for x in out] == [3] and d.stats()["missing"] == 1
+    assert (out[0].src_pub_ns, out[0].ready_pub_ns) == (1003, 1003)  # frame 4 (the release's last) never came
+
+
+def test_latency_stamps_name_the_frame_and_the_one_that_closed_its_release(frames):
+    d = RenderDriver()
+    for f in frames[:3]:
+        d.add_frame(f.seq, f, pub_ns=5000 + f.seq)
+    for c, tag in ReleaseNumbering().number([corrections(0, 1, 2)]):
+        d.add_correction(c, tag)
+    (rel,) = list(d.due())
+    assert [(r.src_pub_ns, r.ready_pub_ns) for r in d.render(rel)] == [(5000, 5002), (5001, 5002), (5002, 5002)]
+
+
+def test_the_end_waits_for_overtaken_frames_then_renders_everything_and_counters_carry_over(frames):
+    clock = Clock()
+    d = RenderDriver(frame_wait=1.0, clock=clock)
+    for f in frames[:2]:
+        d.add_frame(f.seq, f)
+    tagged = ReleaseNumbering().number([corrections(0, 1, 2, 3)])
+    for c, tag in tagged[:3]:  # the motion service died before the last correction of the release
+        d.add_correction(c, tag)
+    d.end("marker")
+    assert not d.takes_corrections and d.idle_s < 0.05 and d.stats()["pending_releases"] == 1  # what arrived of it
+    assert not d.end_due()  # frame 2 may still be on its way (overtaken by the end): frame-wait
+    clock.t += 0.5
+    assert not d.end_due() and d.end_due(stopping=True)
+    d.add_frame(frames[2].seq, frames[2])
+    d.add_frame(frames[3].seq, frames[3])  # no correction reached it: rendered uncorrected at the end
+    groups = list(d.finish())
+    assert [label for label, _ in groups] == ["release 0 (frames 0..2)", "end of stream"]
+    rendered = [[r.frame.seq for r in frames_] for _, frames_ in groups]
+    assert rendered == [[0, 1, 2], [3]] and d.end_marker == "marker" and d.stats()["orphans"] == 1
+    d.restart()
+    assert d.takes_corrections and d.stage.orphans == 0
+    st = d.stats()
+    assert st["orphans"] == 1 and st["ended"] == 1 and st["buffered"] == 0  # carried over to the next stream
+
+
+def test_a_restarted_render_skips_what_its_predecessor_rendered(frames):
+    d = RenderDriver(resume_after=4)
+    assert not d.add_frame(3, frames[3]) and d.add_frame(5, frames[5])
+    d.add_correction(corrections(4)[0], (0, 0, 1))  # released before the restart: not again
+    assert d.releases.ready == [] and d.stats()["taken_over"] == 1
+
+
+def test_the_motion_driver_takes_over_tags_releases_and_carries_counters_over_streams(frames):
+    flow = FlowStage()
+    flows = [x for f in frames[:20] if (x := flow.push(f)) is not None]
+    d = MotionDriver(resume_after=5)
+    outs = [d.push(x) for x in flows]
+    assert outs[:6] == [None] * 6 and d.stats()["taken_over"] == 6  # flows 0->1 .. 5->6: corrected before
+    tags = [t for o in outs if o is not None for _, t in o[1]] + [t for _, t in d.finish()]
+    assert tags and tags[0][:2] == (0, 0) and all(t[0] <= u[0] for t, u in zip(tags, tags[1:]))
+    assert d.push(flows[-1]) is None and d.stats()["refused_flows"] == 1  # stale: refused, counted
+    d.restart()
+    assert d.resume_after is None and d.stats()["segments"] == 0 and d.stats()["corrections"] == len(tags)

@@ -1,0 +1,137 @@
+"""The runtime's one service loop (quick_stream/stream/loop.py), without a zenoh session.
+
+The runtime is the real :class:`ServiceRuntime` with its session left out (its stats go to a list):
+messages are dispatched per type, bad ones counted and logged, an exception in a handler contained
+and counted, an ``end`` lets a taking-over inbox take everything again, ``take`` and ``paused``
+decide what each pass reads, and the last stats say how the service stopped.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from types import SimpleNamespace
+
+import pytest
+
+from quick_stream.io.sources.synthetic import SyntheticSource
+from quick_stream.stream.runtime import Inbox, Input, ServiceRuntime
+from quick_stream.stream.wire import EndOfStream, Stats, decode, encode_end, encode_frame, encode_stats
+
+FRAME = next(iter(SyntheticSource(width=64, height=48, frames=1)))
+
+
+class StatsSink:
+    def __init__(self) -> None:
+        self.sent: list[dict] = []
+
+    def put(self, data: bytes) -> None:
+        self.sent.append(decode(data).obj.values)
+
+
+def bare_runtime() -> ServiceRuntime:
+    """A ServiceRuntime of service ``t`` on stream cam0 with no session: inboxes and stats only."""
+    rt = ServiceRuntime.__new__(ServiceRuntime)
+    rt.service, rt.stream, rt.stop, rt._cond = "t", "cam0", threading.Event(), threading.Condition()
+    rt._inboxes, rt._subs, rt._pubs, rt._timed = [], [], [], []
+    rt.errors, rt.stats_source = {}, None
+    rt._stats_seq, rt._stats_period, rt._next_stats = 0, 3600.0, float("inf")
+    rt._stats_pub = StatsSink()
+    return rt
+
+
+def inbox(rt: ServiceRuntime, *payloads: bytes, key: str = "quick/@v1/cam0/frame") -> Inbox:
+    box = Inbox(1000, rt._cond)
+    rt._inboxes.append(box)
+    for data in payloads:
+        box._on_sample(SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda d=data: d)))
+    return box
+
+
+def frame(seq: int) -> bytes:
+    return encode_frame(FRAME.with_(seq=seq), "cam0", color="raw", depth="raw")
+
+
+def end(seq: int, stream: str = "cam0") -> bytes:
+    return encode_end(EndOfStream(seq, "done"), stream)
+
+
+def stop_when_empty(rt: ServiceRuntime, *boxes: Inbox):
+    return lambda: rt.stop.set() if not any(len(b) for b in boxes) else None
+
+
+def test_messages_are_dispatched_per_type_and_bad_ones_counted_and_contained(caplog):
+    rt = bare_runtime()
+    box = inbox(rt, frame(0), b"\xc1 not msgpack", frame(1), encode_stats(Stats("x", {}), "cam0", 0), end(9, "cam9"),
+                frame(2), end(2))
+    box.skip_through = -1  # a service taking over: an end makes it take everything again
+    got: list[tuple[str, int]] = []
+
+    def on_frame(msg) -> None:
+        got.append(("frame", msg.seq))
+        if msg.seq == 1:
+            raise RuntimeError("a bug")
+
+    stopped: list[bool] = []
+    with caplog.at_level(logging.ERROR):
+        rt.serve([Input(box, {"frame": on_frame, "end": lambda m: got.append(("end", m.seq))},
+                        label=lambda m: f"frame number {m.seq}")],
+                 lambda: {"mine": len(got)}, tick=stop_when_empty(rt, box), on_stop=lambda: stopped.append(True))
+    assert got == [("frame", 0), ("frame", 1), ("frame", 2), ("end", 2)]
+    assert box.skip_through is None and stopped == [True]
+    last = rt._stats_pub.sent[-1]
+    assert last["state"] == "stopped" and last["mine"] == 4
+    assert last["decode_errors"] == 3 and last["internal_errors"] == 1  # garbage, stats on frame, cam9's end
+    text = caplog.text
+    assert "frame/end message on quick/@v1/cam0/frame rejected" in text and "unexpected stats message" in text
+    assert "cam0/t: frame number 1 failed (RuntimeError: a bug)" in text
+
+
+def test_pending_takes_only_what_was_queued_and_a_paused_input_waits():
+    rt = bare_runtime()
+    first = inbox(rt, frame(0), end(0), frame(1), key="quick/@v1/cam0/correction")
+    second = inbox(rt, frame(10), frame(11))
+    order: list[str] = []
+    state = {"paused": False}
+
+    def on_first(msg) -> None:
+        order.append(f"a{msg.seq}")
+        if msg.type == "end":
+            state["paused"] = True
+
+    def on_second(msg) -> None:
+        order.append(f"b{msg.seq}")
+        if msg.seq == 10:  # arrives while the second input is being read: for the next pass
+            second._on_sample(SimpleNamespace(key_expr="k", payload=SimpleNamespace(to_bytes=lambda: frame(12))))
+
+    passes: list[list[str]] = []
+
+    def tick() -> None:
+        passes.append(list(order))
+        order.clear()
+        if len(passes) == 2:
+            state["paused"] = False
+        if len(passes) == 3:
+            rt.stop.set()
+
+    rt.serve([Input(first, {"frame": on_first, "end": on_first}, take="all", paused=lambda: state["paused"]),
+              Input(second, {"frame": on_second}, take="pending")], lambda: {}, tick=tick)
+    assert passes == [["a0", "a0", "b10", "b11"], ["b12"], ["a1"]]
+
+
+def test_an_input_has_handlers_or_a_raw_handler_and_a_known_take():
+    rt = bare_runtime()
+    box = inbox(rt)
+    with pytest.raises(ValueError, match="either"):
+        Input(box)
+    with pytest.raises(ValueError, match="take"):
+        Input(box, {"frame": None}, take="some")
+
+
+def test_raw_inputs_get_every_item_undecoded_and_the_final_state_is_the_services():
+    rt = bare_runtime()
+    box = inbox(rt, b"anything", frame(3))
+    seen: list[tuple[str, bytes]] = []
+    rt.serve([Input(box, raw=lambda k, d, t: seen.append((k, d)))], lambda: {}, tick=stop_when_empty(rt, box),
+             final_state=lambda: "error")
+    assert [d for _, d in seen] == [b"anything", frame(3)]
+    assert rt._stats_pub.sent[-1]["state"] == "error" and "decode_errors" not in rt._stats_pub.sent[-1]
