@@ -30,7 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--source", default="synthetic",
                    help="synthetic[:k=v,...] (default), tum:PATH, mcap:FILE or depthai[:DEVICE_ID][,width=W,height=H,fps=F]")
     p.add_argument("--list-devices", action="store_true", help="list the OAK (depthai) devices visible and exit")
-    p.add_argument("--frames", type=at.positive_int, default=None, help="send at most this many frames")
+    p.add_argument("--frames", type=at.positive_int, default=None, help="send at most this many frames (default: all the source has)")
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
                    help="realtime: at the frames' own timestamps (default); fast: as fast as the pipeline "
                         "takes them (at most --window frames ahead of the last stabilized one)")
@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "before encoding, evenly spaced, counted in 'shed'; default on; docs/reliability.md)")
     p.add_argument("--speed", type=at.positive_float, default=1.0, help="realtime pacing speed factor (default 1)")
     p.add_argument("--fps", type=at.positive_float, default=None,
-                   help="override the pacing rate (frames/s; realtime only)")
+                   help="override the pacing rate (frames/s; realtime only; default: the source's rate)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="colour encoding (default jpeg)")
     p.add_argument("--quality", type=at.quality, default=90, help="JPEG quality, 1-100 (default 90)")
     p.add_argument("--depth", choices=("raw", "zstd"), default="zstd", help="depth encoding (default zstd)")
@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "5 s at 30 fps, what render holds at most by default; at least 150 are kept for receivers to recover "
                         "what their link dropped)")
     p.add_argument("--wait-for", type=at.service_names, default="", metavar="S1,S2",
-                   help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render")
+                   help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render (default: none)")
     p.add_argument("--wait-timeout", type=at.nonneg_float, default=30.0, help="seconds to wait for them (default 30)")
     p.add_argument("--start-wait", type=at.nonneg_float, default=10.0,
                    help="with --wait-for: seconds to wait until the receivers of frames among them (flow, render, "

@@ -36,11 +36,11 @@ log = logging.getLogger("render")
 def build_parser() -> argparse.ArgumentParser:
     p = service_parser("render", __doc__)
     p.add_argument("--output", type=at.output_file("--output", at.VIDEO_SUFFIXES, "video"), default="",
-                   help="also write an MP4 here")
+                   help="also write an MP4 here (default: none)")
     p.add_argument("--png", type=at.output_dir("--png"), default="", metavar="DIR",
-                   help="also write every frame as PNG here")
+                   help="also write every frame as PNG here (default: none)")
     p.add_argument("--fps", type=at.positive_float, default=30.0, help="MP4 frame rate (default 30)")
-    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="published image encoding")
+    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="published image encoding (default jpeg)")
     p.add_argument("--quality", type=at.quality, default=90, help="JPEG quality, 1-100 (default 90)")
     p.add_argument("--max-frames", type=at.positive_int, default=150,
                    help="frames held for corrections (default 150, 5 s at 30 fps)")

@@ -66,7 +66,6 @@ class ReleaseGroups:
         self.clock = clock  # when a release completed (how long it has waited for its frames)
         self._open: dict[int, tuple[int, dict[int, Correction], int]] = {}
         self.ready: list[tuple[int, list[Correction], float, int]] = []
-        self.unbatched = 0
         self.abandoned = 0
         self.numbering = 0  # renumberings the corrections announced
         self._newest: int | None = None  # the newest correction seq of the current numbering
@@ -87,7 +86,6 @@ class ReleaseGroups:
     def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
         numbering = self._numbering(c)
         if batch is None:  # a sender without release tags: each correction is its own batch
-            self.unbatched += 1
             self.ready.append((-1, [c], self.clock(), numbering))
             return
         rel, idx, size = batch

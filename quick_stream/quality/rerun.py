@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcap.reader import make_reader
 
 from ..core.release import RenderDriver, Tag
 from ..core.path.planner import Correction
@@ -33,6 +32,8 @@ from ..core.sceneflow import SceneFlow
 from ..core.stabilizer import StabilizerParams
 from ..core.stages import MotionDriver
 from ..io.recording import RecordingError, read_messages
+from ..io.sources import SourceError
+from ..io.sources.mcap_replay import recorded_streams
 from ..stream import keys
 from ..stream.wire import StabilizedImage, WireError, decode
 from ..stream.wire.codec import unpack
@@ -133,22 +134,6 @@ def _nth(runs: list[tuple[list[_Msg], bool]], i: int) -> list[_Msg]:
     return runs[i][0] if i < len(runs) else []
 
 
-def recording_streams(path: str | os.PathLike) -> list[str]:
-    """The stream ids with quick-stream channels in a recording (from its summary when indexed)."""
-    try:
-        with open(path, "rb") as f:
-            topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
-    except Exception:  # noqa: BLE001 - no usable summary: read the messages instead
-        topics = {t for t, _, _ in read_messages(path)}
-    streams = set()
-    for t in topics:
-        try:
-            streams.add(keys.parse(t)[0])
-        except ValueError:
-            continue  # a Foxglove view channel
-    return sorted(streams)
-
-
 def resolve_stream(path: str | os.PathLike, stream: str | None) -> str:
     """``stream`` checked, or the recording's only stream; RerunError naming the choices otherwise."""
     if stream is not None:
@@ -156,7 +141,10 @@ def resolve_stream(path: str | os.PathLike, stream: str | None) -> str:
             return keys.check_stream(stream)
         except ValueError as e:
             raise RerunError(str(e)) from None
-    streams = recording_streams(path)
+    try:
+        streams = sorted(recorded_streams(path, stage=None))
+    except SourceError as e:
+        raise RerunError(str(e)) from None
     if len(streams) == 1:
         return streams[0]
     if not streams:

@@ -45,7 +45,6 @@ class Inbox:
         self.on_gap = on_gap
         self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
         self._cond = cond
-        self.received = 0
         self.dropped = 0
         self.skipped = 0
         self.lost = 0  # messages of a lossless publisher that never arrived and were no longer in its cache
@@ -86,7 +85,6 @@ class Inbox:
                 self._q.popleft()
                 self.dropped += 1
             self._q.append(item)
-            self.received += 1
             self._cond.notify_all()
 
     def _on_miss(self, miss: Any) -> None:

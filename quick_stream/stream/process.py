@@ -23,10 +23,10 @@ MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's -
 
 def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
     """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
-    from .argtypes import stream_id
+    from .argtypes import plain_text, stream_id
     from .transport import add_zenoh_args
 
-    p = argparse.ArgumentParser(prog=f"quick-stream-{service}", description=description,
+    p = argparse.ArgumentParser(prog=f"quick-stream-{service}", description=plain_text(description),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--stream", type=stream_id, default="cam0",
                    help="stream (camera) id, 1-64 of [A-Za-z0-9_-]; one per camera (default cam0)")
@@ -78,7 +78,8 @@ def _ignore_term_while_exiting() -> None:
     """At interpreter exit, after the service's work and clean-up are done: ignore SIGTERM.
     CPython puts the default (fatal) handler back while it finalises, so a supervisor's SIGTERM
     arriving in those last moments (zenoh's objects are dropped there, slowly on a busy machine)
-    turned a clean exit into -15; an ignored signal is left alone (tests/test_runtime.py)."""
+    turned a clean exit into -15; an ignored signal is left alone
+    (tests/integration/test_faults.py::test_sigterm_while_a_finished_service_exits_keeps_the_clean_exit)."""
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 

@@ -198,10 +198,6 @@ class ServiceRuntime(Cursors, Loop):
                 return
             self._cond.wait(timeout_s)
 
-    def wake(self) -> None:
-        with self._cond:
-            self._cond.notify_all()
-
     def ready(self) -> None:
         """Declare the liveliness token: call once the service's subscribers are declared, so
         whoever waits for it (capture's ``--wait-for``) cannot publish before they exist."""

@@ -102,10 +102,6 @@ def test_service_options_have_help_and_no_markup(service: str) -> None:
 
 
 # The services' descriptions (module docstrings) and their own options are set in services/*.py and
-# stream/runtime.service_parser, the service-loop refactor's files: there, description=argtypes.plain_text(...)
-# and defaults in the help of capture --frames/--fps/--wait-for and render --output/--png/--color.
-@pytest.mark.xfail(reason="services/*.py, runtime.service_parser: RST descriptions, 6 options without default",
-                   strict=False)
 @pytest.mark.parametrize("service", SERVICES)
 def test_service_help_is_plain_text_and_shows_every_default(service: str) -> None:
     p = service_parser(service)
