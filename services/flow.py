@@ -22,7 +22,7 @@ import zenoh
 from quick_stream.core.stages import FlowDriver
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import RateMeter
-from quick_stream.stream.process import service_main, service_parser
+from quick_stream.stream.process import add_queue_args, service_main, service_parser
 from quick_stream.stream.runtime import Input, ServiceRuntime
 from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.stream.wire import Decoded, encode_end, encode_flow
@@ -32,11 +32,9 @@ log = logging.getLogger("flow")
 
 def build_parser() -> argparse.ArgumentParser:
     p = service_parser("flow", __doc__)
-    p.add_argument("--queue", type=at.positive_int, default=30,
-                   help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)")
-    p.add_argument("--history", type=at.int_in(0), default=150,
-                   help="flows kept for a restarted motion service to take over from and for receivers to recover "
-                        "what their link dropped (default 150; at least 150 are kept)")
+    add_queue_args(p, queue=30, queue_help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)",
+                   history=150, history_help="flows kept for a restarted motion service to take over from and for "
+                   "receivers to recover what their link dropped (default 150; at least 150 are kept)")
     p.add_argument("--catch-up", type=at.positive_int, default=150,
                    help="frames held while a restarted flow works through the frames' history (default 150, "
                         "the capture's history)")

@@ -23,9 +23,9 @@ import zenoh
 from quick_stream.core.release import Tag
 from quick_stream.core.path.planner import Correction
 from quick_stream.core.stages import MotionDriver
-from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream import keys
 from quick_stream.stream.meters import RateMeter
-from quick_stream.stream.process import service_main, service_parser
+from quick_stream.stream.process import add_queue_args, service_main, service_parser
 from quick_stream.stream.runtime import Input, ServiceRuntime
 from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.stream.wire import Decoded, encode_correction, encode_end, encode_motion
@@ -35,11 +35,9 @@ log = logging.getLogger("motion")
 
 def build_parser() -> argparse.ArgumentParser:
     p = service_parser("motion", __doc__)
-    p.add_argument("--queue", type=at.positive_int, default=100_000,
-                   help="flow messages held (lossless; default 100000)")
-    p.add_argument("--history", type=at.int_in(0), default=300,
-                   help="corrections kept for a restarted render service to take over from (default 300; at least 150 "
-                        "are kept for receivers to recover what their link dropped)")
+    add_queue_args(p, queue=100_000, queue_help="flow messages held (lossless; default 100000)",
+                   history=300, history_help="corrections kept for a restarted render service to take over from "
+                   "(default 300; at least 150 are kept for receivers to recover what their link dropped)")
     add_stabilizer_args(p)
     return p
 

@@ -21,6 +21,19 @@ from .wire.codec import set_max_image_side
 MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's --max-frame-side
 
 
+def add_queue_args(p: argparse.ArgumentParser, *, queue: int | None = None, queue_help: str = "",
+                   history: int | None = None, history_help: str = "") -> None:
+    """A service's ``--queue`` (what its input inbox holds before the oldest is dropped) and
+    ``--history`` (what its output publisher keeps for a successor and for recovery), each only
+    when given a default; the helps say what the numbers mean for that service."""
+    from . import argtypes as at
+
+    if queue is not None:
+        p.add_argument("--queue", type=at.positive_int, default=queue, help=queue_help)
+    if history is not None:
+        p.add_argument("--history", type=at.int_in(0), default=history, help=history_help)
+
+
 def service_parser(service: str, description: str | None) -> argparse.ArgumentParser:
     """Argument parser with the standard zenoh flags, ``--stream`` and ``-v``."""
     from .argtypes import plain_text, stream_id
