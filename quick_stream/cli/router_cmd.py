@@ -9,6 +9,7 @@ QUICK_STREAM_ZENOH_MODE is overridden). Runs until SIGTERM/SIGINT.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import threading
@@ -19,6 +20,9 @@ from ..stream.argtypes import plain_text
 from ..stream.transport import add_zenoh_args, config_from_args, zenoh_message
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+
+
+CLOSE_TIMEOUT_S = 10.0  # a stopping router exits after this even if its session is still closing
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -61,5 +65,14 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr, flush=True)
         stop.wait()
     finally:
-        session.close()
+        print("quick-stream router: stopping", file=sys.stderr, flush=True)
+        # bounded: closing a router whose clients are going away at the same moment (a SIGKILLed `up`
+        # takes every child down at once) once left it running for over a minute on a loaded machine
+        closer = threading.Thread(target=session.close, daemon=True)
+        closer.start()
+        closer.join(CLOSE_TIMEOUT_S)
+        if closer.is_alive():
+            print(f"quick-stream router: the session did not close in {CLOSE_TIMEOUT_S:g} s; exiting",
+                  file=sys.stderr, flush=True)
+            os._exit(0)
     return 0
