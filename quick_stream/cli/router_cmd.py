@@ -46,6 +46,17 @@ def router_config(args: argparse.Namespace) -> zenoh.Config:
     return config_from_args(args)
 
 
+def _stop_when_orphaned(stop: threading.Event, period_s: float = 0.5) -> None:
+    """Stop once this process is re-parented (its launcher, ``up``, died). The launcher's
+    parent-death signal stops the services; a SIGKILLed ``up`` once left the router running
+    without a trace of that signal (a fresh clone, quiet machine), so the router also watches."""
+    parent = os.getppid()
+    while not stop.wait(period_s):
+        if os.getppid() != parent:
+            print("quick-stream router: its launcher is gone; stopping", file=sys.stderr, flush=True)
+            stop.set()
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         conf = router_config(args)
@@ -60,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
+    threading.Thread(target=_stop_when_orphaned, args=(stop,), daemon=True).start()
     try:
         print(f"quick-stream router: up, zid {session.zid()}, listening on {', '.join(args.listen or ['(config)'])}",
               file=sys.stderr, flush=True)
