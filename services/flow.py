@@ -19,12 +19,13 @@ import time
 
 import zenoh
 
+from quick_stream.core.settings import settings_digest
 from quick_stream.core.stages import FlowDriver
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import RateMeter
 from quick_stream.stream.process import add_queue_args, service_main, service_parser
 from quick_stream.stream.runtime import Input, ServiceRuntime
-from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.stream.wire import Decoded, encode_end, encode_flow
 
 log = logging.getLogger("flow")
@@ -45,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     driver = FlowDriver(params.flow, params.continuity, log=log)
-    with ServiceRuntime("flow", args.stream, conf) as rt:
+    with ServiceRuntime("flow", args.stream, conf, settings=settings_digest(params)) as rt:
         resume_after = rt.stream_cursor("flow")  # not None: a restarted flow; take over after the last flow out
         if resume_after is not None:
             log.warning("stream %s under way (flows out up to frame %d): taking over from the frames' history",

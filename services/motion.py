@@ -22,12 +22,13 @@ import zenoh
 
 from quick_stream.core.release import Tag
 from quick_stream.core.path.planner import Correction
+from quick_stream.core.settings import settings_digest
 from quick_stream.core.stages import MotionDriver
 from quick_stream.stream import keys
 from quick_stream.stream.meters import RateMeter
 from quick_stream.stream.process import add_queue_args, service_main, service_parser
 from quick_stream.stream.runtime import Input, ServiceRuntime
-from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.stream.wire import Decoded, encode_correction, encode_end, encode_motion
 
 log = logging.getLogger("motion")
@@ -44,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
-    with ServiceRuntime("motion", args.stream, conf) as rt:
+    with ServiceRuntime("motion", args.stream, conf, settings=settings_digest(params)) as rt:
         resume_after = rt.stream_cursor("correction")  # not None: a restarted motion; take over after it
         if resume_after is not None:
             log.warning("stream %s under way (corrections out up to frame %d): the path restarts after it, "

@@ -4,7 +4,9 @@ Subscribes ``quick/@v1/<stream>/*`` (``--all-streams``: ``quick/@v1/*/*``) and
 logs each message on a msgpack channel named after its key (exact replay: ``capture
 --source mcap:FILE``, ``quick-stream rerun``), plus the Foxglove-viewable protobuf
 channels (images, calibration, camera and stabilized poses and transforms;
-:mod:`quick_stream.io.foxglove`, docs/recording.md).
+:mod:`quick_stream.io.foxglove`, docs/recording.md). Every file starts with the stabilizer
+settings (``--settings`` and the flags: give it what the stages run with) as a metadata record,
+which ``quick-stream rerun`` and ``--source mcap:`` replay read back.
 
 Images are stored once: the JPEG of a frame's colour and of a stabilized image goes into
 its ``foxglove.CompressedImage`` record, and the msgpack record holds the wire message
@@ -38,6 +40,9 @@ import threading
 
 import zenoh
 
+from quick_stream.core.settings import settings_digest
+from quick_stream.io.settings_file import settings_record
+from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.io.stream_recording import StreamRecording
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.process import lower_priority, service_main, service_parser
@@ -64,16 +69,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="finish the file and start the next once it holds this many MB (0: never; default 4096)")
     p.add_argument("--split-minutes", type=at.nonneg_float, default=0.0,
                    help="finish the file and start the next after this many minutes (default 0: never)")
+    add_stabilizer_args(p)  # the settings the stages run with: every file's settings record
     return p
 
 
 def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     lower_priority(args.nice)
+    params = stabilizer_params(args)
     # the session closes before the file: nothing arrives once the file is finished; the first failed
     # write stops the recording, and so the service
     with StreamRecording(args.output, foxglove_views=not args.no_foxglove, flush_s=args.flush,
                          compression=args.compression, split_mb=args.split_mb, split_minutes=args.split_minutes,
-                         on_failure=lambda: rt.stop.set()) as rec, ServiceRuntime("recorder", args.stream, conf) as rt:
+                         settings=settings_record(params), on_failure=lambda: rt.stop.set()) as rec, \
+            ServiceRuntime("recorder", args.stream, conf, settings=settings_digest(params)) as rt:
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
         inbox = rt.inbox(sub_key, args.queue, on_arrival=rec.accept, on_gap=rec.gap_seen)  # the queue feeds the views
         rec.attach(inbox.arrivals)
@@ -91,7 +99,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("recorder", build_parser(), run, argv)
+    return service_main("recorder", build_parser(), run, argv, check=stabilizer_params)
 
 
 if __name__ == "__main__":

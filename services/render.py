@@ -22,12 +22,13 @@ from collections.abc import Iterable, Iterator
 import zenoh
 
 from quick_stream.core.release import RenderDriver, Rendered
+from quick_stream.core.settings import settings_digest
 from quick_stream.io.sinks import BackgroundSink, VideoSink
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import Latency, RateMeter
 from quick_stream.stream.process import service_main, service_parser
 from quick_stream.stream.runtime import Input, ServiceRuntime
-from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.stream.wire import StabilizedImage, encode_end, encode_stabilized
 
 log = logging.getLogger("render")
@@ -52,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
-    with ServiceRuntime("render", args.stream, conf) as rt, \
+    with ServiceRuntime("render", args.stream, conf, settings=settings_digest(params)) as rt, \
             BackgroundSink(VideoSink(args.output, args.png, args.fps)) as sink:
         resume_after = rt.stream_cursor("stabilized")  # not None: a restarted render; take over after it
         if resume_after is not None:

@@ -18,7 +18,7 @@ from quick_stream.core.stabilizer import Stabilizer
 from quick_stream.io.recording import read_messages
 from quick_stream.io.sources import open_source
 from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port, open_when_up
-from quick_stream.stream.stabilizer_flags import stabilizer_params
+from quick_stream.io.stabilizer_flags import stabilizer_params
 from quick_stream.stream.wire import WireError, decode
 
 UP = [sys.executable, "-m", "quick_stream", "up", "--quiet"]
@@ -34,11 +34,12 @@ def stabilize(frames, params=None) -> tuple[Stabilizer, list]:
     return st, out
 
 
-def offline_images(spec: str) -> dict[int, np.ndarray]:
-    """Stabilized images by seq from the in-process stabilizer with ``stabilize``'s default settings
-    (those ``up`` passes on) and one OpenCV thread, as the services and ``stabilize`` run it."""
+def offline_images(spec: str, *settings: str) -> dict[int, np.ndarray]:
+    """Stabilized images by seq from the in-process stabilizer with ``stabilize``'s settings (the
+    defaults, or the ``settings`` flags: what ``up`` passes on) and one OpenCV thread, as the services
+    and ``stabilize`` run it."""
     cv2.setNumThreads(1)
-    stab = Stabilizer(stabilizer_params(build_parser().parse_args(["stabilize"])))
+    stab = Stabilizer(stabilizer_params(build_parser().parse_args(["stabilize", *settings])))
     out = {}
     for f in open_source(spec):
         for sf in stab.push(f):

@@ -12,7 +12,7 @@ Methods, all given the same BGR input frames and all scored by :mod:`quick_strea
 border-free cropping of :mod:`quick_stream.quality.metrics_border`:
 
 * ``ours``: the stabiliser at exactly the settings ``quick-stream stabilize`` uses with no flags
-  (the stabiliser flags of :mod:`quick_stream.stream.stabilizer_flags` parsed from an empty argv, then
+  (the stabiliser flags of :mod:`quick_stream.io.stabilizer_flags` parsed from an empty argv, then
   ``stabilizer_params``), and every ``--variant NAME='--flag value ...'`` (the same flags);
 * FFmpeg vid.stab (two passes) and deshake (:mod:`.ffmpeg_baselines`);
 * python ``vidstab`` and vidgear's ``Stabilizer`` at their defaults, when importable
@@ -89,17 +89,17 @@ class Variant:
     name: str
     argv: list[str]
     params: StabilizerParams
-    flags: dict  # every stabiliser flag's value (defaults included)
+    flags: dict  # the stabiliser flags' values (their defaults, and those given)
 
 
 def parse_settings(argv: list[str], name: str = "ours") -> Variant:
     """Stabiliser flags -> Variant, exactly as ``quick-stream stabilize`` parses them; ValueError if wrong."""
-    from ..stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+    from ..io.stabilizer_flags import FLAG_DEFAULTS, add_stabilizer_args, given_flags, stabilizer_params
 
     p = _RaisingParser(prog=name, add_help=False)
     add_stabilizer_args(p)
     args = p.parse_args(list(argv))
-    return Variant(name, list(argv), stabilizer_params(args), vars(args))
+    return Variant(name, list(argv), stabilizer_params(args), {**FLAG_DEFAULTS, **given_flags(args)})
 
 
 def default_settings() -> Variant:

@@ -5,7 +5,7 @@ Sub-commands live in their own modules and register an ``add_parser`` and a
 this package, so ``quick-stream router`` and ``up`` start without the evaluation and
 benchmark modules (and SciPy's) behind the other commands. The cli is the top layer: the
 services never import it (their shared flags are :mod:`quick_stream.stream.argtypes` and
-:mod:`quick_stream.stream.stabilizer_flags`).
+:mod:`quick_stream.io.stabilizer_flags`).
 
 Conventions every sub-command keeps (tests/unit/test_cli_help.py walks the parsers): help
 is plain text (a module docstring becomes a description through
@@ -25,11 +25,15 @@ from types import ModuleType
 
 from ..stream.argtypes import check_outputs, claim_outputs
 
-COMMANDS = ("stabilize", "evaluate", "motion", "bench", "recover", "rerun", "recording-stats", "router", "up", "acl")
+COMMANDS = ("stabilize", "settings", "evaluate", "motion", "bench", "recover", "rerun", "recording-stats", "router", "up", "acl")
+
+
+ALIASES = {"config": "settings"}
 
 
 def command(name: str) -> ModuleType:
-    """The module of sub-command ``name`` (``<name>_cmd``, dashes as underscores)."""
+    """The module of sub-command ``name`` or of its alias (``<name>_cmd``, dashes as underscores)."""
+    name = ALIASES.get(name, name)
     return importlib.import_module(f"{__name__}.{name.replace('-', '_')}_cmd")
 
 

@@ -1,8 +1,9 @@
 """``quick-stream rerun STAGE RECORDING``: re-run one stage from a recording's logged inputs.
 
 Runs the ``flow``, ``motion`` or ``render`` stage offline on the inputs the
-recorder logged (``frame``; ``flow``; ``frame`` + ``correction``) with the given
-stabilizer settings (the flags the services ran with) and compares what it makes
+recorder logged (``frame``; ``flow``; ``frame`` + ``correction``) with the settings
+the recording was made with (its settings record; --settings and the flags change
+them, e.g. to see what other settings would have made) and compares what it makes
 with the logged outputs (see :mod:`quick_stream.quality.rerun`). Prints a report; exit
 code 0 when every logged output is reproduced identically, 1 when any differs,
 2 when the stage cannot be re-run (missing file, no logged inputs, bad flags). Progress
@@ -16,9 +17,11 @@ from pathlib import Path
 
 import cv2
 
+from ..io.recording import RecordingError
+from ..io.settings_file import recording_settings
 from ..quality.rerun import RerunError, RerunResult, STAGES, rerun_stage
 from ..stream.argtypes import plain_text, stream_id
-from ..stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from ..io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from .progress import heartbeat
 
 SHOWN = 10  # mismatches listed in the report
@@ -56,10 +59,11 @@ def report(r: RerunResult, shown: int = SHOWN) -> str:
 def run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(1)  # as the services run OpenCV: bit-exact results
     try:
-        params = stabilizer_params(args)
+        params = stabilizer_params(args, recorded=recording_settings(args.recording)
+                                   if args.recording.is_file() else None)
         with heartbeat("quick-stream rerun", f"re-running the {args.stage} stage on {args.recording}"):
             result = rerun_stage(args.recording, args.stage, args.stream, params)
-    except (RerunError, ValueError) as e:
+    except (RerunError, RecordingError, ValueError) as e:
         print(f"quick-stream rerun: {e}", file=sys.stderr)
         return 2
     print(report(result))

@@ -23,11 +23,12 @@ from ..core.motion import integrate_path
 from ..core.stabilizer import StabilizedFrame, Stabilizer
 from ..io.plot import path_components, plot_paths
 from ..io.sinks import VideoSink
-from ..io.sources import SourceError, open_source
+from ..core.settings import settings_dict, settings_digest
+from ..io.sources import SourceError, open_source, source_settings
 from ..quality.evaluation.shake import shake
 from ..quality.metrics import MetricsAccumulator
 from ..stream import argtypes as at
-from ..stream.stabilizer_flags import add_stabilizer_args, path_label, stabilizer_params, stabilizer_settings
+from ..io.stabilizer_flags import add_stabilizer_args, path_label, stabilizer_params
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -95,7 +96,7 @@ def _run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(max(1, args.threads))
     try:
         source = open_source(args.source)
-        params = stabilizer_params(args)
+        params = stabilizer_params(args, recorded=source_settings(args.source))
         stab = Stabilizer(params, keep_inputs=not args.no_metrics, keep_motions=True)
     except (SourceError, ValueError) as e:
         print(f"quick-stream stabilize: {e}", file=sys.stderr)
@@ -151,7 +152,8 @@ def _run(args: argparse.Namespace) -> int:
     compute_ms = sum(s["mean"] for k, s in timing.items())
     report: dict = {
         "source": args.source,
-        "settings": stabilizer_settings(stab.params),
+        "settings": settings_dict(stab.params),
+        "settings_digest": settings_digest(stab.params),
         "frames_in": total, "frames_out": len(records),
         "wall_s": wall,
         "fps_wall": len(records) / wall if wall > 0 else 0.0,
@@ -188,7 +190,7 @@ def _run(args: argparse.Namespace) -> int:
         Path(args.report).write_text(json.dumps(report, indent=1, default=float))
 
     print(f"stabilized {len(records)} of {total} frames from {args.source} "
-          f"({args.group}, {path_label(stab.params.planner)}, {args.framing} framing) in {wall:.1f} s")
+          f"({params.motion.group}, {path_label(params.planner)}, {params.framing.mode} framing) in {wall:.1f} s")
     print(f"stabilizer: {report['fps_compute']:.1f} frames/s (all stages, no I/O); overall {report['fps_wall']:.1f} "
           f"frames/s including reading, writing"
           + (f" and quality metrics ({report['metrics_ms_per_frame']:.0f} ms/frame; --no-metrics skips them)"

@@ -7,7 +7,9 @@ requires mutual TLS and enforces its access control, and every service is a TLS
 client of it with its own certificate (deploy/tls/make-certs.sh; docs/deployment.md). Shows fps, ms per item, drops and
 restarts per service once a second; restarts a service that dies; stops
 everything cleanly when the source is exhausted and the last frame is rendered,
-after ``--duration`` seconds, or on Ctrl-C. Leaves in ``--out`` the MCAP recording
+after ``--duration`` seconds, or on Ctrl-C. The stabilizer settings (the defaults, a replayed
+recording's, ``--settings`` and the flags) go into one file, ``<out>/logs/settings.toml``, which
+every service reads (``--settings``). Leaves in ``--out`` the MCAP recording
 and the stabilized MP4, never overwriting an earlier run's (``recording-1.mcap``,
 ``stabilized-1.mp4``, ...), and the services' logs (``<out>/logs``).
 """
@@ -24,10 +26,11 @@ import zenoh
 
 from ..io.recording import fresh_path
 from ..stream.argtypes import plain_text
-from ..io.sources import SourceError, check_source
+from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at
 from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, free_port, open_when_up
-from ..stream.stabilizer_flags import add_stabilizer_args, settings_argv, stabilizer_params
+from ..io.settings_file import settings_toml
+from ..io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 
 SERVICES = ("recorder", "flow", "motion", "render", "capture")
 
@@ -110,15 +113,15 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
             flags = ["-m", "client", *flags, "--tls-dir", d, "--tls-name", n]
         return flags
 
-    st = settings_argv(args)
+    st = ["--settings", str(args.settings_file)]
     router = ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"]
     if tls:
         d, n = tls_party(args, "router")
         router += ["-c", str(args.router_config), "--tls-dir", d, "--tls-name", n]
     specs = [ServiceSpec("router", router)]
     if not args.no_record:
-        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z("recorder"), "--output",
-                                              str(args.recording)]))
+        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z("recorder"), *st,
+                                              "--output", str(args.recording)]))
     specs += [
         ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
         ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
@@ -184,8 +187,8 @@ def write_status(path: Path, board: StatusBoard, sup: Supervisor, stream: str, r
 
 def run(args: argparse.Namespace) -> int:
     try:
-        stabilizer_params(args)
         check_source(args.source)  # before any process starts: a bad spec is not capture's to find
+        params = stabilizer_params(args, recorded=source_settings(args.source))
         check_tls(args)
     except SourceError as e:
         print(f"quick-stream up: --source: {e}", file=sys.stderr)
@@ -208,11 +211,14 @@ def run(args: argparse.Namespace) -> int:
     args.recording = fresh_path(out / "recording.mcap")
     args.video = fresh_path(out / "stabilized.mp4")
     before = set(out.glob("recording*.mcap"))
+    # one settings file for every service (and the recording's settings record)
+    (out / "logs").mkdir(exist_ok=True)
+    args.settings_file = fresh_path(out / "logs" / "settings.toml")
+    args.settings_file.write_text(settings_toml(params, f"settings of {args.recording.name} (quick-stream up)"))
     endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
     if args.tls_dir and not args.router_config:
         from ..stream.acl import router_config_text
 
-        (out / "logs").mkdir(exist_ok=True)
         args.router_config = str(out / "logs" / "router-tls.json5")
         Path(args.router_config).write_text(router_config_text([args.stream]))
     sup = Supervisor(service_specs(args, endpoint, out), out / "logs")

@@ -8,7 +8,7 @@
   long (measured: without flushing, small messages were all lost).
 * :func:`recover` repairs a file left without a footer (a writer killed with
   SIGKILL): it stream-reads records up to the first damaged one and rewrites
-  schemas, channels and messages into a new, indexed file.
+  schemas, channels, metadata and messages into a new, indexed file.
 * :func:`read_messages` iterates a recording in log-time order, through the
   index when there is one and by streaming when there is not.
 
@@ -32,7 +32,7 @@ from typing import BinaryIO, Callable, Iterator
 import zstandard
 from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
@@ -166,6 +166,10 @@ class Recorder(_ClosedOnExit):
         self._channels[topic] = cid
         self._seq[topic] = 0
         return cid
+
+    def metadata(self, name: str, data: dict[str, str]) -> None:
+        """Add a metadata record (e.g. the settings a recording was made with)."""
+        self._writer.add_metadata(name, data)
 
     def write(self, topic: str, data: bytes, log_time_ns: int | None = None,
               publish_time_ns: int | None = None, sequence: int | None = None) -> int:
@@ -321,6 +325,8 @@ def _copy_readable(src: Path, fin: BoundedFile, part: Path, dst: Path) -> Recove
                     rec.write(topic, record.data, record.log_time, record.publish_time, record.sequence)
                     topics[topic] = topics.get(topic, 0) + 1
                     n += 1
+                elif isinstance(record, Metadata):
+                    rec.metadata(record.name, dict(record.metadata))
                 elif type(record).__name__ == "Footer":
                     complete = True
         except Exception as e:  # noqa: BLE001 - a torn tail raises assorted errors; keep what was read

@@ -28,8 +28,9 @@ from ..stream.wire import WireError
 from ..stream.wire.codec import peek
 from . import foxglove
 from .foxglove_view import FoxgloveView
-from .recording import SplitRecorder, fresh_path, load_recorded, recorded_path, save_recorded
+from .recording import Recorder, SplitRecorder, fresh_path, load_recorded, recorded_path, save_recorded
 from .recording_images import write_message
+from .settings_file import RECORD_NAME
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +40,9 @@ class StreamRecording:
     files are finished on leaving: close the session first, so nothing arrives after)."""
 
     def __init__(self, output: str, *, foxglove_views: bool = True, flush_s: float = 0.5, compression: str = "none",
-                 split_mb: float = 0.0, split_minutes: float = 0.0, on_failure: Callable[[], Any] = lambda: None) -> None:
+                 split_mb: float = 0.0, split_minutes: float = 0.0, settings: dict[str, str] | None = None,
+                 on_failure: Callable[[], Any] = lambda: None) -> None:
+        """``settings``: the settings record every file starts with (:func:`~quick_stream.io.settings_file.settings_record`)."""
         self.output, self.views_on, self.flush_s, self.on_failure = output, foxglove_views, flush_s, on_failure
         out = fresh_path(output)
         if str(out) != output:
@@ -51,7 +54,7 @@ class StreamRecording:
         # their number: ~14 per second with 1 MiB chunks at 640x480 and 30 fps); flushes still close
         # a chunk every flush_s
         self.files = SplitRecorder(output, out, split_bytes=int(split_mb * 2**20), split_s=split_minutes * 60,
-                                   on_open=lambda rec: [foxglove.register_channels(rec, s) for s in self.streams],
+                                   on_open=lambda rec: self._opened(rec, settings),
                                    flush_s=flush_s, compression=compression, chunk_size=4 << 20)
         self.meter = RateMeter()
         self.counts = {"bad_keys": 0, "view_errors": 0, "unrecorded": 0}
@@ -63,6 +66,13 @@ class StreamRecording:
         self.hole_messages = 0
         self.ledger = ArrivalLedger()  # replaced by the inbox's (attach)
         self._last_gap_log: dict[str, float] = {}
+
+    def _opened(self, rec: Recorder, settings: dict[str, str] | None) -> None:
+        """A new file (the first, or a split's next): the settings record, then the streams' Foxglove channels."""
+        if settings is not None:
+            rec.metadata(RECORD_NAME, settings)
+        for s in self.streams:
+            foxglove.register_channels(rec, s)
 
     def attach(self, ledger: ArrivalLedger) -> None:
         """The inbox's arrival ledger (what arrived and what never did), seeded with the predecessor's account."""

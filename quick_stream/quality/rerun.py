@@ -31,7 +31,10 @@ from ..core.render_stage import StabilizedFrame
 from ..core.sceneflow import SceneFlow
 from ..core.stabilizer import StabilizerParams
 from ..core.stages import MotionDriver
+from ..core.settings import settings_digest
 from ..io.recording import RecordingError, read_messages
+from ..io.settings_file import recording_settings
+from ..io.stabilizer_flags import default_settings
 from ..io.sources import SourceError
 from ..io.sources.mcap_replay import recorded_streams
 from ..stream import keys
@@ -317,24 +320,51 @@ def _rerun_render(ch: dict[str, list[_Msg]], stream: str, params: StabilizerPara
         res.notes.append("render stage: " + ", ".join(f"{v} {k}" for k, v in totals.items() if v))
 
 
+def _settings_notes(stage: str, params: StabilizerParams, recorded: StabilizerParams | None,
+                    stats: list[_Msg]) -> list[str]:
+    """What to say about the settings: the recording holds none, they are not the recording's, or the
+    stage's service said (its stats' ``settings`` digest) that it ran with others."""
+    notes = []
+    mine = settings_digest(params)
+    if recorded is None:
+        notes.append("the recording holds no settings record: re-ran with the defaults and the flags given")
+    elif settings_digest(recorded) != mine:
+        notes.append(f"re-ran with settings {mine}, not the recording's {settings_digest(recorded)} "
+                     "(--settings or flags given)")
+    ran: set[str] = set()
+    for m in stats:
+        try:
+            d = decode(m.data)
+        except WireError:
+            continue
+        if d.type == "stats" and d.obj.service == stage and isinstance(d.obj.values.get("settings"), str):
+            ran.add(d.obj.values["settings"])
+    if ran - {mine}:
+        notes.append(f"the {stage} service ran with settings {', '.join(sorted(ran))}; re-ran with {mine}")
+    return notes
+
+
 def rerun_stage(path: str | os.PathLike, stage: str, stream: str | None = None,
                 params: StabilizerParams | None = None, *, quality: int = 90, max_frames: int = 150) -> RerunResult:
     """Re-run ``stage`` (flow, motion or render) of ``stream`` from the recording at ``path``.
 
-    ``stream`` None: the recording's only stream. ``params`` must be the settings the
-    services ran with (the same flags: :func:`quick_stream.stream.stabilizer_flags.stabilizer_params`).
-    ``quality`` (JPEG) and ``max_frames`` are the render service's ``--quality`` and
-    ``--max-frames``. Raises :class:`RerunError` when the recording is missing or
-    unreadable or has no logged inputs or outputs of the stage.
+    ``stream`` None: the recording's only stream. ``params``: the settings to re-run with, by
+    default the recording's own (its settings record; :mod:`quick_stream.io.settings_file`), else
+    the defaults. The notes say when they are not what the stage's service ran with. ``quality``
+    (JPEG) and ``max_frames`` are the render service's ``--quality`` and ``--max-frames``. Raises
+    :class:`RerunError` when the recording is missing or unreadable or has no logged inputs or
+    outputs of the stage.
     """
     if stage not in STAGES:
         raise RerunError(f"stage must be one of {', '.join(STAGES)}, got {stage!r}")
     path = Path(path)
     if not path.is_file():
         raise RerunError(f"{path}: {'not a regular file' if path.exists() else 'no such file'}")
-    params = params or StabilizerParams()
-    names = INPUTS[stage] + tuple(n for n in OUTPUTS[stage] if n not in INPUTS[stage])
+    names = INPUTS[stage] + tuple(n for n in OUTPUTS[stage] if n not in INPUTS[stage]) + ("stats",)
     try:
+        recorded = recording_settings(path)
+        if params is None:
+            params = recorded or default_settings()
         stream = resolve_stream(path, stream)
         topics = {keys.key(stream, n): n for n in names}
         ch: dict[str, list[_Msg]] = {n: [] for n in names}
@@ -348,6 +378,7 @@ def rerun_stage(path: str | os.PathLike, stage: str, stream: str | None = None,
                 raise RerunError(f"{path}: no logged {kind} for the {stage} stage: no {n!r} messages "
                                  f"on {keys.key(stream, n)}")
     res = RerunResult(str(path), stage, stream, {keys.key(stream, n): len(ch[n]) for n in INPUTS[stage]})
+    res.notes += _settings_notes(stage, params, recorded, ch["stats"])
     if stage == "flow":
         _rerun_flow(ch, stream, params, res)
     elif stage == "motion":

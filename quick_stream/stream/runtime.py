@@ -55,8 +55,11 @@ class ServiceRuntime(Cursors, Loop):
 
 
     def __init__(self, service: str, stream: str, conf: zenoh.Config, stats_period_s: float = 1.0,
-                 install_signals: bool = True) -> None:
+                 install_signals: bool = True, settings: str = "") -> None:
+        """``settings``: the digest of the stabilizer settings the service runs with (in every stats
+        message as ``settings``: a recording shows what each service ran with)."""
         self.service = service
+        self.settings = settings
         self.stream = keys.check_stream(stream)
         self.stop = threading.Event()
         self._cond = threading.Condition()
@@ -241,6 +244,8 @@ class ServiceRuntime(Cursors, Loop):
         if values is None:
             values = self.stats_source() if self.stats_source is not None else {}
         vals = {"state": "running", **self.errors, **values}
+        if self.settings:
+            vals["settings"] = self.settings
         for p in self._timed:
             vals.update(p.take())
         for i, b in enumerate(self._inboxes):

@@ -25,9 +25,30 @@ import pytest
 from tests.helpers import UP, offline_images, sent, up_and_kill, wait_for_status
 from mcap.reader import make_reader
 
+from quick_stream.cli import build_parser
+from quick_stream.core.settings import settings_digest
+from quick_stream.io.recording import read_messages
+from quick_stream.io.settings_file import recording_settings, settings_toml
+from quick_stream.io.stabilizer_flags import default_settings, stabilizer_params
 from quick_stream.stream.wire import decode
 
 SPEC = "synthetic:frames=75,width=320,height=240"
+# settings other than the defaults, for every stage (flow, motion, render), from a file and a flag: the
+# recording carries them, so replay and rerun need neither
+SETTINGS_TOML = """
+[flow]
+max_points = 2500
+
+[planner]
+lookahead = 8
+
+[planner.keyframes]
+interval = 20
+
+[warp]
+alpha = 0.2
+"""
+SETTINGS_FLAGS = ("--max-zoom", "1.2")
 
 
 def run_up(out: Path, *extra: str, timeout: float = 120) -> subprocess.CompletedProcess:
@@ -41,17 +62,32 @@ def pngs(folder: Path) -> dict[int, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def offline() -> dict[int, np.ndarray]:
-    return offline_images(SPEC)
+def settings_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("settings") / "settings.toml"
+    path.write_text(SETTINGS_TOML)
+    return path
 
 
 @pytest.fixture(scope="module")
-def live_run(tmp_path_factory) -> Path:
+def defaults_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("settings") / "defaults.toml"
+    path.write_text(settings_toml(default_settings()))
+    return path
+
+
+@pytest.fixture(scope="module")
+def offline(settings_file) -> dict[int, np.ndarray]:
+    return offline_images(SPEC, "--settings", str(settings_file), *SETTINGS_FLAGS)
+
+
+@pytest.fixture(scope="module")
+def live_run(tmp_path_factory, settings_file) -> Path:
     out = tmp_path_factory.mktemp("up")
     # paced by the pipeline (--pace fast), not a 60 fps camera: on a loaded machine (a second suite
     # beside this one) a live capture sheds what the stages cannot take (counted, and tested in
     # test_backpressure.py / test_shedding.py), and a shed frame changes the path
-    run_up(out, "--source", SPEC, "--pace", "fast", "--color", "raw", "--png", str(out / "png"))
+    run_up(out, "--source", SPEC, "--pace", "fast", "--color", "raw", "--png", str(out / "png"),
+           "--settings", str(settings_file), *SETTINGS_FLAGS)
     return out
 
 
@@ -64,7 +100,8 @@ def test_services_match_offline_bit_for_bit(live_run, offline):
 
 
 def test_replaying_the_recording_reproduces_the_output(live_run, tmp_path):
-    # paced by the pipeline like the live run: a realtime replay on a loaded machine sheds frames
+    # with no settings given: the recording's; paced by the pipeline like the live run (a realtime
+    # replay on a loaded machine sheds frames)
     run_up(tmp_path, "--source", f"mcap:{live_run / 'recording.mcap'}", "--pace", "fast",
            "--png", str(tmp_path / "png"))
     a, b = pngs(live_run / "png"), pngs(tmp_path / "png")
@@ -217,11 +254,30 @@ def _alive(session) -> set[str]:
 
 
 @pytest.mark.parametrize("stage", ["flow", "motion", "render"])
-def test_each_stage_reruns_from_the_recording_to_the_same_output(live_run, stage):
+def test_each_stage_reruns_from_the_recording_to_the_same_output(live_run, defaults_file, stage):
+    # no flags: the settings come from the recording (the defaults would not reproduce it)
     r = subprocess.run([sys.executable, "-m", "quick_stream", "rerun", stage, str(live_run / "recording.mcap")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert "OK" in r.stdout
+    assert "OK" in r.stdout and "note: " not in r.stdout, r.stdout
+    # with the defaults instead, the stage does not reproduce it (the recording's settings are what it ran with)
+    d = subprocess.run([sys.executable, "-m", "quick_stream", "rerun", stage, str(live_run / "recording.mcap"),
+                        "--settings", str(defaults_file)], capture_output=True, text=True, timeout=120)
+    assert d.returncode == 1, d.stdout + d.stderr
+    assert "ran with settings" in d.stdout
+
+
+def test_the_recording_holds_the_settings_every_service_ran_with(live_run, settings_file):
+    params = stabilizer_params(build_parser().parse_args(["stabilize", "--settings", str(settings_file),
+                                                          *SETTINGS_FLAGS]))
+    assert recording_settings(live_run / "recording.mcap") == params
+    digests = {}
+    for _, _, data in read_messages(live_run / "recording.mcap", topics=["quick/@v1/cam0/stats"]):
+        st = decode(bytes(data)).obj
+        digests.setdefault(st.service, set()).add(st.values.get("settings"))
+    want = {settings_digest(params)}
+    assert {s: digests.get(s) for s in ("flow", "motion", "render", "recorder")} == dict.fromkeys(
+        ("flow", "motion", "render", "recorder"), want)
 
 
 def test_ctrl_c_stops_every_process_and_leaves_a_complete_recording(tmp_path):

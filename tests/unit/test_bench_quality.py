@@ -184,7 +184,7 @@ def test_made_clips_are_cached_by_parameters(tmp_path):
 
 def test_default_settings_are_those_of_stabilize_without_flags():
     from quick_stream.cli import build_parser
-    from quick_stream.stream.stabilizer_flags import stabilizer_params
+    from quick_stream.io.stabilizer_flags import stabilizer_params
 
     args = build_parser().parse_args(["stabilize"])
     assert quality.default_settings().params == stabilizer_params(args)

@@ -37,6 +37,8 @@ import pytest
 import yaml
 import zenoh
 
+from quick_stream.io.settings_file import load_settings_file
+from quick_stream.io.stabilizer_flags import SETTINGS_ENV
 from quick_stream.stream import keys
 from quick_stream.stream.acl import common_name
 from quick_stream.stream.transport import config_from_args
@@ -51,6 +53,8 @@ COMPOSE_TLS = DEPLOY / "compose.tls.yaml"
 UNITS = DEPLOY / "systemd"
 SERVICES = sorted(p.stem for p in (ROOT / "services").glob("*.py") if p.stem != "__init__")
 CONFIG_DIR = "/etc/quick-stream/zenoh"  # where every deployment puts the deploy/zenoh files
+SETTINGS = DEPLOY / "settings.toml"  # the stabilizer settings every deployment's stages read
+CONFIGMAP_DIRS = {"quick-stream-zenoh": ZENOH_DIR, "quick-stream-settings": DEPLOY}  # what each ConfigMap holds
 ROUTER_HOST = "quick-router"  # the name client.json5 / peer.json5 / client-tls.json5 dial
 OUR_IMAGE = "quick-stream"
 ZENOHD_IMAGE = "eclipse/zenoh"
@@ -242,8 +246,8 @@ class Container:
                     text = m.configmap.get(str(rel))
                     if text is None:
                         return None
-                    # the ConfigMap's data is a deploy/zenoh file (test_configmap_is_the_zenoh_files)
-                    return ZENOH_DIR / str(rel)
+                    # the ConfigMap's data is a deploy/ file, byte for byte (test_configmaps_are_the_deploy_files)
+                    return m.source / str(rel)
                 return None if m.source is None else m.source.joinpath(rel)
         if self.ours and p.parent == PurePosixPath(CONFIG_DIR):  # baked in by the Dockerfile's COPY
             return ZENOH_DIR / p.name
@@ -391,7 +395,8 @@ def k8s_containers() -> list[Container]:
                     if vol["configMap"].get("items"):
                         data = {i["path"]: data[i["key"]] for i in vol["configMap"]["items"]}
                     assert "subPath" not in vm, f"{where}: mount the whole ConfigMap (a subPath never updates)"
-                    mounts[vm["mountPath"]] = Mount(None, ro, data)
+                    assert cm in CONFIGMAP_DIRS, f"{where}: ConfigMap {cm} mirrors no deploy/ folder"
+                    mounts[vm["mountPath"]] = Mount(CONFIGMAP_DIRS[cm], ro, data)
                     assert ro, f"{where}: mount the ConfigMap read-only"
                 elif "persistentVolumeClaim" in vol:
                     claim = vol["persistentVolumeClaim"]["claimName"]
@@ -567,12 +572,48 @@ def test_k8s_manifests_are_consistent():
     assert mounted_claims == set(k8s_objects("PersistentVolumeClaim")), "a claim nobody mounts, or one missing"
 
 
-def test_configmap_is_the_zenoh_files():
-    (cm,) = k8s_objects("ConfigMap").values()
-    assert sorted(cm["data"]) == ZENOH_FILES
+def test_configmaps_are_the_deploy_files():
+    cms = k8s_objects("ConfigMap")
+    assert sorted(cms) == sorted(CONFIGMAP_DIRS)
+    zenoh_cm, settings_cm = cms["quick-stream-zenoh"], cms["quick-stream-settings"]
+    assert sorted(zenoh_cm["data"]) == ZENOH_FILES
     for name in ZENOH_FILES:
-        assert cm["data"][name] == (ZENOH_DIR / name).read_text(), \
+        assert zenoh_cm["data"][name] == (ZENOH_DIR / name).read_text(), \
             f"deploy/k8s/configmap.yaml: {name} differs from deploy/zenoh/{name}"
+    assert settings_cm["data"] == {SETTINGS.name: SETTINGS.read_text()}, \
+        "deploy/k8s/configmap.yaml: quick-stream-settings differs from deploy/settings.toml"
+
+
+STAGES = ("flow", "motion", "recorder", "render")  # the services that run with the stabilizer settings
+
+
+@pytest.mark.parametrize("label", sorted(DEPLOYMENTS))
+def test_every_stage_reads_the_one_settings_file(label: str):
+    """flow, motion, render and the recorder of a deployment read deploy/settings.toml (mounted read-only),
+    the same file, through --settings: one set of settings, the recording's record among them."""
+    read = {}
+    for c in DEPLOYMENTS[label]:
+        if not c.ours:
+            continue
+        service, args = parse_ours(c.argv, c.where)
+        if service not in STAGES:
+            continue
+        assert args.settings, f"{c.where}: give it the settings file (--settings)"
+        local = c.local_file(args.settings)
+        assert local is not None and local.resolve() == SETTINGS.resolve(), \
+            f"{c.where}: --settings {args.settings} is {local}, not deploy/settings.toml"
+        mount = max((t for t in c.mounts if PurePosixPath(t) == PurePosixPath(args.settings)
+                     or PurePosixPath(t) in PurePosixPath(args.settings).parents), key=len)
+        assert c.mounts[mount].read_only, f"{c.where}: mount {mount} read-only"
+        read[(service, args.stream)] = args.settings
+    assert {s for s, _ in read} == set(STAGES), f"{label}: {sorted(read)}"
+    assert len(set(read.values())) == 1, f"{label}: one settings file for every stage, not {read}"
+
+
+def test_the_deploy_settings_file_loads_and_the_unit_names_it():
+    load_settings_file(SETTINGS)  # every key known, every value accepted
+    unit = (UNITS / "quick-stream@.service").read_text()
+    assert f"{SETTINGS_ENV}=/etc/quick-stream/settings.toml" in unit
 
 
 def test_each_stream_has_one_process_per_stage():

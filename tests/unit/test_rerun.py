@@ -16,7 +16,7 @@ import pytest
 
 from quick_stream.cli import main
 from quick_stream.stream import keys
-from quick_stream.stream.stabilizer_flags import add_stabilizer_args, stabilizer_params
+from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.io.recording import Recorder, read_messages
 from quick_stream.quality.rerun import RerunError, rerun_stage
 from quick_stream.io.sources import open_source

@@ -33,7 +33,7 @@ def bare_runtime() -> ServiceRuntime:
     rt = ServiceRuntime.__new__(ServiceRuntime)
     rt.service, rt.stream, rt.stop, rt._cond = "t", "cam0", threading.Event(), threading.Condition()
     rt._inboxes, rt._subs, rt._pubs, rt._timed = [], [], [], []
-    rt.errors, rt.stats_source = {}, None
+    rt.errors, rt.stats_source, rt.settings = {}, None, ""
     rt._stats_seq, rt._stats_period, rt._next_stats = 0, 3600.0, float("inf")
     rt._stats_pub = StatsSink()
     return rt

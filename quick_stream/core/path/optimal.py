@@ -42,7 +42,7 @@ from ..lie import LieGroup
 class PathParams:
     """Parameters of the segment solver."""
 
-    weights: tuple[float, ...] | None = None  # diagonal of W per twist component; None = identity
+    weights: tuple[float, ...] = ()  # diagonal of W per twist component; empty = identity
     max_iters: int = 15  # Newton iterations on the optimality conditions (6) + end-constraint
     tol: float = 1e-10  # max |stationarity residual of (6)| / W and |end-constraint residual| that count as met
     fd_step: float = 1e-7  # finite-difference step on the twist for the derivative of J_r (6a)
@@ -53,7 +53,7 @@ class PathParams:
         return {f.name: repr(f.default) for f in fields(cls)}
 
     def weight_vector(self, n: int) -> np.ndarray:
-        if self.weights is None:
+        if not self.weights:
             return np.ones(n)
         w = np.asarray(self.weights, dtype=np.float64)
         if w.shape != (n,) or np.any(w <= 0) or not np.all(np.isfinite(w)):

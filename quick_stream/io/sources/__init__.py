@@ -8,7 +8,12 @@ folder) and ``mcap:FILE`` or ``mcap:FILE,stream=ID`` (replay of a recording's
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from .base import FrameOrGap, Source, SourceError
+
+if TYPE_CHECKING:
+    from ...core.stabilizer import StabilizerParams
 
 SOURCE_KINDS = ("synthetic", "tum", "mcap", "depthai")
 
@@ -118,3 +123,19 @@ def _check_oak_connected(spec: str, device: str) -> None:
 
 
 __all__ = ["FrameOrGap", "SOURCE_KINDS", "Source", "SourceError", "check_source", "open_source"]
+
+
+def source_settings(spec: str) -> "StabilizerParams | None":
+    """The stabilizer settings a source was made with: a recording's (``mcap:FILE``, its settings
+    record), else None. SourceError naming the file when the recording or its record is unreadable."""
+    kind, _, rest = spec.partition(":")
+    if kind.strip().lower() != "mcap":
+        return None
+    from ..recording import RecordingError
+    from ..settings_file import recording_settings
+
+    path, _ = _path_and_options(rest, {}, "mcap source needs a recording: mcap:FILE[,stream=ID]")
+    try:
+        return recording_settings(path)
+    except RecordingError as e:
+        raise SourceError(str(e)) from None

@@ -1,0 +1,206 @@
+"""Stabilizer settings from ``--settings FILE`` and CLI flags, shared by every command and service.
+
+The offline command and the services must run with the same settings to give the same output:
+one settings file (``--settings``; ``quick-stream up`` writes one and hands it to every service), one
+flag set over it and one :func:`stabilizer_params` make that hold by construction. Precedence,
+lowest first: the defaults (or the settings a replayed recording was made with), the file, the flags.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from dataclasses import replace
+from typing import Callable
+
+from ..core.lie import GROUPS
+from ..core.motion import ESTIMATORS
+from ..core.path.budget import BudgetParams
+from ..core.path.constraints import END_MODES
+from ..core.path.keyframes import KeyframeParams
+from ..core.path.planner import PATH_MODES, PlannerParams
+from ..core.render import FramingParams
+from ..core.settings import SettingsError, check_settings
+from ..core.stabilizer import StabilizerParams
+from .settings_file import load_settings_file
+
+
+# --latency presets: (keyframe interval, look-ahead, smoothness); the interval is the longest wait
+# (frames) a frame has before its correction is released (docs/method.md 4.3). A shorter window
+# sees less of the future, so it smooths less (measured: docs/method.md 4.3).
+LATENCY_PRESETS = {"normal": (KeyframeParams.interval, PlannerParams.lookahead, PlannerParams.smoothness),
+                   "low": (15, 10, 3000.0)}
+
+
+SETTINGS_ENV = "QUICK_STREAM_SETTINGS"  # the settings file when --settings is not given (a host's services)
+
+# the flags' values when not given: with them, StabilizerParams() becomes the product's defaults
+FLAG_DEFAULTS = {"group": "se3", "estimator": "exact", "latency": "normal", "end": PlannerParams.end,
+                 "lowpass_sigma": PlannerParams.lowpass_sigma, "path": PlannerParams.mode,
+                 "max_zoom": BudgetParams.max_zoom, "fill_frames": FramingParams.fill_frames,
+                 "fill_band": BudgetParams.fill, "framing": "auto", "crop_zoom": FramingParams.crop_zoom}
+FLAGS = ("group", "estimator", "latency", "keyframe_interval", "lookahead", "end", "lowpass_sigma", "path_weights",
+         "path", "max_zoom", "smoothness", "fill_frames", "fill_band", "framing", "crop_zoom")
+
+
+def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
+    """The stabilizer settings: ``--settings FILE`` (not ``--config``: that is zenoh's configuration
+    file in every service, the zenoh examples' convention) and the flags that override it. A flag left out keeps
+    the file's value (or the recording's, replaying one; or the default shown)."""
+    d = FLAG_DEFAULTS
+    g = p.add_argument_group("stabilizer settings", "A flag left out keeps the --settings file's value, else the "
+                             "replayed recording's (mcap:FILE), else the default shown.")
+    g.add_argument("--settings", metavar="FILE",
+                   help="settings file, TOML or JSON (docs/settings.md; 'quick-stream settings show' prints every "
+                        f"setting); the flags below override it (default: ${SETTINGS_ENV}, else none)")
+    g.add_argument("--group", choices=sorted(GROUPS),
+                   help="Lie group of the camera motion: se3 rigid, sim3 + scale, sa3 + per-axis scale, "
+                        f"ga3 general affine (default {d['group']})")
+    g.add_argument("--estimator", choices=ESTIMATORS,
+                   help="motion estimator: exact = robust fit of the group element, induced = the paper's mean "
+                        f"of induced twists (default {d['estimator']})")
+    g.add_argument("--latency", choices=sorted(LATENCY_PRESETS),
+                   help="path latency preset: normal = keyframe interval %d, look-ahead %d, smoothness %g "
+                        "(1 s at 30 fps); low = interval %d, look-ahead %d, smoothness %g (0.5 s); "
+                        "--keyframe-interval/--lookahead/--smoothness override it (default %s)"
+                        % (*LATENCY_PRESETS["normal"], *LATENCY_PRESETS["low"], d["latency"]))
+    g.add_argument("--keyframe-interval", type=int,
+                   help="frames per path window (the longest a frame waits for its correction), >= 2 "
+                        "(default from --latency)")
+    g.add_argument("--lookahead", type=int,
+                   help="smooth path: of each window's frames, the last this many are re-planned with the next "
+                        "window before release, < the interval (default from --latency)")
+    g.add_argument("--end", choices=END_MODES,
+                   help=f"--path ep: end-constraint mode (default {d['end']})")
+    g.add_argument("--lowpass-sigma", type=float,
+                   help="--path ep: frames; the path keeps the camera velocity low-passed with this Gaussian "
+                        f"(default {d['lowpass_sigma']:g}; 0 = the paper's full undo)")
+    g.add_argument("--path-weights", metavar="W1,W2,...",
+                   help="--path ep: diagonal of the path cost's weight W, one per twist component (default identity)")
+    g.add_argument("--path", choices=PATH_MODES,
+                   help="smooth: smoothed path with a crop budget; ep: the Euler-Poincare path with "
+                        f"--end/--lowpass-sigma targets (default {d['path']})")
+    g.add_argument("--smoothness", type=float,
+                   help="smooth path: weight of the path's acceleration against its distance from the camera, "
+                        "lambda of docs/method.md (8) (default from --latency)")
+    g.add_argument("--max-zoom", type=float,
+                   help="smooth path: every frame border-free at a zoom <= this (0 = no budget; "
+                        f"default {d['max_zoom']:g})")
+    g.add_argument("--fill-frames", type=int,
+                   help="border fill: output pixels a frame leaves uncovered are taken from up to this many "
+                        f"neighbouring frames on each side (0 = no fill; default {d['fill_frames']})")
+    g.add_argument("--framing", choices=("black", "crop", "auto"),
+                   help="what the output shows past the frame's edge: black = nothing, crop = a fixed "
+                        f"--crop-zoom, auto = the planned zoom (default {d['framing']})")
+    g.add_argument("--fill-band", type=float,
+                   help="border fill: share of half the short side the smooth path may leave uncovered for the "
+                        f"fill (0 = the crop alone removes every border; default {d['fill_band']:g})")
+    g.add_argument("--crop-zoom", type=float,
+                   help=f"zoom for --framing crop, >= 1 (default {d['crop_zoom']:g})")
+
+
+def given_flags(args: argparse.Namespace) -> dict[str, object]:
+    """The stabilizer flags given on the command line (name -> value)."""
+    return {k: getattr(args, k) for k in FLAGS if getattr(args, k, None) is not None}
+
+
+def _flag_error(flag: str, check: Callable[[], object]) -> None:
+    """Run ``check``; its ValueError comes back prefixed with the flag at fault."""
+    try:
+        check()
+    except ValueError as e:
+        raise ValueError(f"{flag}: {e}") from None
+
+
+def _path_weights(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(w) for w in text.split(","))
+    except ValueError:
+        raise ValueError(f"--path-weights: expected comma-separated numbers, got {text!r}") from None
+
+
+def _min_interval(interval: int) -> int:
+    return max(1, min(10, interval - 1))
+
+
+def apply_flags(params: StabilizerParams, flags: dict[str, object]) -> StabilizerParams:
+    """``params`` with the given flags' settings (``flags``: :func:`given_flags`). One flag may set
+    several fields: --group the motion's and the path's, --max-zoom the budget's and the framing's."""
+    f = flags
+    motion, planner, framing = params.motion, params.planner, params.framing
+    kf, budget, path = planner.keyframes, planner.budget, planner.path
+    if "group" in f:
+        motion, planner = replace(motion, group=f["group"]), replace(planner, group=f["group"])
+    if "estimator" in f:
+        motion = replace(motion, estimator=f["estimator"])
+    if "latency" in f:
+        interval, lookahead, smoothness = LATENCY_PRESETS[f["latency"]]
+        kf = replace(kf, interval=interval, min_interval=_min_interval(interval))
+        planner = replace(planner, lookahead=lookahead, smoothness=smoothness)
+    if "keyframe_interval" in f:
+        interval = int(f["keyframe_interval"])
+        if "lookahead" not in f and kf.interval > 0:  # keep the share of the window re-planned
+            planner = replace(planner, lookahead=(interval * planner.lookahead) // kf.interval)
+        kf = replace(kf, interval=interval, min_interval=_min_interval(interval))
+    for flag, fld in (("lookahead", "lookahead"), ("smoothness", "smoothness"), ("end", "end"),
+                      ("lowpass_sigma", "lowpass_sigma"), ("path", "mode")):
+        if flag in f:
+            planner = replace(planner, **{fld: f[flag]})
+    if "path_weights" in f:
+        path = replace(path, weights=_path_weights(str(f["path_weights"])))
+    if "max_zoom" in f:
+        z = float(f["max_zoom"])
+        budget = replace(budget, max_zoom=z)
+        framing = replace(framing, max_zoom=z if z > 0 else FramingParams.max_zoom)
+    if "fill_frames" in f:
+        n = int(f["fill_frames"])
+        fill = 0.0 if n <= 0 else (budget.fill or BudgetParams.fill)
+        framing, budget = replace(framing, fill_frames=n), replace(budget, fill=fill, fill_reach=max(n, 0))
+    if "fill_band" in f:
+        budget = replace(budget, fill=float(f["fill_band"]) if framing.fill_frames > 0 else 0.0)
+    if "framing" in f:
+        framing = replace(framing, mode=f["framing"])
+    if "crop_zoom" in f:
+        framing = replace(framing, crop_zoom=float(f["crop_zoom"]))
+    planner = replace(planner, keyframes=kf, budget=budget, path=path)
+    return replace(params, motion=motion, planner=planner, framing=framing)
+
+
+def default_settings() -> StabilizerParams:
+    """The product's defaults: every flag at its default (what ``quick-stream stabilize`` runs with no flags)."""
+    return apply_flags(StabilizerParams(), FLAG_DEFAULTS)
+
+
+def stabilizer_params(args: argparse.Namespace, recorded: StabilizerParams | None = None) -> StabilizerParams:
+    """The settings: ``recorded`` (a recording's, replaying one) or the defaults, then ``--settings FILE``
+    (else ``$QUICK_STREAM_SETTINGS``),
+    then the flags given; ValueError naming the file and key, or the flag, when a value is wrong."""
+    params = recorded if recorded is not None else default_settings()
+    path = getattr(args, "settings", None) or os.environ.get(SETTINGS_ENV)
+    if path:
+        try:
+            params = load_settings_file(path, params)
+        except SettingsError as e:
+            raise SettingsError(f"${SETTINGS_ENV}={e}" if not getattr(args, "settings", None) else str(e)) from None
+    flags = given_flags(args)
+    if not flags:
+        return params
+    if "lowpass_sigma" in flags and not (math.isfinite(flags["lowpass_sigma"]) and flags["lowpass_sigma"] >= 0):
+        raise ValueError(f"--lowpass-sigma: must be a finite number >= 0 (frames), got {flags['lowpass_sigma']!r}")
+    params = apply_flags(params, flags)
+    _flag_error("--group/--estimator", params.motion.validate)
+    _flag_error("--keyframe-interval", params.planner.keyframes.validate)
+    _flag_error("--lookahead/--smoothness", params.planner.validate)
+    _flag_error("--max-zoom/--fill-band", params.planner.budget.validate)
+    _flag_error("--path-weights", lambda: params.planner.path.weight_vector(GROUPS[params.planner.group].dim))
+    _flag_error("--crop-zoom/--fill-frames", params.framing.validate)
+    check_settings(params)
+    return params
+
+
+def path_label(p: PlannerParams) -> str:
+    """A few words naming the path settings (summaries)."""
+    if p.mode == "ep":
+        return f"EP path, {p.end} end-constraints"
+    budget = f"max zoom {p.budget.max_zoom:g}" if p.budget.enabled else "no crop budget"
+    return f"smooth path, {budget}, window {p.keyframes.interval} frames"
