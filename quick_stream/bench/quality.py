@@ -32,13 +32,9 @@ settings, on the unshaken reference go to ``WORK/corrections`` and through the t
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
-import math
 import platform
 import re
-import shlex
 import subprocess
 import sys
 import time
@@ -50,13 +46,14 @@ import cv2
 import numpy as np
 
 from ..core.frame import BadFrame
-from ..core.stabilizer import Stabilizer, StabilizerParams
+from ..core.stabilizer import Stabilizer
 from ..io.sources import SourceError
 from ..io.sources.tum import TumSource
 from ..quality.evaluate import run_timed
 from ..quality.metrics import MetricsAccumulator
 from ..quality.metrics_border import BorderFreeAccumulator, border_free_cropping
 from . import ffmpeg_baselines, lk_average, peers
+from .variants import Variant, default_settings
 from .shake_clips import DEFAULT_AMPLITUDES, DEFAULT_TOOL, ShakeSpec, make_clip, score_rotation, write_corrections
 
 REAL_CLIP = "7scenes_redkitchen"
@@ -67,69 +64,8 @@ COLUMNS = (("jitter_px", "jitter px", "{:10.3f}"), ("jitter_deg", "jitter deg", 
            ("distortion", "distortion", "{:10.3f}"), ("stability", "stability", "{:10.3f}"),
            ("ms_per_frame", "ms/frame", "{:10.1f}"), ("failed", "failed", "{!s:>10}"))
 AXES = ("pitch", "yaw", "roll", "total")
-GROUPS = ("se3", "sim3", "sa3", "ga3")
-ENDS = ("identity", "smoothed")
 
 Progress = Callable[[str], None]
-
-
-# ----------------------------------------------------------------------------------------------
-# ours: settings and variants
-
-
-class _RaisingParser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise ValueError(message)
-
-
-@dataclass
-class Variant:
-    """A named setting of ours: the stabiliser flags and the StabilizerParams they give."""
-
-    name: str
-    argv: list[str]
-    params: StabilizerParams
-    flags: dict  # the stabiliser flags' values (their defaults, and those given)
-
-
-def parse_settings(argv: list[str], name: str = "ours") -> Variant:
-    """Stabiliser flags -> Variant, exactly as ``quick-stream stabilize`` parses them; ValueError if wrong."""
-    from ..io.stabilizer_flags import FLAG_DEFAULTS, add_stabilizer_args, given_flags, stabilizer_params
-
-    p = _RaisingParser(prog=name, add_help=False)
-    add_stabilizer_args(p)
-    args = p.parse_args(list(argv))
-    return Variant(name, list(argv), stabilizer_params(args), {**FLAG_DEFAULTS, **given_flags(args)})
-
-
-def default_settings() -> Variant:
-    """Ours at the defaults: the stabiliser flags parsed from an empty argv."""
-    return parse_settings([], "ours")
-
-
-def parse_variant(text: str) -> Variant:
-    """``NAME=--flag value ...`` (shell-quoted flags of ``quick-stream stabilize``) -> Variant."""
-    name, sep, rest = text.partition("=")
-    name = name.strip()
-    if not sep or not name:
-        raise ValueError(f"expected NAME='--flag value ...', got {text!r}")
-    if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.+-]*", name) or name == "ours":
-        raise ValueError(f"variant name {name!r}: use letters, digits and _ . + - (and not 'ours')")
-    try:
-        argv = shlex.split(rest)
-    except ValueError as e:
-        raise ValueError(f"variant {name}: {e}") from None
-    try:
-        return parse_settings(argv, name)
-    except ValueError as e:
-        raise ValueError(f"variant {name}: {e}") from None
-
-
-def grid_variants() -> list[Variant]:
-    """The former benchmark: every group x both end modes, and the paper's own path (no low-pass)."""
-    out = [parse_settings(["--group", g, "--end", e], f"{g}-{e}") for g in GROUPS for e in ENDS]
-    out.append(parse_settings(["--group", "se3", "--end", "identity", "--lowpass-sigma", "0"], "paper-path"))
-    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -424,82 +360,6 @@ def run(cfg: QualityConfig, progress: Progress | None = None) -> dict:
         r["clips"].append(run_clip(clip, cfg, progress))
     r["seconds"] = time.time() - started
     return r
-
-
-# ----------------------------------------------------------------------------------------------
-# tables
-
-
-def _fmt(fmt: str, v: object) -> str:
-    if isinstance(v, float) and not math.isfinite(v):
-        return f"{'nan':>10}"
-    return fmt.format(v)
-
-
-def format_clip(c: dict) -> str:
-    title = f"{c['name']}: {c['frames']} frames {c['size']} @ {c['fps']:.3g} fps"
-    if "shake" in c:
-        s = c["shake"]
-        title += (f"; known shake seed {s['seed']}, frames {s['first']}-{s['last']}, "
-                  f"RMS {s['pitch']:g}/{s['yaw']:g}/{s['roll']:g} deg (pitch/yaw/roll)")
-    width = max(30, *(len(k) for k in c["methods"]))
-    lines = [title, f"{'method':{width}s} " + " ".join(f"{h:>10s}" for _, h, _ in COLUMNS)]
-    for name, m in c["methods"].items():
-        if m.get("status") != "ok":
-            lines.append(f"{name:{width}s} {m.get('status')}: {m.get('reason', '')}")
-            continue
-        lines.append(f"{name:{width}s} " + " ".join(_fmt(f, m.get(k, float('nan'))) for k, _, f in COLUMNS))
-    for name, m in c["methods"].items():
-        if m.get("status") == "ok" and m.get("failed"):
-            lines.append(f"  {name} failed: {m.get('failure_reason')}")
-    sr = c.get("shake_removed")
-    if sr:
-        lines.append("injected high-frequency rotation removed (score_rotation.py, kind correction, > 1 Hz):")
-        lines.append(f"{'':{width}s} " + " ".join(f"{a:>7s}" for a in AXES) + "   | with --reference: "
-                     + " ".join(f"{a:>7s}" for a in AXES))
-        for name, s in sr.items():
-            if "error" in s:
-                lines.append(f"{name:{width}s} error: {s['error']}")
-                continue
-            a = " ".join(f"{100 * x:6.1f}%" for x in s["without_reference"]["removed_fraction"])
-            b = " ".join(f"{100 * x:6.1f}%" for x in s["with_reference"]["removed_fraction"])
-            lines.append(f"{name:{width}s} {a}   |                   {b}")
-            for key in ("without_reference", "with_reference"):
-                if "warning" in s[key]:
-                    lines.append(f"  {name} ({key.replace('_', ' ')}): WARNING {s[key]['warning']}")
-        first = next((s for s in sr.values() if "error" not in s), None)
-        if first:
-            inj = first["without_reference"]["injected_hp_rms_deg"]
-            lines.append(f"{'(injected HP RMS, deg)':{width}s} " + " ".join(f"{x:7.3f}" for x in inj))
-    return "\n".join(lines)
-
-
-def format_tables(r: dict) -> str:
-    out = [format_clip(c) for c in r["clips"]]
-    v = r["versions"]
-    out.append("versions: " + ", ".join(f"{k} {v[k]}" for k in ("ffmpeg", "vidstab", "vidgear", "opencv") if v.get(k)))
-    cmds = next((c.get("ffmpeg_commands") for c in r["clips"] if c.get("ffmpeg_commands")), None)
-    if cmds:
-        out.append("ffmpeg commands (first clip; W, H, FPS per clip):\n" + "\n".join(f"  {k}: ffmpeg {c}"
-                                                                                  for k, c in cmds.items()))
-    for name, var in r.get("variants", {}).items():
-        out.append(f"variant {name}: {' '.join(shlex.quote(a) for a in var['argv'])}")
-    return "\n\n".join(out)
-
-
-def write_json(r: dict, path: Path) -> None:
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(json.dumps(r, indent=1, default=_json_default))
-
-
-def _json_default(o: object) -> object:
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
 
 
 def progress_to_stderr(t0: float | None = None) -> Progress:

@@ -17,7 +17,7 @@ from .jsonout import add_json, text_out, write_json
 from .progress import Progress
 
 if TYPE_CHECKING:
-    from ..bench.quality import Variant
+    from ..bench.variants import Variant
     from ..bench.shake_clips import ShakeSpec
 
 DEFAULT_DATA = Path("../shared/data")
@@ -100,7 +100,7 @@ def _shake(text: str) -> tuple[float, float]:
 
 
 def _variant(text: str) -> "Variant":
-    from ..bench.quality import parse_variant
+    from ..bench.variants import parse_variant
 
     return parse_variant(text)
 
@@ -152,13 +152,13 @@ def _add_quality_parser(b: argparse._SubParsersAction) -> None:
 
 
 def _quality(args: argparse.Namespace) -> int:
-    from ..bench import quality
+    from ..bench import quality, quality_tables, variants
     from ..bench.shake_clips import ShakeSpec, check_tool
 
     quality.source_folder(args.data)  # SourceError (exit 2) before any work
     specs = [] if args.no_shake else (args.clips or [ShakeSpec.parse(c) for c in quality.DEFAULT_CLIPS])
     specs = [ShakeSpec(s.seed, s.first, s.last, *args.amplitude) for s in specs]
-    names = [v.name for v in args.variants] + ([v.name for v in quality.grid_variants()] if args.grid else [])
+    names = [v.name for v in args.variants] + ([v.name for v in variants.grid_variants()] if args.grid else [])
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         print(f"quick-stream bench quality: --variant: name(s) used twice: {', '.join(dup)}", file=sys.stderr)
@@ -169,13 +169,13 @@ def _quality(args: argparse.Namespace) -> int:
         except FileNotFoundError as e:
             print(f"quick-stream bench quality: {e}", file=sys.stderr)
             return 2
-    variants = list(args.variants) + (quality.grid_variants() if args.grid else [])
+    variants = list(args.variants) + (variants.grid_variants() if args.grid else [])
     cfg = quality.QualityConfig(data=args.data, frames=args.frames, clips=specs, shake_tool=args.shake_tool,
                                 work=Path(args.work), variants=variants, baselines=not args.no_baselines)
     r = quality.run(cfg, quality.progress_to_stderr())
-    print(quality.format_tables(r), file=text_out(args))
+    print(quality_tables.format_tables(r), file=text_out(args))
     if args.json:
-        write_json(args.json, r, default=quality._json_default)
+        write_json(args.json, r, default=quality_tables.json_default)
         if args.json != "-":
             print(f"wrote {args.json}")
     return 0

@@ -382,35 +382,3 @@ def _indexed_reader(path: Path, f: BoundedFile) -> SeekingReader:
         raise RecordingError(f"{path}: not a complete MCAP file, no intact footer and summary "
                              f"({describe_damage(e)}); try `quick-stream recover {path}`") from None
     return reader
-
-
-# --- what a recorder has on disk, for its successor ------------------------------------------------
-
-def recorded_path(output: str | os.PathLike) -> Path:
-    """The side file where a recorder keeps, per stream and stage, the newest seq it has flushed."""
-    return Path(f"{output}.recorded.json")
-
-
-def save_recorded(output: str | os.PathLike, newest: dict[tuple[str, str], int]) -> None:
-    """Write the side file atomically (a kill leaves the previous one, never half of one)."""
-    import json
-
-    p = recorded_path(output)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps({"time": time.time(), "newest": [[s, g, n] for (s, g), n in newest.items()]}))
-    tmp.replace(p)
-
-
-def load_recorded(output: str | os.PathLike, max_age_s: float = 60.0) -> dict[tuple[str, str], int]:
-    """What a killed predecessor had flushed, if it wrote the side file within ``max_age_s`` (an
-    older one belongs to another run); empty otherwise. A damaged file counts as none."""
-    import json
-
-    p = recorded_path(output)
-    try:
-        doc = json.loads(p.read_text())
-        if time.time() - float(doc["time"]) > max_age_s:
-            return {}
-        return {(str(s), str(g)): int(n) for s, g, n in doc["newest"]}
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}

@@ -12,7 +12,7 @@ Readers put the JPEG back: :class:`Rejoiner` turns a stored message into the exa
 the recorder received (checked when storing: only a message that re-packs to itself byte
 for byte is stored apart, anything else is stored whole). A stored message whose image
 record is missing (a damaged file) is passed on as stored; decoding it then fails naming
-the missing image (:func:`quick_stream.stream.wire.codec.decode_image`).
+the missing image (:func:`quick_stream.stream.wire.pixels.decode_image`).
 """
 from __future__ import annotations
 

@@ -16,9 +16,12 @@
 """
 from __future__ import annotations
 
+import json
 import logging
+import os
 import threading
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 from ..stream import keys
@@ -28,7 +31,7 @@ from ..stream.wire import WireError
 from ..stream.wire.codec import peek
 from . import foxglove
 from .foxglove_view import FoxgloveView
-from .recording import Recorder, SplitRecorder, fresh_path, load_recorded, recorded_path, save_recorded
+from .recording import Recorder, SplitRecorder, fresh_path
 from .recording_images import write_message
 from .settings_file import RECORD_NAME
 
@@ -214,3 +217,31 @@ class StreamRecording:
             log.warning("never arrived, per stage: %s", unreceived)
         if exc[0] is None:
             recorded_path(self.output).unlink(missing_ok=True)  # a clean stop: no successor continues this account
+
+
+# --- what a recorder has on disk, for its successor ------------------------------------------------
+
+def recorded_path(output: str | os.PathLike) -> Path:
+    """The side file where a recorder keeps, per stream and stage, the newest seq it has flushed."""
+    return Path(f"{output}.recorded.json")
+
+
+def save_recorded(output: str | os.PathLike, newest: dict[tuple[str, str], int]) -> None:
+    """Write the side file atomically (a kill leaves the previous one, never half of one)."""
+    p = recorded_path(output)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(json.dumps({"time": time.time(), "newest": [[s, g, n] for (s, g), n in newest.items()]}))
+    tmp.replace(p)
+
+
+def load_recorded(output: str | os.PathLike, max_age_s: float = 60.0) -> dict[tuple[str, str], int]:
+    """What a killed predecessor had flushed, if it wrote the side file within ``max_age_s`` (an
+    older one belongs to another run); empty otherwise. A damaged file counts as none."""
+    p = recorded_path(output)
+    try:
+        doc = json.loads(p.read_text())
+        if time.time() - float(doc["time"]) > max_age_s:
+            return {}
+        return {(str(s), str(g)): int(n) for s, g, n in doc["newest"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}

@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from .wire.codec import set_max_image_side
+from .wire.pixels import set_max_image_side
 
 MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's --max-frame-side
 

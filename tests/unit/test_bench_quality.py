@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from quick_stream.bench import lk_average, peers, quality
+from quick_stream.bench import lk_average, peers, quality, quality_tables, variants
 from quick_stream.bench.shake_clips import (ShakeSpec, is_cached, make_clip, parse_amplitudes, read_corrections,
                                             rotation_part, seconds_text, write_corrections)
 from quick_stream.cli import main
@@ -187,24 +187,24 @@ def test_default_settings_are_those_of_stabilize_without_flags():
     from quick_stream.io.stabilizer_flags import stabilizer_params
 
     args = build_parser().parse_args(["stabilize"])
-    assert quality.default_settings().params == stabilizer_params(args)
-    assert quality.default_settings().argv == []
+    assert variants.default_settings().params == stabilizer_params(args)
+    assert variants.default_settings().argv == []
 
 
 def test_variants_parse_like_stabilize_flags():
-    v = quality.parse_variant("ga3-id=--group ga3 --end identity")
+    v = variants.parse_variant("ga3-id=--group ga3 --end identity")
     assert v.name == "ga3-id" and v.argv == ["--group", "ga3", "--end", "identity"]
     assert v.params.motion.group == "ga3" and v.params.planner.end == "identity"
-    q = quality.parse_variant("lp0='--lowpass-sigma' 0")
+    q = variants.parse_variant("lp0='--lowpass-sigma' 0")
     assert q.params.planner.lowpass_sigma == 0.0
-    assert quality.parse_variant("plain=").params == quality.default_settings().params
+    assert variants.parse_variant("plain=").params == variants.default_settings().params
     for bad, what in (("nogroup", "NAME="), ("=--group se3", "NAME="), ("ours=--group se3", "not 'ours'"),
                       ("x y=--group se3", "variant name"), ("x=--group so3", "variant x"),
                       ("x=--bogus 1", "variant x"), ("x=--lowpass-sigma -1", "--lowpass-sigma"),
                       ("x='--group", "variant x")):
         with pytest.raises(ValueError, match=what):
-            quality.parse_variant(bad)
-    names = [g.name for g in quality.grid_variants()]
+            variants.parse_variant(bad)
+    names = [g.name for g in variants.grid_variants()]
     assert len(names) == 9 and len(set(names)) == 9 and "paper-path" in names
 
 
@@ -312,6 +312,6 @@ def test_run_clip_end_to_end(tmp_path):
     inp = r["methods"]["input (unstabilized)"]
     assert inp["cropping"] == pytest.approx(1.0, abs=1e-6) and inp["border_free_scale"] == 1.0
     assert r["methods"]["ours"]["settings"]["group"] == "se3"
-    text = quality.format_clip(r)
+    text = quality_tables.format_clip(r)
     assert "bf crop" in text and "LK moving average" in text
-    json.dumps(r, default=quality._json_default)
+    json.dumps(r, default=quality_tables.json_default)

@@ -11,7 +11,7 @@ import pytest
 
 from tests.helpers import stabilize
 
-from quick_stream.bench.quality import parse_settings
+from quick_stream.bench.variants import parse_settings
 from quick_stream.core.lie import get_group
 from quick_stream.core.motion import MotionEstimate
 from quick_stream.core.path.budget import BudgetParams

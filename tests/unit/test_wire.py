@@ -367,19 +367,19 @@ def test_fuzz_mutations(i, data):
 def test_a_frame_larger_than_the_maximum_is_refused_from_its_header(monkeypatch):
     """An 8192x8192 JPEG in a small message (it pushed flow and render to ~1.1 GB): refused from the
     declared shape before anything is decoded; the maximum is configurable per process."""
-    from quick_stream.stream.wire import codec
+    from quick_stream.stream.wire import pixels
 
     d = raw(encode_frame(make_frame(), "cam0"))
     d["color"]["shape"] = [8192, 8192, 3]
     d["intrinsics"]["width"] = d["intrinsics"]["height"] = 8192
     rejects(repack(d), "'color.shape'", "8192x8192 outside 1..4096")
-    monkeypatch.setattr(codec, "MAX_IMAGE_SIDE", 4096)  # restored after the test
-    codec.set_max_image_side(16384)
+    monkeypatch.setattr(pixels, "MAX_IMAGE_SIDE", 4096)  # restored after the test
+    pixels.set_max_image_side(16384)
     with pytest.raises(WireError) as e:  # allowed now: the JPEG's own header (32x24) disagrees, still not decoded
         decode(repack(d))
     assert "JPEG is 32x24 but shape says 8192x8192" in str(e.value)
     with pytest.raises(ValueError, match="16..16384"):
-        codec.set_max_image_side(100_000)
+        pixels.set_max_image_side(100_000)
 
 
 # --- flow, version 2: the compact layout (wire/flowpack.py) ---------------------------------------

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from ...core.frame import BadFrame, FrameError, Intrinsics, RGBDFrame
-from ...stream.wire.codec import jpeg_size
+from ...stream.wire.pixels import jpeg_size
 from .base import FrameOrGap, SourceError
 from .trajectory import TrajectoryError, poses_at, read_tum_trajectory
 

@@ -1,4 +1,5 @@
-"""Envelope, version check, errors and the array/image codecs of the msgpack wire format.
+"""Envelope, version check, errors and the array codec of the msgpack wire format (images and
+depth: :mod:`.pixels`).
 
 Every message is one msgpack map whose envelope is ``v`` (format version),
 ``type``, ``stream`` and ``seq`` (see docs/wire-format.md). Decoding never lets
@@ -12,10 +13,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import msgpack
 import numpy as np
-import zstandard
 
 from ...core.frame import dequantize_depth, quantize_depth  # noqa: F401 - re-exported
 
@@ -24,22 +23,12 @@ VERSIONS = {"flow": 2}  # types whose newest version is another (flow 2: the com
 MIN_DEPTH_SCALE, MAX_DEPTH_SCALE = 1.0, 1e6  # raw depth units per metre (mm = 1000, TUM = 5000)
 MESSAGE_TYPES = ("frame", "flow", "motion", "correction", "stabilized", "stats", "end")
 DEFAULT_MAX_BYTES = 64 * 1024 * 1024
-MAX_IMAGE_SIDE = 4096  # images larger in either dimension are refused from their header, before decoding
 
 
-def set_max_image_side(side: int) -> None:
-    """Change the largest image side this process accepts (a service's ``--max-frame-side``): a
-    640x480 stream has no use for an 8192x8192 frame, whose decode alone costs ~200 MB."""
-    global MAX_IMAGE_SIDE
-    if not 16 <= int(side) <= 16384:
-        raise ValueError(f"max frame side must be in 16..16384, got {side}")
-    MAX_IMAGE_SIDE = int(side)
 MAX_LIST_LEN = 100_000  # msgpack arrays (lists); bulk data travels as bin, not lists
 MAX_MAP_LEN = 10_000
 MAX_STR_LEN = 1024 * 1024
 
-_ZSTD_LEVEL = 1
-_ZSTD_MAX_WINDOW = 1 << 27
 
 
 class WireError(ValueError):
@@ -253,7 +242,7 @@ class Reader:
         dt = a.str("dtype")
         if dt != dtype:
             raise a.error("dtype", f"expected dtype {dtype!r}, got {dt!r}")
-        shape = _shape(a, ndim)
+        shape = read_shape(a, ndim)
         if trailing and shape[ndim - len(trailing):] != trailing:
             raise a.error("shape", f"expected shape (..., {', '.join(map(str, trailing))}), got {shape}")
         count = math.prod(shape)
@@ -269,7 +258,7 @@ class Reader:
         return arr
 
 
-def _shape(r: Reader, ndim: int) -> tuple[int, ...]:
+def read_shape(r: Reader, ndim: int) -> tuple[int, ...]:
     shape = r.list("shape")
     if len(shape) != ndim or not all(_is_int(s) and 0 <= s < 2**31 for s in shape):
         raise r.error("shape", f"expected {ndim} ints in [0, 2^31), got {shape!r}")
@@ -290,153 +279,3 @@ def float_list(name: str, values: Any, n: int | None = None) -> list[float]:
     if not np.all(np.isfinite(a)):
         raise WireError("non-finite value", field=name)
     return [float(x) for x in a]
-
-
-# --- images -----------------------------------------------------------------------------------
-
-def encode_image(img: np.ndarray, encoding: str = "jpeg", quality: int = 90) -> dict[str, Any]:
-    """Colour image (HxWx3 uint8 BGR) as ``{enc: jpeg|raw, shape, data[, quality, dtype]}``."""
-    if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
-        raise WireError(f"colour must be HxWx3 uint8 BGR, got {getattr(img, 'shape', type(img))}", field="color")
-    if encoding == "raw":
-        d = encode_array(img, "|u1")
-        d["enc"] = "raw"
-        return d
-    if encoding != "jpeg":
-        raise WireError(f"colour encoding must be 'jpeg' or 'raw', got {encoding!r}", field="color.enc")
-    if not 1 <= int(quality) <= 100:
-        raise WireError(f"JPEG quality must be in [1, 100], got {quality}", field="color.quality")
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise WireError("JPEG encoding failed", field="color")
-    return {"enc": "jpeg", "quality": int(quality), "shape": list(img.shape), "data": buf.tobytes()}
-
-
-def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str]:
-    """Decode a colour image field; returns (HxWx3 uint8 BGR, encoding)."""
-    m = r.map(name)
-    enc = m.str("enc")
-    if enc == "raw":
-        img = r.array(name, "|u1", 3, (3,), max_elems=3 * MAX_IMAGE_SIDE**2)
-        _check_side(m, img.shape)
-        return img, enc
-    if enc != "jpeg":
-        raise m.error("enc", f"unknown image encoding {enc!r} (expected 'jpeg' or 'raw')")
-    shape = _shape(m, 3)
-    if shape[2] != 3:
-        raise m.error("shape", f"expected H x W x 3, got {shape}")
-    _check_side(m, shape)
-    if "data" not in m.d and "ref" in m.d:
-        ref = m.d["ref"]
-        which = f"record {ref}" if type(ref) is int else "a record"
-        raise m.error("data", f"missing: the recording stored this JPEG apart, as {which} of its Foxglove image "
-                              "channel, and that record was not found (a damaged recording; docs/recording.md)")
-    data = m.bytes("data")
-    size = jpeg_size(data)
-    if size is None:
-        raise m.error("data", "not a JPEG image (no SOF header)")
-    if size != (shape[1], shape[0]):
-        raise m.error("data", f"JPEG is {size[0]}x{size[1]} but shape says {shape[1]}x{shape[0]}")
-    if not r.pixels:
-        return np.broadcast_to(np.uint8(0), shape), enc
-    try:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    except cv2.error as e:
-        raise m.error("data", f"JPEG failed to decode: {e}") from None
-    if img is None or img.shape != shape:
-        raise m.error("data", "JPEG failed to decode")
-    return img, enc
-
-
-def _check_side(r: Reader, shape: tuple[int, ...]) -> None:
-    if not (0 < shape[0] <= MAX_IMAGE_SIDE and 0 < shape[1] <= MAX_IMAGE_SIDE):
-        raise r.error("shape", f"image size {shape[1]}x{shape[0]} outside 1..{MAX_IMAGE_SIDE}")
-
-
-def jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a JPEG's SOF marker, without decoding; None if not found."""
-    if data[:2] != b"\xff\xd8":
-        return None
-    i, n = 2, len(data)
-    while i + 4 <= n:
-        if data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in (0x01, *range(0xD0, 0xD9)):
-            i += 2
-            continue
-        seglen = int.from_bytes(data[i + 2:i + 4], "big")
-        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            if i + 9 > n:
-                return None
-            h = int.from_bytes(data[i + 5:i + 7], "big")
-            w = int.from_bytes(data[i + 7:i + 9], "big")
-            return w, h
-        if seglen < 2:
-            return None
-        i += 2 + seglen
-    return None
-
-
-# --- depth ------------------------------------------------------------------------------------
-
-def encode_depth(depth: np.ndarray, encoding: str = "raw", scale: float = 1000.0) -> dict[str, Any]:
-    """Depth (metres) as ``{enc: raw|zstd, dtype <u2, shape, scale, data}``."""
-    if not isinstance(depth, np.ndarray) or depth.ndim != 2:
-        raise WireError(f"depth must be HxW, got {getattr(depth, 'shape', type(depth))}", field="depth")
-    if not (math.isfinite(scale) and MIN_DEPTH_SCALE <= scale <= MAX_DEPTH_SCALE):
-        raise WireError(f"depth scale must be in [{MIN_DEPTH_SCALE:g}, {MAX_DEPTH_SCALE:g}] units/m, got {scale}",
-                        field="depth.scale")
-    q = quantize_depth(depth, scale)
-    d = encode_array(q, "<u2")
-    if encoding == "zstd":
-        shuffled = np.ascontiguousarray(q.astype("<u2").view(np.uint8).reshape(-1, 2).T).tobytes()
-        d["data"] = zstandard.ZstdCompressor(level=_ZSTD_LEVEL, write_content_size=True).compress(shuffled)
-    elif encoding != "raw":
-        raise WireError(f"depth encoding must be 'raw' or 'zstd', got {encoding!r}", field="depth.enc")
-    d.update(enc=encoding, scale=float(scale))
-    return d
-
-
-def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
-    """Decode a depth field; returns (HxW float32 metres, encoding, scale)."""
-    m = r.map(name)
-    enc = m.str("enc")
-    scale = m.float("scale", positive=True)
-    if not MIN_DEPTH_SCALE <= scale <= MAX_DEPTH_SCALE:
-        raise m.error("scale", f"depth scale {scale:g} units/m is outside [{MIN_DEPTH_SCALE:g}, {MAX_DEPTH_SCALE:g}]")
-    if enc == "raw":
-        q = r.array(name, "<u2", 2, max_elems=MAX_IMAGE_SIDE**2)
-        _check_side(m, q.shape)
-        if not r.pixels:
-            return np.broadcast_to(np.float32(0), q.shape), enc, scale
-        return dequantize_depth(q, scale), enc, scale
-    if enc != "zstd":
-        raise m.error("enc", f"unknown depth encoding {enc!r} (expected 'raw' or 'zstd')")
-    dt = m.str("dtype")
-    if dt != "<u2":
-        raise m.error("dtype", f"expected dtype '<u2', got {dt!r}")
-    shape = _shape(m, 2)
-    _check_side(m, shape)
-    data = m.bytes("data")
-    want = shape[0] * shape[1] * 2
-    try:
-        params = zstandard.get_frame_parameters(data)
-        if params.content_size != want:
-            raise m.error("data", f"zstd content size {params.content_size} does not match "
-                                  f"dtype <u2 x shape {shape} = {want} bytes")
-        if not r.pixels:
-            return np.broadcast_to(np.float32(0), shape), enc, scale
-        raw = zstandard.ZstdDecompressor(max_window_size=_ZSTD_MAX_WINDOW).decompress(data, max_output_size=want)
-    except zstandard.ZstdError as e:
-        raise m.error("data", f"zstd decompression failed: {e}") from None
-    if len(raw) != want:
-        raise m.error("data", f"decompressed {len(raw)} bytes, expected {want}")
-    planes = np.frombuffer(raw, np.uint8).reshape(2, -1)
-    q = np.empty((planes.shape[1], 2), np.uint8)
-    q[:, 0], q[:, 1] = planes[0], planes[1]  # un-shuffle (a transposed copy is ~8x slower)
-    q = q.view("<u2").reshape(shape)
-    return dequantize_depth(q, scale), enc, scale

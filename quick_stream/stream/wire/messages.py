@@ -20,15 +20,12 @@ from .codec import (
     FORMAT_VERSION,
     Reader,
     WireError,
-    decode_depth,
-    decode_image,
     encode_array,
-    encode_depth,
-    encode_image,
     float_list,
     pack,
     unpack,
 )
+from .pixels import decode_depth, decode_image, encode_depth, encode_image
 from .flowpack import compact_fields, decode_compact
 
 GROUP_DIMS = {"se3": 6, "sim3": 7, "sa3": 11, "ga3": 12}
