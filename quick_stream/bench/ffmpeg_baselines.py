@@ -164,7 +164,7 @@ def ffmpeg_version(ffmpeg: str | None = None) -> str:
         return ""
 
 
-def _run(argv: list[str], cwd: Path, stdin: bytes | None = None) -> bytes:
+def run_ffmpeg(argv: list[str], cwd: Path, stdin: bytes | None = None) -> bytes:
     r = subprocess.run(argv, cwd=cwd, input=stdin, capture_output=True)
     if r.returncode != 0:
         raise RuntimeError(f"ffmpeg failed (rc {r.returncode}): {' '.join(argv)}\n{r.stderr.decode()[-1500:]}")
@@ -211,18 +211,18 @@ def run_baselines(frames: list[np.ndarray], fps: float = 30.0, workdir: Path | N
         "deshake": [ffmpeg, *QUIET, "-i", "input.mkv", "-vf", vf["deshake"], *to_raw],
     }
     out.commands = steps
-    _run(steps["encode"], workdir, b"".join(np.ascontiguousarray(f).tobytes() for f in frames))
-    t0, c0 = time.perf_counter(), _children_cpu()
-    _run(steps["vidstab pass 1"], workdir)
-    out["vidstab"] = _decode(_run(steps["vidstab pass 2"], workdir), n, h, w, "vidstab")
-    out.seconds["vidstab"], out.cpu_seconds["vidstab"] = time.perf_counter() - t0, _children_cpu() - c0
-    t0, c0 = time.perf_counter(), _children_cpu()
-    out["deshake"] = _decode(_run(steps["deshake"], workdir), n, h, w, "deshake")
-    out.seconds["deshake"], out.cpu_seconds["deshake"] = time.perf_counter() - t0, _children_cpu() - c0
+    run_ffmpeg(steps["encode"], workdir, b"".join(np.ascontiguousarray(f).tobytes() for f in frames))
+    t0, c0 = time.perf_counter(), children_cpu()
+    run_ffmpeg(steps["vidstab pass 1"], workdir)
+    out["vidstab"] = _decode(run_ffmpeg(steps["vidstab pass 2"], workdir), n, h, w, "vidstab")
+    out.seconds["vidstab"], out.cpu_seconds["vidstab"] = time.perf_counter() - t0, children_cpu() - c0
+    t0, c0 = time.perf_counter(), children_cpu()
+    out["deshake"] = _decode(run_ffmpeg(steps["deshake"], workdir), n, h, w, "deshake")
+    out.seconds["deshake"], out.cpu_seconds["deshake"] = time.perf_counter() - t0, children_cpu() - c0
     return out
 
 
-def _children_cpu() -> float:
+def children_cpu() -> float:
     """User + system CPU seconds of this process's finished children (the ffmpeg runs)."""
     r = resource.getrusage(resource.RUSAGE_CHILDREN)
     return r.ru_utime + r.ru_stime

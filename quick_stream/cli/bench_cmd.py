@@ -38,6 +38,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--width", type=at.int_in(16, 8192), default=640, help="frame width, 16-8192 (default: 640)")
     s.add_argument("--height", type=at.int_in(16, 8192), default=480, help="frame height, 16-8192 (default: 480)")
     s.add_argument("--group", choices=sorted(GROUPS), default="se3", help="Lie group of the motion (default: se3)")
+    s.add_argument("--versus-vidstab", default=None, metavar="tum:PATH",
+                   help="instead: this clip through 'quick-stream stabilize --no-metrics' and FFmpeg vid.stab (2 passes) "
+                        "side by side, alternated, with the ratios (e.g. tum:../shared/data/7scenes_redkitchen; "
+                        "default: none)")
+    s.add_argument("--frames", type=at.positive_int, default=None,
+                   help="--versus-vidstab: the clip's first N frames (default: all)")
+    s.add_argument("--repeat", type=at.positive_int, default=3,
+                   help="--versus-vidstab: alternated rounds, medians reported (default: 3)")
     o = _bench(b, "odometry", "relative pose error of exact/induced vs OpenCV odometry")
     o.add_argument("--source", default=f"tum:{DEFAULT_DATA / '7scenes_redkitchen'}", metavar="SPEC",
                    help="the clip, any source spec with ground truth (default: %(default)s)")
@@ -200,7 +208,17 @@ def _run(args: argparse.Namespace) -> int:
     if args.bench == "quality":
         return _quality(args)
     with progress:
-        if args.bench == "speed":
+        if args.bench == "speed" and args.versus_vidstab:
+            from ..bench import speed_versus
+
+            try:
+                r = speed_versus.run(args.versus_vidstab, args.frames, args.repeat,
+                                     progress=lambda msg: progress(msg, force=True))
+            except (RuntimeError, ValueError) as e:
+                print(f"quick-stream bench speed: {e}", file=sys.stderr)
+                return 2
+            text = speed_versus.format_report(r)
+        elif args.bench == "speed":
             from ..bench import speed
 
             r = speed.run(args.pairs, args.width, args.height, args.group, progress=progress)
