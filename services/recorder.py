@@ -1,36 +1,14 @@
-"""``recorder``: every stage's messages of a stream (or of all streams) into an MCAP file.
+"""``recorder``: every stage's messages of a stream (or of all streams) into MCAP files (docs/recording.md).
 
-Subscribes ``quick/@v1/<stream>/*`` (``--all-streams``: ``quick/@v1/*/*``) and
-logs each message on a msgpack channel named after its key (exact replay: ``capture
---source mcap:FILE``, ``quick-stream rerun``), plus the Foxglove-viewable protobuf
-channels (images, calibration, camera and stabilized poses and transforms;
-:mod:`quick_stream.io.foxglove`, docs/recording.md). Every file starts with the stabilizer
-settings (``--settings`` and the flags: give it what the stages run with) as a metadata record,
-which ``quick-stream rerun`` and ``--source mcap:`` replay read back.
-
-Images are stored once: the JPEG of a frame's colour and of a stabilized image goes into
-its ``foxglove.CompressedImage`` record, and the msgpack record holds the wire message
-referencing it; readers put it back byte for byte (:mod:`quick_stream.io.recording_images`).
-``--no-foxglove``: msgpack channels only, each message whole.
-
-Nothing accepted is lost to a kill: each message (with its image record) goes into the
-file's open chunk as it arrives (in zenoh's thread, not behind a queue), and the chunk is
-written out at least every ``--flush`` seconds (default 0.5), so a SIGKILL loses at most
-what arrived in the last ``--flush`` seconds. The other Foxglove channels are derived in
-the service loop from a drop-oldest queue (``--queue``; drops counted as ``inbox0_dropped``):
-under CPU pressure they may thin out, the wire and image channels never. ``quick-stream recover`` repairs
-the footer-less file, and a restarted recorder writes to ``<name>-1.mcap`` (``-2``, ...)
-instead of overwriting it.
-
-Long runs are split (``--split-mb``, default 4096; ``--split-minutes``): the file is finished
-(footer, indexes) and the next free ``<name>-N.mcap`` starts, with the same channels; no
-message is lost or doubled at the seam. This bounds each file and the writer's in-memory
-index (one entry per chunk, kept for the footer: about 1 MB a minute at 640x480, 30 frames/s).
-
-No loss upstream is silent: the seqs of each stage that never arrived (dropped by a stage,
-lost in transport) are logged and counted in the stats (``unreceived``, per stage
-``unreceived_<stage>``; :mod:`quick_stream.stream.arrivals`). All of it is
-:class:`quick_stream.io.stream_recording.StreamRecording`.
+Subscribes ``quick/@v1/<stream>/*`` (``--all-streams``: every stream's) and logs each message on a
+msgpack channel named after its key (exact replay, ``quick-stream rerun``), its JPEG stored once in
+a Foxglove image record, plus the Foxglove pose, transform and calibration channels (``--no-foxglove``:
+msgpack only). Every file starts with the stabilizer settings record (``--settings``: the stages'
+file). A message is in the file's open chunk as it arrives and on disk within ``--flush`` seconds;
+a killed recorder's file is repaired by ``quick-stream recover`` and its successor writes the next
+``<name>-N.mcap``; long runs split at ``--split-mb``/``--split-minutes`` with nothing lost or doubled;
+seqs that never arrived are logged and counted (``unreceived_<stage>``); a full disk stops it (exit 2,
+docs/reliability.md). All of it is :class:`quick_stream.io.stream_recording.StreamRecording`.
 """
 from __future__ import annotations
 
