@@ -33,13 +33,13 @@ log = logging.getLogger("flow")
 
 def build_parser() -> argparse.ArgumentParser:
     p = service_parser("flow", __doc__)
+    add_stabilizer_args(p)
     add_queue_args(p, queue=30, queue_help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)",
                    history=150, history_help="flows kept for a restarted motion service to take over from and for "
                    "receivers to recover what their link dropped (default 150; at least 150 are kept)")
     p.add_argument("--catch-up", type=at.positive_int, default=150,
                    help="frames held while a restarted flow works through the frames' history (default 150, "
                         "the capture's history)")
-    add_stabilizer_args(p)
     return p
 
 
