@@ -158,5 +158,6 @@ def quantize_depth(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
 
 
 def dequantize_depth(q: np.ndarray, scale: float = 1000.0) -> np.ndarray:
-    """uint16 units -> float32 metres (0 stays 0 = invalid)."""
-    return (q.astype(np.float32) / np.float32(scale)).astype(np.float32)
+    """uint16 units -> float32 metres (0 stays 0 = invalid): one float32 division, into one new array."""
+    out = np.empty(np.shape(q), np.float32)
+    return np.divide(q, np.float32(scale), out=out, dtype=np.float32)
