@@ -18,6 +18,7 @@ import numpy as np
 
 SAFE_MARGIN = 1e-2  # px: a sample this far inside the source keeps its pixels inside (rounding is ~1e-4 px)
 PATCH_ROWS = 32  # output rows per strip of :func:`patches`
+SAMPLE_ROWS = 16  # map sample rows (64 px at step 4) per strip when :func:`uncovered_pixels` cuts the samples
 MERGE_GAP = 32  # columns: runs of marked columns closer than this share a patch
 _LOOKUP_COLS = 4096  # cv2.remap takes maps under 32767 columns: lookups go in rows of this many points
 
@@ -91,7 +92,7 @@ def uncovered_pixels(samples: np.ndarray, inv_map: np.ndarray, step: int) -> np.
     m = SAFE_MARGIN
     unsafe = cv2.inRange(samples, (m, m), (w - 1 - m, h - 1 - m)) == 0
     out = None
-    for i0, i1, _, _, j0, j1 in patches(unsafe, 0, max(PATCH_ROWS // step, 1)):
+    for i0, i1, _, _, j0, j1 in patches(unsafe, 0, SAMPLE_ROWS):
         # pixel x reads the samples (x + step + 0.5) / step - 0.5 rounded down and the next one:
         # samples j0 ..< j1 are read by the pixels step (j0 - 2) ..< step j1
         ya, yb, xa, xb = max(step * (i0 - 2), 0), min(step * i1, h), max(step * (j0 - 2), 0), min(step * j1, w)
