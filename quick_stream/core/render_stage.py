@@ -25,7 +25,7 @@ from .frame import RGBDFrame
 from .path.planner import Correction
 from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
 from .render.fill import FillSource, covered_zoom, fill_border, ordered_sources, raise_for
-from .render.mapping import render_covered
+from .render.mapping import map_samples, render_covered
 from .render.warp import WarpInput, prepare_warp
 from .timing import StageTimer
 
@@ -51,6 +51,21 @@ class StabilizedFrame:
         if not self.mesh.ok:
             out.append(f"warp: {self.mesh.reason}")
         return out
+
+
+@dataclass
+class _Plan:
+    """A frame about to be rendered: its correction, frame, warp and zoom, the numbering it was taken
+    in, its share of the batch's framing time (ms) and, when the border fill's estimate made them,
+    the map samples at that zoom (the render reuses them)."""
+
+    c: Correction
+    f: RGBDFrame
+    mesh: MeshWarp
+    zoom: float
+    numbering: int
+    framing_ms: float
+    samples: np.ndarray | None = None
 
 
 ORPHAN = "no correction: frame skipped upstream"
@@ -90,7 +105,8 @@ class RenderStage:
         self.timer = StageTimer()
         # held frames per numbering (0, then one more per renumbering), only those the corrections may still reach
         self._held: dict[int, OrderedDict[int, RGBDFrame | FrameLoader]] = {0: OrderedDict()}
-        self._prepared: dict[tuple[int, int], WarpInput] = {}  # warp inputs of decoded frames, made on arrival
+        # warp inputs of decoded frames, made on arrival, and the ms that took
+        self._prepared: dict[tuple[int, int], tuple[WarpInput, float]] = {}
         self.numbering = 0  # the numbering frames are taken in
         self._corr = 0  # the numbering the corrections have reached
         self._newest_in: dict[int, int] = {}  # per numbering held, the newest frame taken in it
@@ -140,7 +156,9 @@ class RenderStage:
         self._newest_pub = pub_ns
         self._held[self.numbering][seq] = frame
         if isinstance(frame, RGBDFrame):
-            self._prepared[(self.numbering, seq)] = prepare_warp(frame, self.warp)
+            t0 = time.perf_counter()
+            wi = prepare_warp(frame, self.warp)
+            self._prepared[(self.numbering, seq)] = (wi, (time.perf_counter() - t0) * 1e3)
         while self.buffered > self.max_frames:
             n = min(k for k, h in self._held.items() if h)
             old, _ = self._held[n].popitem(last=False)
@@ -209,69 +227,80 @@ class RenderStage:
         if not corrections:
             return
         n = self.numbering_of(corrections)
-        stale: list[tuple[Correction, RGBDFrame, MeshWarp, float, int]] = []
+        stale: list[_Plan] = []
         for old in sorted(k for k in self._held if k < n):  # the corrections moved on: none will reach these
             for seq in list(self._held[old]):
                 self.orphans += 1
-                stale += [(*p, old) for p in self._plan([orphan_correction(seq, STALE)], old)]
+                stale += self._plan([orphan_correction(seq, STALE)], old)
             del self._held[old]
             self._newest_in.pop(old, None)
         self._corr = n
         held = self._held.get(n, {})
         last = max(c.seq for c in corrections)
         covered = {c.seq for c in corrections}
-        plans: list[tuple[Correction, RGBDFrame, MeshWarp, float]] = []
+        plans: list[_Plan] = []
         for seq in [s for s in held if s < last and s not in covered]:
             self.orphans += 1
             plans += self._plan([orphan_correction(seq)], n)
         plans += self._plan(corrections, n)
         if len(plans) > len(corrections):
-            plans.sort(key=lambda x: x[0].seq)
-        for c, f, mesh, z, old in stale:  # the old numbering's last frames first, as they are
-            t0 = time.perf_counter()
-            sf = StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
-                                 f.color if self.keep_inputs else None, old)
-            self.timer.add("render", (time.perf_counter() - t0) * 1e3)
-            yield sf
-        ahead = [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K) for c, f, _, _ in plans
-                 if c.camera is not None] if self.framing.fill_frames else []
+            plans.sort(key=lambda p: p.c.seq)
+        for p in stale:  # the old numbering's last frames first, as they are
+            yield self._timed(p, lambda p=p: (render(p.f.color, p.mesh, p.zoom), p.zoom))
+        ahead = [FillSource(p.c.seq, p.c.chain, p.c.camera, p.f.color, p.f.intrinsics.K) for p in plans
+                 if p.c.camera is not None] if self.framing.fill_frames else []
         if ahead and self.framing.mode == "auto":
-            plans = self._cover(plans, ahead)
-        for c, f, mesh, z in plans:
-            t0 = time.perf_counter()
-            image, z = self._render(c, f, mesh, z, ahead)
-            sf = StabilizedFrame(c.seq, f.timestamp_ns, image, c, z, mesh, f.color if self.keep_inputs else None, n)
-            self.timer.add("render", (time.perf_counter() - t0) * 1e3)
-            yield sf
+            self._cover(plans, ahead)
+        for p in plans:
+            yield self._timed(p, lambda p=p: self._render(p, ahead))
+
+    def _timed(self, p: _Plan, draw: Callable[[], tuple[np.ndarray, float]]) -> StabilizedFrame:
+        """The stabilized frame ``draw`` renders for plan ``p``, its render time and its framing
+        share recorded (one sample per frame)."""
+        t0 = time.perf_counter()
+        image, z = draw()
+        sf = StabilizedFrame(p.c.seq, p.f.timestamp_ns, image, p.c, z, p.mesh,
+                             p.f.color if self.keep_inputs else None, p.numbering)
+        self.timer.add("render", (time.perf_counter() - t0) * 1e3)
+        self.timer.add("framing", p.framing_ms)
+        return sf
 
     def _sources(self, c: Correction, ahead: list[FillSource]) -> list[FillSource]:
         if c.camera is None:
             return []
         return ordered_sources(c.seq, c.chain, self._past + ahead, self.framing.fill_frames)
 
-    def _cover(self, plans: list, ahead: list[FillSource]) -> list:
+    def _cover(self, plans: list[_Plan], ahead: list[FillSource]) -> None:
         """Zooms raised, smoothly, where the border fill will not cover what the mesh leaves at the
-        planned zoom (docs/method.md 5.4): estimated before rendering, on every 4th pixel."""
+        planned zoom (docs/method.md 5.4): estimated before rendering, on every 4th pixel. Each plan
+        keeps the map samples at its zoom for its render when the zoom stays."""
         t0 = time.perf_counter()
-        need = [covered_zoom(mesh, f.depth, f.intrinsics.K, z, None if c.camera is None else c.camera @ c.matrix,
-                             self._sources(c, ahead)) for c, f, mesh, z in plans]
-        zooms = self.zoom.cover([z for *_, z in plans], need)
-        self.timer.add("framing", (time.perf_counter() - t0) * 1e3 / max(len(plans), 1))
-        return [(c, f, mesh, float(z)) for (c, f, mesh, _), z in zip(plans, zooms)]
+        need = []
+        for p in plans:
+            p.samples = map_samples(p.mesh, p.zoom)
+            need.append(covered_zoom(p.mesh, p.f.depth, p.f.intrinsics.K, p.zoom,
+                                     None if p.c.camera is None else p.c.camera @ p.c.matrix,
+                                     self._sources(p.c, ahead), samples=p.samples))
+        zooms = self.zoom.cover([p.zoom for p in plans], need)
+        share = (time.perf_counter() - t0) * 1e3 / max(len(plans), 1)
+        for p, z in zip(plans, zooms):
+            if float(z) != p.zoom:
+                p.zoom, p.samples = float(z), None
+            p.framing_ms += share
 
-    def _render(self, c: Correction, f: RGBDFrame, mesh: MeshWarp, zoom: float,
-                ahead: list[FillSource]) -> tuple[np.ndarray, float]:
-        """One frame at ``zoom``, its border filled from its neighbours (the batch's frames ``ahead``
+    def _render(self, p: _Plan, ahead: list[FillSource]) -> tuple[np.ndarray, float]:
+        """One frame at its zoom, its border filled from its neighbours (the batch's frames ``ahead``
         and the last frames rendered before it) when the correction carries a camera pose;
         what fill leaves uncovered is zoomed away (docs/method.md 5.4). Returns (image, zoom)."""
+        c, f, mesh, zoom = p.c, p.f, p.mesh, p.zoom
         reach = self.framing.fill_frames
         if not reach:
             return render(f.color, mesh, zoom), zoom
         sources = self._sources(c, ahead)
         virtual = c.camera @ c.matrix if c.camera is not None else None
-        planned, filled = zoom, False
+        samples, filled = p.samples, False
         for _ in range(3):
-            image, uncovered, depth = render_covered(f.color, f.depth, mesh, zoom)
+            image, uncovered, depth = render_covered(f.color, f.depth, mesh, zoom, samples=samples)
             if depth is None:
                 break
             if sources:
@@ -280,8 +309,9 @@ class RenderStage:
             if not uncovered.any() or self.framing.mode != "auto" or zoom >= self.framing.fill_zoom_max:
                 break
             zoom = min(raise_for(uncovered, zoom) * (1.0 + 1e-6), self.framing.fill_zoom_max)
+            samples = None
         self.filled += filled
-        self.fill_raised += zoom > planned
+        self.fill_raised += zoom > p.zoom
         if c.camera is not None:
             self._past = (self._past + [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K)])[-reach:]
         return image, zoom
@@ -293,23 +323,23 @@ class RenderStage:
         for n in sorted(self._held):
             for seq in list(self._held[n]):
                 self.orphans += 1
-                for c, f, mesh, z in self._plan([orphan_correction(seq, STALE if n < self.numbering else ORPHAN)], n):
-                    out.append(StabilizedFrame(c.seq, f.timestamp_ns, render(f.color, mesh, z), c, z, mesh,
-                                               f.color if self.keep_inputs else None, n))
+                for p in self._plan([orphan_correction(seq, STALE if n < self.numbering else ORPHAN)], n):
+                    out.append(self._timed(p, lambda p=p: (render(p.f.color, p.mesh, p.zoom), p.zoom)))
         return out
 
-    def _plan(self, corrections: list[Correction],
-              numbering: int) -> list[tuple[Correction, RGBDFrame, MeshWarp, float]]:
+    def _plan(self, corrections: list[Correction], numbering: int) -> list[_Plan]:
         """Load the frames (of ``numbering``), solve their warps and the batch's zoom track."""
         t0 = time.perf_counter()
         items = []
+        prep_ms = 0.0
         for c in corrections:
             f = self._load(numbering, c.seq)
             if f is None:
                 self.missing += 1
                 continue
-            items.append((c, f, solve_warp(f, c.point_transform, self.warp,
-                                           self._prepared.pop((numbering, c.seq), None))))
+            prepared, ms = self._prepared.pop((numbering, c.seq), (None, 0.0))
+            prep_ms += ms
+            items.append((c, f, solve_warp(f, c.point_transform, self.warp, prepared)))
         if not items:
             return []
         t1 = time.perf_counter()
@@ -323,7 +353,6 @@ class RenderStage:
             zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom, planned)
         t2 = time.perf_counter()
         n = len(items)
-        for _ in range(n):  # per-frame samples (the batch's average)
-            self.timer.add("warp", (t1 - t0) * 1e3 / n)
-            self.timer.add("framing", (t2 - t1) * 1e3 / n)
-        return [(c, f, mesh, float(z)) for (c, f, mesh), z in zip(items, zooms)]
+        for _ in range(n):  # per-frame samples (the batch's average; the warp's share made on arrival included)
+            self.timer.add("warp", ((t1 - t0) * 1e3 + prep_ms) / n)
+        return [_Plan(c, f, mesh, float(z), numbering, (t2 - t1) * 1e3 / n) for (c, f, mesh), z in zip(items, zooms)]

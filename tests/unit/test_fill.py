@@ -43,13 +43,14 @@ def test_filled_pixels_are_what_the_virtual_camera_sees(scene):
     out[band] = 0
     own_depth = np.where(band, 0.0, depth)
     sources = [FillSource(f.seq, 0, f.pose, f.color, K) for f in frames]
-    left = fill_border(out, band, own_depth, K, 1.0, V, ordered_sources(t, 0, sources, 8))
+    own = lambda ys, xs: own_depth[ys, xs]  # noqa: E731 - the output depth where the fill asks
+    left = fill_border(out, band, own, K, 1.0, V, ordered_sources(t, 0, sources, 8))
     assert not left.any()  # the neighbours, shaken the other way, saw the whole band
     err = np.abs(out[band].astype(float) - truth[band].astype(float)).mean()
     assert err < 8.0, err  # resampling of a textured wall (a wrong pose convention gives > 30)
     wrong = truth.copy()
     wrong[band] = 0
-    fill_border(wrong, band, own_depth, K, 1.0, np.linalg.inv(V), ordered_sources(t, 0, sources, 8))
+    fill_border(wrong, band, own, K, 1.0, np.linalg.inv(V), ordered_sources(t, 0, sources, 8))
     assert np.abs(wrong[band].astype(float) - truth[band].astype(float)).mean() > 3 * err
 
 

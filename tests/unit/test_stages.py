@@ -4,10 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from quick_stream.bench.quality import parse_settings
 from quick_stream.core.path.planner import Correction
 from quick_stream.core.render_stage import RenderStage
 from quick_stream.core.stages import FlowStage, MotionStage
 from quick_stream.io.sources import open_source
+from tests.helpers import stabilize
 
 
 @pytest.fixture(scope="module")
@@ -110,6 +112,14 @@ def test_render_stage_bounds_what_it_holds(frames):
     assert r.buffered == 5 and r.dropped == 3
     out = r.render_batch([Correction(0, np.eye(4), 0, True)])  # frame 0 was dropped: counted missing, the rest waits
     assert out == [] and r.missing == 1 and r.buffered == 5
+
+
+def test_the_render_stage_times_every_frame_once_per_step(frames):
+    """One warp, framing and render sample per frame, so each mean is ms per frame (the border fill's
+    zoom estimate counts in framing, the warp inputs made on a frame's arrival in warp)."""
+    st, out = stabilize(frames, parse_settings([]).params)
+    n = {k: len(v) for k, v in st.timer.samples.items()}
+    assert n["warp"] == n["framing"] == n["render"] == len(out) == len(frames)
 
 
 def test_render_stage_reports_a_frame_that_cannot_be_loaded(frames):
