@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from quick_stream.bench.quality import parse_settings
+from quick_stream.bench.variants import parse_settings
 from quick_stream.core.path.planner import Correction
 from quick_stream.core.render_stage import RenderStage
 from quick_stream.core.stages import FlowStage, MotionStage
