@@ -9,7 +9,8 @@ from quick_stream.core.path.budget import BudgetParams, FrameModel, SegmentMeshe
 from quick_stream.core.path.keyframes import KeyframeParams
 from quick_stream.core.path.planner import PathPlanner, PlannerParams
 from quick_stream.core.path.smoother import cutoff_of_smoothness, segment_system, smoothness_for_cutoff
-from quick_stream.core.render.warp import WarpParams, grid_geometry, rotation_reference, solve_mesh
+from quick_stream.core.render.shape_term import rotation_reference
+from quick_stream.core.render.warp import WarpParams, grid_geometry, solve_mesh
 
 SE3 = get_group("se3")
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)

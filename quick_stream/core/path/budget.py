@@ -22,7 +22,8 @@ import numpy as np
 from ..frame import Intrinsics
 from ..lie import LieGroup
 from ..render.framing import edge_extents
-from ..render.warp import WarpParams, bilinear_weights, grid_geometry, rotation_references, similarity_normal
+from ..render.shape_term import rotation_references, similarity_normal
+from ..render.warp import WarpParams, bilinear_weights, grid_geometry
 from .smoother import SegmentSystem
 
 
