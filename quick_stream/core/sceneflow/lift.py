@@ -122,8 +122,8 @@ def lift_flow(f0: RGBDFrame, f1: RGBDFrame, fwd: np.ndarray, bwd: np.ndarray | N
     (:func:`sample_flow`). Candidates are pixels on a regular grid (about twice ``max_points`` of
     them); each mask shrinks the candidate set before the next, dearer one runs. ``refine``
     (u0, v0, u1, v1) -> (u1, v1, kept), e.g. :func:`~quick_stream.core.sceneflow.lk.refine_lk`,
-    corrects the flow of the samples that passed the image masks, before the second frame's
-    depth is read.
+    corrects the flow of the samples that passed the image masks (at most ``lk_budget`` x
+    ``max_points`` of them, evenly spaced), before the second frame's depth is read.
     """
     h, w = f0.depth.shape
     counts: dict[str, int] = {}
@@ -150,6 +150,10 @@ def lift_flow(f0: RGBDFrame, f1: RGBDFrame, fwd: np.ndarray, bwd: np.ndarray | N
         good = ex * ex + ey * ey <= p.fb_threshold_px ** 2
         counts["fb_inconsistent"] = int(sel.size - np.count_nonzero(good))
         sel = sel[good]
+    if refine is not None and p.lk_budget > 0:  # no more than the kept samples need (docs/method.md (1))
+        n = sel.size
+        sel = _evenly(sel, int(p.lk_budget * p.max_points))
+        counts["lk_thinned"] = n - sel.size
     uu, vv, z0, u1, v1 = uu[sel], vv[sel], z0[sel], u1[sel], v1[sel]
     if refine is not None:
         u1, v1, kept = refine(uu, vv, u1, v1)

@@ -34,6 +34,7 @@ class SceneFlowParams:
     lk_window: int = 9  # LK window (px, odd)
     lk_iters: int = 10  # LK iterations at most (it starts from the DIS flow)
     lk_max_shift_px: float = 2.0  # LK moving a sample further than this from DIS: sample dropped
+    lk_budget: float = 1.25  # LK refines at most lk_budget x max_points samples, evenly spaced (0: all)
 
     @classmethod
     def describe(cls) -> dict[str, str]:
