@@ -125,7 +125,7 @@ def fit_closed_form(group_name: str, xt: np.ndarray, yt: np.ndarray, w: np.ndarr
 def point_sigma(x: np.ndarray, f: float, params: ExactParams) -> np.ndarray:
     """Expected 3D error sigma_i of each RGB-D point: depth noise along the ray, flow noise across it
     (docs/method.md (3a))."""
-    z = x[:, 2]
+    z = np.ascontiguousarray(x[:, 2])
     a, b = params.depth_noise * z * z, z * (params.sigma_px / f)
     return np.sqrt(a * a + b * b)
 
@@ -199,7 +199,7 @@ def observability(x: np.ndarray, w: np.ndarray, f: float, params: ExactParams) -
     if not (len(x) and sw > 0 and np.isfinite(sw)):
         return Observability(np.zeros(3), 0.0, float("inf"), float("inf"))
     wn = w / sw
-    xt = x.T
+    xt = np.ascontiguousarray(x.T)
     xc = xt - (xt @ wn)[:, None]
     C = (xc * wn) @ xc.T
     s2 = float(wn @ point_sigma(x, f, params) ** 2)

@@ -44,8 +44,8 @@ def sample_depth(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) ->
     (docs/method.md (1): no blending across depth edges).
     """
     h, w = depth.shape
-    u0 = np.clip(np.floor(u).astype(np.intp), 0, w - 2)
-    v0 = np.clip(np.floor(v).astype(np.intp), 0, h - 2)
+    u0 = np.minimum(np.maximum(np.floor(u).astype(np.intp), 0), w - 2)
+    v0 = np.minimum(np.maximum(np.floor(v).astype(np.intp), 0), h - 2)
     a = u - u0
     b = v - v0
     flat = depth.ravel()
@@ -86,19 +86,20 @@ def candidate_grid(h: int, w: int, step: int) -> CandidateGrid:
     return CandidateGrid(uu, vv, i, nb)
 
 
-def sample_flow(flow: np.ndarray, u: np.ndarray, v: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Flow of a ``width`` x ``height`` image at its sub-pixel positions (u, v), in its pixels, from a
-    (H, W, 2) field computed on the image resized to W x H: bilinear at the field's position of each
-    pixel centre (``(u + 0.5) W / width - 0.5``, edges replicated, as ``cv2.resize`` places them),
-    scaled by ``width / W`` and ``height / H`` (DIS, resizing its own field, scales by 2**F: the same
-    where the size is a multiple of 2**F)."""
+def sample_flow(flow: np.ndarray, u: np.ndarray, v: np.ndarray, width: int,
+                height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flow (du, dv) of a ``width`` x ``height`` image at its sub-pixel positions (u, v), in its pixels,
+    from a (H, W, 2) field computed on the image resized to W x H: bilinear at the field's position
+    of each pixel centre (``(u + 0.5) W / width - 0.5``, edges replicated, as ``cv2.resize`` places
+    them), scaled by ``width / W`` and ``height / H`` (DIS, resizing its own field, scales by 2**F:
+    the same where the size is a multiple of 2**F)."""
     if u.size == 0:  # nothing survived the masks (e.g. no valid depth): cv2.remap refuses empty maps
-        return np.zeros((0, 2))
+        return np.zeros(0), np.zeros(0)
     sx, sy = flow.shape[1] / width, flow.shape[0] / height
     mx = ((u + 0.5) * sx - 0.5).astype(np.float32).reshape(1, -1)
     my = ((v + 0.5) * sy - 0.5).astype(np.float32).reshape(1, -1)
-    out = cv2.remap(flow, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)
-    return out.astype(np.float64) / (sx, sy)
+    out = cv2.remap(flow, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)[0].astype(np.float64)
+    return out[:, 0] / sx, out[:, 1] / sy
 
 
 def _inside(u: np.ndarray, v: np.ndarray, w: int, h: int, b: float) -> np.ndarray:
@@ -138,15 +139,15 @@ def lift_flow(f0: RGBDFrame, f1: RGBDFrame, fwd: np.ndarray, bwd: np.ndarray | N
         counts["depth_edge"] = int(np.count_nonzero(edge))
         sel = sel[~edge]
     uu, vv, z0 = grid.u[sel], grid.v[sel], z0[sel].astype(np.float64)
-    fl = sample_flow(fwd, uu, vv, w, h)
-    u1 = uu + fl[:, 0]
-    v1 = vv + fl[:, 1]
+    du, dv = sample_flow(fwd, uu, vv, w, h)
+    u1 = uu + du
+    v1 = vv + dv
     ok = _inside(u1, v1, w, h, p.border_px)
     counts["out_of_image"] = int(ok.size - np.count_nonzero(ok))
     sel = np.flatnonzero(ok)
     if bwd is not None:
-        back = sample_flow(bwd, u1[sel], v1[sel], w, h)
-        ex, ey = fl[sel, 0] + back[:, 0], fl[sel, 1] + back[:, 1]
+        bu, bv = sample_flow(bwd, u1[sel], v1[sel], w, h)
+        ex, ey = du[sel] + bu, dv[sel] + bv
         good = ex * ex + ey * ey <= p.fb_threshold_px ** 2
         counts["fb_inconsistent"] = int(sel.size - np.count_nonzero(good))
         sel = sel[good]
