@@ -43,7 +43,7 @@ def plant(root: Path, rel: str, code: str) -> None:
     ("quick_stream/core/render/fill.py", "from ...quality.metrics_border import scale_from_mask\n",
      "quality is above core"),
     ("quick_stream/core/stages.py", "import zenoh\n", "no zenoh"),
-    ("quick_stream/core/sceneflow.py", "def f():\n    import argparse\n", "no argparse"),
+    ("quick_stream/core/sceneflow/lift.py", "def f():\n    import argparse\n", "no argparse"),
     ("quick_stream/core/motion_pipeline.py", "from mcap.reader import make_reader\n", "no mcap"),
     ("quick_stream/stream/runtime.py", "def f():\n    from quick_stream.cli.up_cmd import free_port\n",
      "cli is above stream"),

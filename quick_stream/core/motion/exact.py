@@ -45,6 +45,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from ..lie import LieGroup, so3
+from ..robust import median
 
 
 @dataclass
@@ -77,36 +78,37 @@ def cauchy_weights(r: np.ndarray, c: float, max_scale: float = np.inf) -> tuple[
     (MAD breaks down past 50 % outliers) from widening the kernel until the
     estimate follows them.
     """
-    s = min(1.4826 * float(np.median(r)), max_scale) + 1e-12
+    s = min(1.4826 * median(r), max_scale) + 1e-12
     return 1.0 / (1.0 + (r / (c * s)) ** 2), s
 
 
-def _weighted_means(x: np.ndarray, y: np.ndarray, w: np.ndarray):
-    wn = w / w.sum()
-    mx = wn @ x
-    my = wn @ y
-    return wn, mx, my
+def _norms(d: np.ndarray) -> np.ndarray:
+    """Euclidean norm of each column of a (3, N) array."""
+    return np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
 
 
-def fit_closed_form(group_name: str, x: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+def fit_closed_form(group_name: str, xt: np.ndarray, yt: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Weighted least-squares M with y ~ M x, closed form per group (docs/method.md section 2.2).
 
-    SE(3): Kabsch; SIM(3): Umeyama (with scale); GA(3): linear least squares;
-    SA(3): the GA(3) fit with its linear part scaled to unit determinant.
+    ``xt``, ``yt``: the points as (3, N) arrays (one row per coordinate). SE(3): Kabsch; SIM(3):
+    Umeyama (with scale); GA(3): linear least squares; SA(3): the GA(3) fit with its linear part
+    scaled to unit determinant.
     """
-    wn, mx, my = _weighted_means(x, y, w)
-    xc, yc = x - mx, y - my
+    wn = w / w.sum()
+    mx, my = xt @ wn, yt @ wn
+    xc, yc = xt - mx[:, None], yt - my[:, None]
+    xw = xc * wn
     M = np.eye(4)
     if group_name in ("se3", "sim3"):
-        H = (xc * wn[:, None]).T @ yc  # weighted cross-covariance sum w x y^T
+        H = xw @ yc.T  # weighted cross-covariance sum w x y^T
         R = so3.nearest_rotation(H.T)  # Kabsch: the rotation maximising tr(R H)
         A = R
         if group_name == "sim3":
-            var_x = float(wn @ np.einsum("ni,ni->n", xc, xc))
+            var_x = float(np.sum(xw * xc))
             A = R * (float(np.trace(R @ H)) / var_x)  # Umeyama: tr(R H) = tr(D S)
     elif group_name in ("ga3", "sa3"):
-        C = (xc * wn[:, None]).T @ xc  # 3x3
-        B = (yc * wn[:, None]).T @ xc  # 3x3
+        C = xw @ xc.T  # 3x3
+        B = yc @ xw.T  # 3x3
         A = np.linalg.solve(C.T, B.T).T  # A C = B
         if group_name == "sa3":
             det = np.linalg.det(A)
@@ -123,8 +125,9 @@ def fit_closed_form(group_name: str, x: np.ndarray, y: np.ndarray, w: np.ndarray
 def point_sigma(x: np.ndarray, f: float, params: ExactParams) -> np.ndarray:
     """Expected 3D error sigma_i of each RGB-D point: depth noise along the ray, flow noise across it
     (docs/method.md (3a))."""
-    z = x[:, 2]
-    return np.hypot(params.depth_noise * z * z, z * params.sigma_px / f)
+    z = np.ascontiguousarray(x[:, 2])
+    a, b = params.depth_noise * z * z, z * (params.sigma_px / f)
+    return np.sqrt(a * a + b * b)
 
 
 def irls_closed_form(
@@ -135,16 +138,17 @@ def irls_closed_form(
     Iterates until the fit moves no point by more than ``params.tol`` of its expected error,
     at most ``params.init_iters`` times (docs/method.md (3a)). Returns (M, weights of the last fit).
     """
+    xt, yt = np.ascontiguousarray(x.T), np.ascontiguousarray(y.T)
     w = w0.copy()
-    M = fit_closed_form(group_name, x, y, w)
+    M = fit_closed_form(group_name, xt, yt, w)
     sig = point_sigma(x, f, params)
     for _ in range(params.init_iters if params.robust else 0):
-        r = np.linalg.norm(x @ M[:3, :3].T + M[:3, 3] - y, axis=1) / sig
+        r = _norms(M[:3, :3] @ xt + M[:3, 3:] - yt) / sig
         rw, _ = cauchy_weights(r, params.cauchy_c, params.max_scale)
         w = w0 * rw
-        M_new = fit_closed_form(group_name, x, y, w)
+        M_new = fit_closed_form(group_name, xt, yt, w)
         D = M_new - M
-        step = float(np.max(np.linalg.norm(x @ D[:3, :3].T + D[:3, 3], axis=1) / sig))
+        step = float(np.max(_norms(D[:3, :3] @ xt + D[:3, 3:]) / sig))
         M = M_new
         if step < params.tol:
             break
@@ -195,8 +199,9 @@ def observability(x: np.ndarray, w: np.ndarray, f: float, params: ExactParams) -
     if not (len(x) and sw > 0 and np.isfinite(sw)):
         return Observability(np.zeros(3), 0.0, float("inf"), float("inf"))
     wn = w / sw
-    xc = x - wn @ x
-    C = (xc * wn[:, None]).T @ xc
+    xt = np.ascontiguousarray(x.T)
+    xc = xt - (xt @ wn)[:, None]
+    C = (xc * wn) @ xc.T
     s2 = float(wn @ point_sigma(x, f, params) ** 2)
     rho = np.clip(np.linalg.eigvalsh(C)[::-1] / s2, 0.0, None)
     n_eff = 1.0 / float(wn @ wn)
@@ -221,6 +226,48 @@ class RefineResult:
     iterations: int = 0  # Gauss-Newton steps taken
     converged: bool = True  # False: stopped at params.gn_iters before the step fell below params.tol
 
+# (m, m') -> row of the per-point matrices Q in _normal_equations (5: Q[0, 1] = Q[1, 0] = 0)
+_Q_INDEX = np.array([[0, 5, 1], [5, 2, 3], [1, 3, 4]])
+_UPPER = np.triu_indices(4, 1)  # (l, l') above the diagonal
+
+
+def _normal_equations(B: np.ndarray, y: np.ndarray, xn: np.ndarray, yn: np.ndarray, a: np.ndarray,
+                      b: np.ndarray, isz: np.ndarray, w: np.ndarray, ru: np.ndarray, rv: np.ndarray,
+                      rz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Newton normal equations ``A = sum_i w_i J_i^T J_i``, ``g = sum_i w_i J_i^T r_i`` of the
+    residuals (3), summed in the points' own 3D space (docs/method.md (3h)).
+
+    ``J_i = P_i B(y_i)``: ``P_i`` the residuals' 3x3 Jacobian at the moved point ``y_i`` (rows
+    ``a (1, 0, -xn)``, ``b (0, 1, -yn)``, ``isz (0, 0, 1)``), ``B(y) = sum_l yh_l B_l`` the point's
+    (3, n) Jacobian of the left update with ``yh = (y, 1)`` and ``B_l[m, k] = E_k[m, l]`` (``B``:
+    the B_l stacked, (12, n)). Then ``A = sum_{l,l'} B_l^T S_{ll'} B_l'`` with
+    ``S_{ll'} = sum_i yh_il yh_il' Q_i``, ``Q_i = w_i P_i^T P_i``, and ``g = sum_l B_l^T T_l`` with
+    ``T_l = sum_i yh_il w_i P_i^T r_i``: a few sums over the points instead of a (3N, n) Jacobian.
+    """
+    aw2, bw2 = a * a * w, b * b * w
+    Q = np.empty((5, len(w)))  # the distinct entries of Q_i: 00, 02, 11, 12, 22
+    Q[0] = aw2
+    np.multiply(aw2, -xn, out=Q[1])
+    Q[2] = bw2
+    np.multiply(bw2, -yn, out=Q[3])
+    Q[4] = aw2 * xn * xn + bw2 * yn * yn + isz * isz * w
+    s = np.empty((3, len(w)))  # w_i P_i^T r_i
+    np.multiply(a * w, ru, out=s[0])
+    np.multiply(b * w, rv, out=s[1])
+    s[2] = isz * w * rz - xn * s[0] - yn * s[1]
+    G = np.zeros((4, 4, 6))  # sum_i yh_l yh_l' Q_i (the 5 entries and a zero)
+    for l in range(3):
+        G[l, l:3, :5] = (y[l:] * y[l]) @ Q.T
+    G[:3, 3, :5] = y @ Q.T
+    G[3, 3, :5] = Q.sum(axis=1)
+    G[_UPPER[1], _UPPER[0]] = G[_UPPER]
+    S = G[:, :, _Q_INDEX].transpose(0, 2, 1, 3).reshape(12, 12)  # [l, m], [l', m']
+    T = np.empty((4, 3))
+    T[:3] = y @ s.T
+    T[3] = s.sum(axis=1)
+    return B.T @ S @ B, B.T @ T.reshape(12)
+
+
 
 def refine_reprojection(
     group: LieGroup,
@@ -243,45 +290,41 @@ def refine_reprojection(
     """
     fx, fy, cx, cy = K1[0, 0], K1[1, 1], K1[0, 2], K1[1, 2]
     n = group.dim
-    # dy/d delta = E_k [y; 1]: as one matmul, yh (N, 4) @ Ecat (4, 3n) -> (N, 3, n)
-    Ecat = np.ascontiguousarray(group.basis[:, :3, :].transpose(2, 1, 0).reshape(4, 3 * n))
-    sz = params.depth_noise * z1 * z1
-    w = w0
-    rw = np.ones(len(x))
+    B = np.ascontiguousarray(group.basis[:, :3, :].transpose(2, 1, 0)).reshape(12, n)  # [l, m], k: E_k[m, l]
+    xt = np.ascontiguousarray(x.T)
+    isp = 1.0 / params.sigma_px
+    u1, v1 = p1[:, 0] - cx, p1[:, 1] - cy  # the target pixels about the principal point
+    isz = 1.0 / (params.depth_noise * z1 * z1)
     converged = False
     steps = 0
     while True:
-        y = x @ M[:3, :3].T + M[:3, 3]
-        X, Y, Z = y[:, 0], y[:, 1], y[:, 2]
+        y = M[:3, :3] @ xt + M[:3, 3:]
+        Z = y[2]
         iz = 1.0 / Z
-        ru = (fx * X * iz + cx - p1[:, 0]) / params.sigma_px
-        rv = (fy * Y * iz + cy - p1[:, 1]) / params.sigma_px
-        rz = (Z - z1) / sz
+        xn, yn = y[0] * iz, y[1] * iz
+        ru = (fx * xn - u1) * isp
+        rv = (fy * yn - v1) * isp
+        rz = (Z - z1) * isz
         e = np.sqrt(ru * ru + rv * rv + rz * rz)
         rw = cauchy_weights(e, params.cauchy_c, params.gn_max_scale)[0] if params.robust else np.ones_like(e)
         w = w0 * rw
         if converged or steps >= params.gn_iters:
             break
-        # dy/d delta_k = E_k [y; 1] -> (N, 3, n)
-        yh = np.concatenate([y, np.ones((len(y), 1))], 1)
-        dy = (yh @ Ecat).reshape(-1, 3, n)
-        a = fx * iz / params.sigma_px
-        b = fy * iz / params.sigma_px
-        Ju = a[:, None] * (dy[:, 0] - (X * iz)[:, None] * dy[:, 2])
-        Jv = b[:, None] * (dy[:, 1] - (Y * iz)[:, None] * dy[:, 2])
-        Jz = dy[:, 2] / sz[:, None]
-        sw = np.sqrt(w)[:, None]
-        J = np.concatenate([Ju * sw, Jv * sw, Jz * sw], 0)
-        r = np.concatenate([ru, rv, rz]) * np.concatenate([sw[:, 0]] * 3)
-        A = J.T @ J
+        a = (fx * isp) * iz  # d ru / d X; d ru / d Z = -a xn
+        b = (fy * isp) * iz
+        A, g = _normal_equations(B, y, xn, yn, a, b, isz, w, ru, rv, rz)
         A[np.diag_indices(n)] *= 1.0 + params.damping
-        delta = -np.linalg.solve(A, J.T @ r)
+        delta = -np.linalg.solve(A, g)
         M = group.exp(delta) @ M
         steps += 1
         # (3a): the largest change of a pair's (unweighted, normalised) residual this step makes
-        du, dv, dz = Ju @ delta, Jv @ delta, Jz @ delta
+        D = group.hat(delta)
+        dyd = D[:3, :3] @ y + D[:3, 3:]  # dy/d delta . delta
+        du = a * (dyd[0] - xn * dyd[2])
+        dv = b * (dyd[1] - yn * dyd[2])
+        dz = dyd[2] * isz
         converged = bool(np.max(du * du + dv * dv + dz * dz) < params.tol * params.tol)
-    img = np.hypot(ru, rv) * params.sigma_px
-    rms_px = float(np.sqrt(np.sum(w * img * img) / max(np.sum(w), 1e-12)))
+    img2 = (ru * ru + rv * rv) * params.sigma_px ** 2  # squared image residual, px^2
+    rms_px = float(np.sqrt(np.sum(w * img2) / max(np.sum(w), 1e-12)))
     return RefineResult(M=M, weights=w, rms_px=rms_px, inlier_ratio=float(np.mean(rw > 0.5)),
                         iterations=steps, converged=converged)

@@ -1,0 +1,56 @@
+"""The scene flow's parameters (:class:`SceneFlowParams`) and the DIS presets it chooses from."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import cv2
+
+DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+@dataclass
+class SceneFlowParams:
+    """Parameters of :class:`~quick_stream.core.sceneflow.SceneFlow` (each one documented where it acts)."""
+
+    preset: str = "ultrafast"  # DIS preset: ultrafast | fast | medium
+    flow_scale: float = 1.0  # compute optical flow on images resized by this factor
+    fb_check: bool = True  # forward-backward consistency test (occlusions)
+    fb_scale: float = 0.5  # backward flow (used only for the test) at this image scale
+    fb_threshold_px: float = 1.5  # max |f_fwd(p) + f_bwd(p + f_fwd)| in full-resolution px
+    grid_step: int = 4  # sample at most every grid_step-th pixel in x and y ...
+    max_points: int = 3000  # ... coarser if needed for ~2x this many candidates; keep at most this many
+    min_depth: float = 0.1  # metres; depth outside [min_depth, max_depth] is invalid
+    max_depth: float = 8.0
+    depth_edge: float = 0.03  # relative depth jump to a 4-neighbour that marks a depth edge
+    border_px: float = 2.0  # flow must land this far inside the image
+    outlier_k: float = 6.0  # |v| outlier if | |v| - median| > outlier_k * 1.4826 * MAD
+    outlier_floor_m: float = 0.01  # ... and more than this many metres from the median
+    min_contrast: float = 2.0  # grey-level std below this (black, saturated, blank): no flow
+    refine: str = "lk"  # "lk": refine each kept sample's flow with Lucas-Kanade started from DIS | "none"
+    lk_window: int = 9  # LK window (px, odd)
+    lk_iters: int = 10  # LK iterations at most (it starts from the DIS flow)
+    lk_max_shift_px: float = 2.0  # LK moving a sample further than this from DIS: sample dropped
+    lk_budget: float = 1.25  # LK refines at most lk_budget x max_points samples, evenly spaced (0: all)
+
+    @classmethod
+    def describe(cls) -> dict[str, str]:
+        """Parameter name -> default, for CLIs and reports."""
+        return {f.name: repr(f.default) for f in fields(cls)}
+
+    def validate(self) -> None:
+        if self.preset not in DIS_PRESETS:
+            raise ValueError(f"sceneflow preset must be one of {sorted(DIS_PRESETS)}, got {self.preset!r}")
+        for name in ("flow_scale", "fb_scale"):
+            val = getattr(self, name)
+            if not 0.1 <= val <= 1.0:
+                raise ValueError(f"sceneflow {name} must be in [0.1, 1], got {val}")
+        if self.grid_step < 1 or self.max_points < 3:
+            raise ValueError("sceneflow grid_step must be >= 1 and max_points >= 3")
+        if self.refine not in ("lk", "none"):
+            raise ValueError(f"sceneflow refine must be 'lk' or 'none', got {self.refine!r}")
+        if self.lk_window < 3 or self.lk_window % 2 == 0 or self.lk_iters < 1 or not self.lk_max_shift_px > 0:
+            raise ValueError("sceneflow lk_window must be odd >= 3, lk_iters >= 1 and lk_max_shift_px > 0")
