@@ -3,7 +3,8 @@
 Runs the whole stabilizer in this process (scene flow, motion, keyframes and the
 optimal path, content-preserving warp, framing), the same library objects the
 streaming services use. Prints a progress bar with frames/s on stderr and a
-summary on stdout; the JSON report holds per-stage ms, segments, failures, the
+summary on stdout (frames are read ahead, and the video written, in worker threads); the JSON
+report holds per-stage ms, segments, failures, the
 per-frame stabilizing transformations and, for sources with ground truth, the
 camera shake before and after.
 """
@@ -22,9 +23,10 @@ import numpy as np
 from ..core.motion import integrate_path
 from ..core.stabilizer import StabilizedFrame, Stabilizer
 from ..io.plot import path_components, plot_paths
-from ..io.sinks import VideoSink
+from ..io.sinks import BackgroundSink, VideoSink
 from ..core.settings import settings_dict, settings_digest
 from ..io.sources import SourceError, open_source, source_settings
+from ..io.sources.prefetch import Prefetch
 from ..quality.evaluation.shake import shake
 from ..quality.metrics import MetricsAccumulator
 from ..stream import argtypes as at
@@ -102,8 +104,9 @@ def _run(args: argparse.Namespace) -> int:
         print(f"quick-stream stabilize: {e}", file=sys.stderr)
         return 2
     total = len(source) if args.frames is None else min(args.frames, len(source))
-    frames = source if args.frames is None else itertools.islice(source, args.frames)
-    sink = VideoSink(args.output or None, args.png, source.fps)
+    # the next frames are read, and the output written, on the second core while this one stabilizes
+    frames = Prefetch(source if args.frames is None else itertools.islice(source, args.frames))
+    sink = BackgroundSink(VideoSink(args.output or None, args.png, source.fps))
     records: list[dict] = []
     out_ms: list[float] = []
     progress = Progress(total, not args.quiet)
@@ -144,6 +147,7 @@ def _run(args: argparse.Namespace) -> int:
             emit(stab.push(fr))
         emit(stab.finish())
     finally:
+        frames.close()
         sink.close()
         progress.close()
     wall = time.perf_counter() - t_start
