@@ -62,12 +62,6 @@ class Prefetch(Generic[T]):
         self._stop.set()
         self._thread.join()
 
-    def __enter__(self) -> "Prefetch[T]":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
 
 class _Raised:
     def __init__(self, error: BaseException) -> None:
