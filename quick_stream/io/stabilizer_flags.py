@@ -20,7 +20,7 @@ from ..core.path.constraints import END_MODES
 from ..core.path.keyframes import KeyframeParams
 from ..core.path.planner import PATH_MODES, PlannerParams
 from ..core.render import FramingParams
-from ..core.settings import SettingsError, check_settings
+from ..core.settings import SettingsError
 from ..core.stabilizer import StabilizerParams
 from .settings_file import load_settings_file
 
@@ -194,8 +194,7 @@ def stabilizer_params(args: argparse.Namespace, recorded: StabilizerParams | Non
     _flag_error("--max-zoom/--fill-band", params.planner.budget.validate)
     _flag_error("--path-weights", lambda: params.planner.path.weight_vector(GROUPS[params.planner.group].dim))
     _flag_error("--crop-zoom/--fill-frames", params.framing.validate)
-    check_settings(params)
-    return params
+    return params  # the rest (flow, continuity, warp, one group) is the base's, checked when it was made
 
 
 def path_label(p: PlannerParams) -> str:
