@@ -6,7 +6,8 @@ and measures from a monitor session:
 
 * **latency** of each stabilized frame from its stamps (docs/wire-format.md):
   total = received - source published; *segment wait* = when the frame that closed
-  its segment was published - source published; *processing* = total - wait
+  its release was published (the planner's look-ahead included: the correction's
+  ``closed_by``) - source published; *processing* = total - wait
   (scene flow of the closing pair, motion, path, transport, warp, render, encode,
   and the wait for the frames before it in the same segment, rendered in order);
   *processing, first of batch* = the same for the first frame of each released

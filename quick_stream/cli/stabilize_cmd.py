@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -56,7 +57,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--force", action="store_true", help=at.FORCE_HELP)
     p.add_argument("--no-metrics", action="store_true",
                    help="skip the quality metrics (cropping, distortion, stability, jitter; ~65 ms per frame)")
-    p.add_argument("--threads", type=at.positive_int, default=1, help="OpenCV threads (default: 1)")
+    p.add_argument("--threads", type=at.positive_int, default=None,
+                   help="OpenCV threads (default: one per core this process may use; the output is the same "
+                        "bit for bit with any number)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -95,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    cv2.setNumThreads(max(1, args.threads))
+    cv2.setNumThreads(args.threads or len(os.sched_getaffinity(0)))
     try:
         source = open_source(args.source)
         params = stabilizer_params(args, recorded=source_settings(args.source))

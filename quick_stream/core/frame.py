@@ -116,13 +116,15 @@ class RGBDFrame:
             if not np.issubdtype(d.dtype, np.floating):
                 raise FrameError(f"{self.label}: depth must be float metres, got dtype {d.dtype}")
             d = d.astype(np.float32)
-        bad = ~np.isfinite(d) | (d < 0)
-        nbad = int(np.count_nonzero(bad))
-        if nbad:
+        lo, hi = (d.min(), d.max()) if d.size else (0.0, 0.0)
+        if not (lo >= 0 and np.isfinite(hi)):  # some value is NaN (min and max are then NaN), inf or negative
+            bad = ~np.isfinite(d) | (d < 0)
+            nbad = int(np.count_nonzero(bad))
             d = np.where(bad, np.float32(0), d)
             self.notes = self.notes + (f"depth: {nbad} non-finite or negative values set to invalid",)
+            hi = d.max() if d.size else 0.0
         self.depth = d
-        if not np.any(d > 0):
+        if not hi > 0:
             raise FrameError(f"{self.label}: depth has no valid pixel (all zero or invalid)")
         return self
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, NamedTuple
 
 from .continuity import restarts_numbering
 from .frame import RGBDFrame
@@ -28,7 +28,16 @@ from .path.planner import Correction
 from .render import FramingParams, WarpParams
 from .render_stage import FrameLoader, RenderStage, StabilizedFrame
 
-Tag = tuple[int, int, int]  # (release, index in it, its size)
+class Tag(NamedTuple):
+    """A correction's place in its planner release: the release, its index in it, the release's size
+    and the newest frame the motion stage had taken when it released (``closed_by``: the frame whose
+    arrival closed the release, what the latency stamps measure from; None: the end of the stream
+    closed it, or a sender that does not say)."""
+
+    release: int
+    index: int
+    size: int
+    closed_by: int | None = None
 
 
 class ReleaseNumbering:
@@ -39,10 +48,11 @@ class ReleaseNumbering:
         self.release = 0
         self.sent = 0  # corrections tagged
 
-    def number(self, batches: list[list[Correction]]) -> list[tuple[Correction, Tag]]:
+    def number(self, batches: list[list[Correction]], closed_by: int | None = None) -> list[tuple[Correction, Tag]]:
+        """Tag each batch as one release; ``closed_by``: the newest frame taken when they were released."""
         out: list[tuple[Correction, Tag]] = []
         for b in batches:
-            out += [(c, (self.release, i, len(b))) for i, c in enumerate(b)]
+            out += [(c, Tag(self.release, i, len(b), closed_by)) for i, c in enumerate(b)]
             self.sent += len(b)
             self.release += 1
         return out
@@ -57,7 +67,7 @@ class ReleaseGroups:
     service numbers releases from 0 again; a correction that does not fit the open release
     of that number (other size, or an index already there) starts a new one.
 
-    ``ready`` holds (release, batch, completed at, numbering), in seq order within a numbering:
+    ``ready`` holds (release, batch, completed at, numbering, closed by), in seq order within a numbering:
     the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.restarts_numbering`,
     going back) starts the next numbering, whose releases follow every release of the old one.
     """
@@ -65,14 +75,15 @@ class ReleaseGroups:
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self.clock = clock  # when a release completed (how long it has waited for its frames)
         self._open: dict[int, tuple[int, dict[int, Correction], int]] = {}
-        self.ready: list[tuple[int, list[Correction], float, int]] = []
+        self._closed_by: dict[int, int | None] = {}  # per open release, the frame that closed it (its tags')
+        self.ready: list[tuple[int, list[Correction], float, int, int | None]] = []
         self.abandoned = 0
         self.numbering = 0  # renumberings the corrections announced
         self._newest: int | None = None  # the newest correction seq of the current numbering
 
     def _hand_over(self, rel: int) -> None:
         _, got, numbering = self._open.pop(rel)
-        self.ready.append((rel, [got[i] for i in sorted(got)], self.clock(), numbering))
+        self.ready.append((rel, [got[i] for i in sorted(got)], self.clock(), numbering, self._closed_by.pop(rel, None)))
         self.ready.sort(key=lambda r: (r[3], r[1][0].seq))
 
     def _numbering(self, c: Correction) -> int:
@@ -83,12 +94,12 @@ class ReleaseGroups:
         self._newest = c.seq if self._newest is None else max(self._newest, c.seq)
         return self.numbering
 
-    def add(self, c: Correction, batch: tuple[int, int, int] | None) -> None:
+    def add(self, c: Correction, batch: Tag | tuple[int, int, int] | None) -> None:
         numbering = self._numbering(c)
         if batch is None:  # a sender without release tags: each correction is its own batch
-            self.ready.append((-1, [c], self.clock(), numbering))
+            self.ready.append((-1, [c], self.clock(), numbering, None))
             return
-        rel, idx, size = batch
+        rel, idx, size = batch[:3]
         for other in [r for r in self._open if r != rel]:
             self.abandoned += 1
             self._hand_over(other)
@@ -98,6 +109,7 @@ class ReleaseGroups:
             self._hand_over(rel)
         _, got, _ = self._open.setdefault(rel, (size, {}, numbering))
         got[idx] = c
+        self._closed_by[rel] = batch[3] if len(batch) > 3 else None
         if len(got) == size:
             self._hand_over(rel)
 
@@ -115,6 +127,7 @@ class Release:
 
     id: int
     batch: list[Correction]
+    closed_by: int | None = None  # the frame whose arrival closed it (None: not known)
 
     @property
     def label(self) -> str:
@@ -201,16 +214,20 @@ class RenderDriver:
         :meth:`render` before asking for the next): all its frames are here, a newer frame has
         arrived (a missing one will not come), ``frame_wait`` has passed, or ``force``."""
         while self.releases.ready:
-            rel, batch, t_done, _ = self.releases.ready[0]
+            rel, batch, t_done, _, closed_by = self.releases.ready[0]
             if not (force or self.stage.can_render(batch) or self.clock() - t_done > self.frame_wait):
                 return
             self.releases.ready.pop(0)
-            yield Release(rel, batch)
+            yield Release(rel, batch, closed_by)
 
     def render(self, release: Release) -> Iterator[Rendered]:
-        """Render a release and the orphans it reveals, each frame stamped as it is rendered."""
-        st, seqs = self.stage, [c.seq for c in release.batch]
-        ready = (st.numbering_of(release.batch), max(seqs))
+        """Render a release and the orphans it reveals, each frame stamped as it is rendered: ready when
+        the frame that closed the release was published (the release's newest when that is not
+        known, or not after it, or not here)."""
+        st, last = self.stage, max(c.seq for c in release.batch)
+        n = st.numbering_of(release.batch)
+        closed = release.closed_by if release.closed_by is not None and release.closed_by > last else last
+        ready = (n, closed) if (n, closed) in self._pub_ns else (n, last)
         nbad = len(st.bad)
         try:
             for sf in st.iter_batch(release.batch):

@@ -247,7 +247,7 @@ class MotionDriver:
 
     def start(self, seq: int) -> list[tuple[Correction, Tag]]:
         """The stream's first frame, before any flow (in-process): its correction, released at once."""
-        return self.releases.number([self.stage.start(seq)])
+        return self.releases.number([self.stage.start(seq)], closed_by=seq)
 
     def push(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[tuple[Correction, Tag]]] | None:
         """The motions made and the tagged corrections released by one flow; None when the flow is
@@ -267,7 +267,7 @@ class MotionDriver:
             if not m.valid:
                 self.invalid += 1
                 self._say(logging.WARNING, "motion %d->%d invalid: %s", m.seq, m.seq_next, m.reason)
-        return motions, self.releases.number(batches)
+        return motions, self.releases.number(batches, closed_by=flow.seq_next)
 
     def finish(self) -> list[tuple[Correction, Tag]]:
         """End of stream: the last segment's corrections, tagged."""

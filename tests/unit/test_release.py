@@ -32,7 +32,8 @@ def corrections(*seqs: int) -> list[Correction]:
 def test_release_numbering_tags_each_batch_as_one_release_for_the_services_life():
     n = ReleaseNumbering()
     tags = [t for _, t in n.number([corrections(0), corrections(1, 2, 3)])] + [t for _, t in n.number([corrections(4)])]
-    assert tags == [(0, 0, 1), (1, 0, 3), (1, 1, 3), (1, 2, 3), (2, 0, 1)] and n.sent == 5
+    assert [t[:3] for t in tags] == [(0, 0, 1), (1, 0, 3), (1, 1, 3), (1, 2, 3), (2, 0, 1)] and n.sent == 5
+    assert [t.closed_by for _, t in n.number([corrections(5)], closed_by=9)] == [9]
 
 
 def test_a_release_renders_when_its_frames_are_in_a_newer_one_came_or_frame_wait_passed(frames):
@@ -61,6 +62,21 @@ def test_latency_stamps_name_the_frame_and_the_one_that_closed_its_release(frame
         d.add_correction(c, tag)
     (rel,) = list(d.due())
     assert [(r.src_pub_ns, r.ready_pub_ns) for r in d.render(rel)] == [(5000, 5002), (5001, 5002), (5002, 5002)]
+
+
+def test_ready_is_when_the_frame_that_closed_the_release_was_published(frames):
+    """A release waits for frames beyond its own (the planner's look-ahead): the wait for them is
+    the segment's, not processing. A closing frame that is not here, or not after the release,
+    leaves the release's newest frame as ready."""
+    d = RenderDriver()
+    for f in frames[:6]:
+        d.add_frame(f.seq, f, pub_ns=5000 + f.seq)
+    n = ReleaseNumbering()
+    for c, tag in n.number([corrections(0, 1)], closed_by=4) + n.number([corrections(2, 3)], closed_by=40):
+        d.add_correction(c, tag)
+    first, second = list(d.due())
+    assert first.closed_by == 4 and [r.ready_pub_ns for r in d.render(first)] == [5004, 5004]
+    assert [r.ready_pub_ns for r in d.render(second)] == [5003, 5003]  # frame 40 never came
 
 
 def test_the_end_waits_for_overtaken_frames_then_renders_everything_and_counters_carry_over(frames):

@@ -60,10 +60,10 @@ def make_recording(path: Path) -> dict[str, int]:
     render = RenderStage(params.warp, params.framing)
     log, release, counts = Log(path), 0, {"stabilized": 0, "orphans": 0}
 
-    def publish_batches(batches) -> None:
+    def publish_batches(batches, closed_by=None) -> None:
         nonlocal release
         for b in batches:
-            msgs = [encode_correction(c, STREAM, batch=(release, i, len(b))) for i, c in enumerate(b)]
+            msgs = [encode_correction(c, STREAM, batch=(release, i, len(b), closed_by)) for i, c in enumerate(b)]
             release += 1
             for m in msgs:
                 log.put("correction", m)
@@ -90,7 +90,7 @@ def make_recording(path: Path) -> dict[str, int]:
         motions, batches = motion.push(decode(fdata).obj)
         for m in motions:
             log.put("motion", encode_motion(m, STREAM))
-        publish_batches(batches)
+        publish_batches(batches, result.seq_next)
     end = encode_end(EndOfStream(last, "source exhausted"), STREAM)
     log.put("frame", end)
     log.put("flow", end)

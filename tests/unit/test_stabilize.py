@@ -25,6 +25,25 @@ def test_same_input_and_settings_give_bit_identical_frames():
     assert any(not np.array_equal(f.image, g.color) for f, g in zip(a, src))  # it did change the frames
 
 
+def test_the_number_of_opencv_threads_does_not_change_a_bit():
+    """`stabilize` uses every core for OpenCV by default; the services run one thread each: both must
+    give the same frames."""
+    src = lambda: SyntheticSource(width=320, height=240, frames=40, seed=6)  # noqa: E731
+    params = lambda: StabilizerParams(framing=FramingParams(mode="auto"))  # noqa: E731
+    threads = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        _, a = stabilize(src(), params())
+        cv2.setNumThreads(2)
+        _, b = stabilize(src(), params())
+    finally:
+        cv2.setNumThreads(threads)
+    assert len(a) == len(b) == 40
+    for x, y in zip(a, b):
+        assert np.array_equal(x.image, y.image), x.seq
+        assert np.array_equal(x.correction.matrix, y.correction.matrix), x.seq
+
+
 def test_auto_framing_keeps_borders_out():
     src = SyntheticSource(width=320, height=240, frames=45, seed=1)
     _, out = stabilize(src, StabilizerParams(framing=FramingParams(mode="auto")))

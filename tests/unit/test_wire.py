@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from quick_stream.core.frame import Intrinsics, RGBDFrame
 from quick_stream.core.motion import MotionEstimate, invalid_motion
 from quick_stream.core.path.planner import Correction
+from quick_stream.core.release import Tag
 from quick_stream.core.sceneflow import SceneFlowResult
 from quick_stream.stream.wire import (
     FORMAT_VERSION,
@@ -174,6 +175,10 @@ def test_correction_round_trip():
     assert (g.seq, g.segment, g.keyframe, g.valid, g.reason) == (11, 2, True, True, "")
     assert m.extra["zoom"] == 1.25
     assert decode(encode_correction(c, "cam0")).extra["zoom"] is None
+    assert decode(encode_correction(c, "cam0")).extra["batch"] is None
+    tagged = decode(encode_correction(c, "cam0", batch=Tag(3, 1, 5, 40))).extra["batch"]
+    assert tagged == (3, 1, 5, 40) and tagged.closed_by == 40
+    assert decode(encode_correction(c, "cam0", batch=(3, 1, 5))).extra["batch"] == Tag(3, 1, 5, None)
 
 
 def test_stabilized_and_stats_round_trip():
@@ -280,6 +285,7 @@ def test_reject_non_finite():
     c = raw(encode_correction(make_correction(), "cam0"))
     rejects(repack({**c, "zoom": float("nan")}), "'zoom'")
     rejects(repack({**c, "zoom": -1.0}), "'zoom'")
+    rejects(repack({**c, "closed_by": "frame 40"}), "'closed_by'")
     with pytest.raises(WireError, match="matrix"):
         encode_correction(Correction(0, np.full((4, 4), np.nan), 0, False), "cam0")
 

@@ -14,6 +14,7 @@ import numpy as np
 from ...core.frame import FrameError, Intrinsics, RGBDFrame
 from ...core.motion import MotionEstimate
 from ...core.path.planner import Correction
+from ...core.release import Tag
 from ...core.sceneflow import SceneFlowResult
 from .codec import (
     DEFAULT_MAX_BYTES,
@@ -254,20 +255,22 @@ def _decode_motion(r: Reader) -> Decoded:
 # --- correction ---------------------------------------------------------------------------------
 
 def encode_correction(c: Correction, stream: str, zoom: float | None = None,
-                      batch: tuple[int, int, int] | None = None) -> bytes:
+                      batch: Tag | tuple[int, int, int] | None = None) -> bytes:
     """A Correction as a ``correction`` message, with the optional framing ``zoom`` (default: the
     zoom planned with the path, ``c.zoom``) and ``batch`` = (release id, index in it, release
-    size): the planner's release it belongs to."""
+    size[, closed by]): the planner's release it belongs to (:class:`~quick_stream.core.release.Tag`)."""
     if zoom is None:
         zoom = c.zoom
     if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
         raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
-    if batch is not None and not (len(batch) == 3 and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
+    if batch is not None and not (len(batch) in (3, 4) and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
         raise WireError(f"batch must be (release >= 0, 0 <= index < size, size), got {batch}",
                         field="batch", stream=stream, seq=c.seq)
+    closed_by = batch[3] if batch is not None and len(batch) == 4 else None
     f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
          "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom),
-         "batch": None if batch is None else [int(x) for x in batch],
+         "batch": None if batch is None else [int(x) for x in batch[:3]],
+         "closed_by": None if closed_by is None else int(closed_by),
          "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain)}
     return pack(f, "correction", stream, c.seq)
 
@@ -278,12 +281,12 @@ def _decode_correction(r: Reader) -> Decoded:
     c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
                    r.bool("valid"), r.str("reason"), r.float("zoom", positive=True, optional=True),
                    None if camera is None else camera.reshape(4, 4), -1 if chain is None else chain)
-    batch = r.get("batch", optional=True)
+    batch, closed_by = r.get("batch", optional=True), r.int("closed_by", optional=True)
     if batch is not None:
         if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
                 or not (batch[0] >= 0 and 0 <= batch[1] < batch[2])):
             raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {batch!r}")
-        batch = tuple(batch)
+        batch = Tag(*batch, closed_by)
     return Decoded("correction", c, r.stream, r.seq,
                    extra={"zoom": c.zoom, "batch": batch})
 
