@@ -8,6 +8,7 @@ instead of crashing.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -49,7 +50,7 @@ class Intrinsics:
 
     def validate(self) -> None:
         vals = (self.fx, self.fy, self.cx, self.cy)
-        if not all(np.isfinite(v) for v in vals):
+        if not all(math.isfinite(v) for v in vals):
             raise FrameError(f"intrinsics: non-finite value in {self}")
         if self.fx <= 0 or self.fy <= 0:
             raise FrameError(f"intrinsics: focal length must be > 0, got fx={self.fx} fy={self.fy}")
@@ -153,10 +154,13 @@ class BadFrame:
 
 def quantize_depth(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
     """Metres -> uint16 units of 1/scale m; non-finite, <= 0 or out-of-range values become 0 (invalid)."""
-    d = np.asarray(depth, dtype=np.float64) * scale
-    q = np.rint(np.where(np.isfinite(d), d, 0.0))
-    q[(q < 0) | (q > 65535)] = 0
-    return q.astype(np.uint16)
+    d = np.multiply(depth, scale, dtype=np.float64)
+    np.rint(d, out=d)
+    ok = d >= 0
+    np.logical_and(ok, d <= 65535, out=ok)  # NaN fails both
+    out = np.zeros(d.shape, np.uint16)
+    np.copyto(out, d, casting="unsafe", where=ok)
+    return out
 
 
 def dequantize_depth(q: np.ndarray, scale: float = 1000.0) -> np.ndarray:

@@ -134,6 +134,11 @@ def test_depth_quantisation_invalid_values():
     q = quantize_depth(d)
     assert q.dtype == np.uint16 and q[0, :5].tolist() == [0, 0, 0, 0, 0] and q[0, 5] in (1234, 1235)
     assert dequantize_depth(q, 1000)[0, 5] == np.float32(q[0, 5]) / np.float32(1000)
+    # the boundaries, rounding half to even in float64 as np.rint does: -0.0004 m and 65.5355 m are
+    # -0.4 and 65535.5 units (invalid: 0 and 65536 -> 0), 65.535 m the largest unit
+    d = np.array([[-0.0004, -0.0006, 0.0005, 0.0015, 65.535, 65.5355, -np.inf, 1e30]], np.float32)
+    ref = np.rint(d.astype(np.float64) * 1000)
+    assert quantize_depth(d).tolist() == [[int(v) if 0 <= v <= 65535 else 0 for v in ref[0]]]
 
 
 def test_flow_round_trip():

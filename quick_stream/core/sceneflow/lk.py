@@ -25,7 +25,7 @@ def refine_lk(g0: np.ndarray, g1: np.ndarray, u0: np.ndarray, v0: np.ndarray, u1
     p1[:, 0, 0], p1[:, 0, 1] = u1, v1
     out, st, _ = cv2.calcOpticalFlowPyrLK(
         g0, g1, p0, p1, winSize=(p.lk_window, p.lk_window), maxLevel=0, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, p.lk_iters, 0.01))
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, p.lk_iters, p.lk_eps_px))
     ur = out[:, 0, 0].astype(np.float64)
     vr = out[:, 0, 1].astype(np.float64)
     ok = st[:, 0].astype(bool) & np.isfinite(ur) & np.isfinite(vr)

@@ -33,6 +33,7 @@ class SceneFlowParams:
     refine: str = "lk"  # "lk": refine each kept sample's flow with Lucas-Kanade started from DIS | "none"
     lk_window: int = 9  # LK window (px, odd)
     lk_iters: int = 10  # LK iterations at most (it starts from the DIS flow)
+    lk_eps_px: float = 0.03  # LK stops once an iteration moves the sample less than this (px)
     lk_max_shift_px: float = 2.0  # LK moving a sample further than this from DIS: sample dropped
     lk_budget: float = 1.25  # LK refines at most lk_budget x max_points samples, evenly spaced (0: all)
 
@@ -54,3 +55,5 @@ class SceneFlowParams:
             raise ValueError(f"sceneflow refine must be 'lk' or 'none', got {self.refine!r}")
         if self.lk_window < 3 or self.lk_window % 2 == 0 or self.lk_iters < 1 or not self.lk_max_shift_px > 0:
             raise ValueError("sceneflow lk_window must be odd >= 3, lk_iters >= 1 and lk_max_shift_px > 0")
+        if not 0 < self.lk_eps_px <= 1:
+            raise ValueError(f"sceneflow lk_eps_px must be in (0, 1] px, got {self.lk_eps_px}")
