@@ -25,7 +25,7 @@ from .frame import RGBDFrame
 from .path.planner import Correction
 from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
 from .render.fill import FillSource, covered_zoom, fill_border, ordered_sources, raise_for
-from .render.mapping import map_samples, render_covered
+from .render.mapping import map_samples, render_covered, rezoom_samples
 from .render.warp import WarpInput, prepare_warp
 from .timing import StageTimer
 
@@ -273,7 +273,8 @@ class RenderStage:
     def _cover(self, plans: list[_Plan], ahead: list[FillSource]) -> None:
         """Zooms raised, smoothly, where the border fill will not cover what the mesh leaves at the
         planned zoom (docs/method.md 5.4): estimated before rendering, on every 4th pixel. Each plan
-        keeps the map samples at its zoom for its render when the zoom stays."""
+        keeps the map samples at its zoom for its render (read from those at the planned zoom where
+        the zoom rises, :func:`~quick_stream.core.render.mapping.rezoom_samples`)."""
         t0 = time.perf_counter()
         need = []
         for p in plans:
@@ -284,8 +285,9 @@ class RenderStage:
         zooms = self.zoom.cover([p.zoom for p in plans], need)
         share = (time.perf_counter() - t0) * 1e3 / max(len(plans), 1)
         for p, z in zip(plans, zooms):
-            if float(z) != p.zoom:
-                p.zoom, p.samples = float(z), None
+            if float(z) != p.zoom:  # zoomed in further: the samples read from those at the plan's zoom
+                p.samples = rezoom_samples(p.samples, p.mesh.width, p.mesh.height, p.zoom, float(z))
+                p.zoom = float(z)
             p.framing_ms += share
 
     def _render(self, p: _Plan, ahead: list[FillSource]) -> tuple[np.ndarray, float]:
@@ -298,7 +300,7 @@ class RenderStage:
             return render(f.color, mesh, zoom), zoom
         sources = self._sources(c, ahead)
         virtual = c.camera @ c.matrix if c.camera is not None else None
-        samples, filled = p.samples, False
+        samples, filled = map_samples(mesh, zoom) if p.samples is None else p.samples, False
         for _ in range(3):
             image, uncovered, depth = render_covered(f.color, f.depth, mesh, zoom, samples=samples)
             if depth is None:
@@ -308,8 +310,9 @@ class RenderStage:
                 filled = True
             if not uncovered.any() or self.framing.mode != "auto" or zoom >= self.framing.fill_zoom_max:
                 break
-            zoom = min(raise_for(uncovered, zoom) * (1.0 + 1e-6), self.framing.fill_zoom_max)
-            samples = None
+            raised = min(raise_for(uncovered, zoom) * (1.0 + 1e-6), self.framing.fill_zoom_max)
+            samples = rezoom_samples(samples, mesh.width, mesh.height, zoom, raised)
+            zoom = raised
         self.filled += filled
         self.fill_raised += zoom > p.zoom
         if c.camera is not None:

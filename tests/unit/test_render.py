@@ -8,6 +8,7 @@ from quick_stream.core.render import (
     Framing, FramingParams, MeshWarp, WarpParams, ZoomSmoother, border_free_zoom, coverage,
     inverse_map, map_points, render, segment_zooms, solve_mesh, solve_warp, valid_mask,
 )
+from quick_stream.core.render.mapping import map_samples, rezoom_samples
 from quick_stream.core.render.warp import bilinear_weights, control_pixels, grid_geometry
 
 W, H = 640, 480
@@ -222,6 +223,21 @@ def test_border_free_zoom_agrees_with_the_inverse_map(seed):
         lo, hi = (lo, mid) if _inside(map_points(mesh, bd, mid)).all() else (mid, hi)
     assert s == pytest.approx(hi, rel=2e-3)
     assert not _inside(map_points(mesh, bd, 0.99 * s)).all()
+
+
+@pytest.mark.parametrize("seed", [7, 8])
+def test_samples_zoomed_in_from_those_of_a_lower_zoom_agree_with_solving_again(seed):
+    """docs/method.md 5.2: the border fill raises a frame's zoom after its samples were made."""
+    rng = np.random.default_rng(seed)
+    mesh = solve_warp(make_frame(seed), rigid(rng.normal(0, 0.02, 3), rng.normal(0, 0.03, 3)))
+    low = map_samples(mesh, 1.02)
+    for z, tol in ((1.02, 1e-6), (1.05, 0.05), (1.3, 0.05)):  # near a cell edge (a kink of the map) the most
+        got = rezoom_samples(low, W, H, 1.02, z)
+        want = map_samples(mesh, z)
+        assert got.shape == want.shape and got.dtype == np.float32
+        assert np.abs(got - want).max() < tol, z
+    assert np.abs(rezoom_samples(low, W, H, 1.02, 1.3) - map_samples(mesh, 1.02)).max() > 10  # it did zoom
+    assert rezoom_samples(low, W, H, 1.02, 1.01) is None  # zooming out would leave the grid
 
 
 def _sample_map(inv_map: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -107,6 +107,30 @@ def map_samples(mesh: MeshWarp, framing_scale: float = 1.0, step: int = 4) -> np
     return _lowres_map(mesh, framing_scale, _map_workspace(mesh.width, mesh.height, _step(step), gx * gy)).copy()
 
 
+def rezoom_samples(samples: np.ndarray, width: int, height: int, zoom_from: float, zoom_to: float,
+                   step: int = 4) -> np.ndarray | None:
+    """:func:`map_samples` at ``zoom_to`` from those at ``zoom_from`` (<= ``zoom_to``), without the mesh:
+    zooming in about the centre c shows at q what ``zoom_from`` showed at c + (q - c) zoom_from / zoom_to,
+    a point inside the sample grid, read bilinearly (float64 weights) from its 2 x 2 samples. The
+    render upsamples the samples the same way, so this adds an error of the same kind (docs/method.md
+    5.2); None when ``zoom_to`` < ``zoom_from`` (the points would leave the grid)."""
+    r = float(zoom_from) / float(zoom_to)
+    if not 0.0 < r <= 1.0:
+        return None
+    xs, ys = sample_positions(width, height, _step(step))
+
+    def reads(pos: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
+        u = (c + (pos - c) * r - pos[0]) / step  # fractional sample index, in [0, len - 1]
+        i0 = np.clip(np.floor(u).astype(np.intp), 0, len(pos) - 2)
+        return i0, u - i0
+
+    ix, fx = reads(xs, (width - 1) / 2.0)
+    iy, fy = reads(ys, (height - 1) / 2.0)
+    s = samples.astype(np.float64)
+    cols = s[:, ix] * (1.0 - fx)[None, :, None] + s[:, ix + 1] * fx[None, :, None]
+    return (cols[iy] * (1.0 - fy)[:, None, None] + cols[iy + 1] * fy[:, None, None]).astype(np.float32)
+
+
 def _step(step: int) -> int:
     if int(step) != step or step < 1:
         raise ValueError(f"map step must be an integer >= 1, got {step}")
