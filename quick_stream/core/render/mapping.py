@@ -111,7 +111,7 @@ def rezoom_samples(samples: np.ndarray, width: int, height: int, zoom_from: floa
                    step: int = 4) -> np.ndarray | None:
     """:func:`map_samples` at ``zoom_to`` from those at ``zoom_from`` (<= ``zoom_to``), without the mesh:
     zooming in about the centre c shows at q what ``zoom_from`` showed at c + (q - c) zoom_from / zoom_to,
-    a point inside the sample grid, read bilinearly (float64 weights) from its 2 x 2 samples. The
+    a point inside the sample grid, read bilinearly from its 2 x 2 samples (float32, as the map is). The
     render upsamples the samples the same way, so this adds an error of the same kind (docs/method.md
     5.2); None when ``zoom_to`` < ``zoom_from`` (the points would leave the grid)."""
     r = float(zoom_from) / float(zoom_to)
@@ -122,13 +122,18 @@ def rezoom_samples(samples: np.ndarray, width: int, height: int, zoom_from: floa
     def reads(pos: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
         u = (c + (pos - c) * r - pos[0]) / step  # fractional sample index, in [0, len - 1]
         i0 = np.clip(np.floor(u).astype(np.intp), 0, len(pos) - 2)
-        return i0, u - i0
+        return i0, (u - i0).astype(np.float32)
+
+    def lerp(a: np.ndarray, i0: np.ndarray, f: np.ndarray, axis: int) -> np.ndarray:
+        lo, hi = np.take(a, i0, axis=axis), np.take(a, i0 + 1, axis=axis)  # (np.take: 7x a fancy index here)
+        hi -= lo
+        hi *= f[:, None, None] if axis == 0 else f[None, :, None]
+        hi += lo
+        return hi
 
     ix, fx = reads(xs, (width - 1) / 2.0)
     iy, fy = reads(ys, (height - 1) / 2.0)
-    s = samples.astype(np.float64)
-    cols = s[:, ix] * (1.0 - fx)[None, :, None] + s[:, ix + 1] * fx[None, :, None]
-    return (cols[iy] * (1.0 - fy)[:, None, None] + cols[iy + 1] * fy[:, None, None]).astype(np.float32)
+    return lerp(lerp(np.asarray(samples, np.float32), ix, fx, 1), iy, fy, 0)
 
 
 def _step(step: int) -> int:
