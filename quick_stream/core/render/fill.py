@@ -146,7 +146,7 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: DepthAt, K: np.nd
     which = np.full(xs.size, -1)
     todo = np.arange(xs.size)
     for i, src in enumerate(sources):
-        u, v, ok = project(src, virtual, rays[:, todo])
+        u, v, ok = project(src, virtual, np.take(rays, todo, axis=1))
         if not ok.any():
             continue
         got = todo[ok]
@@ -163,11 +163,12 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: DepthAt, K: np.nd
         mine = which == i
         ring = np.flatnonzero(mine & ~hole)
         if ring.size >= 16:  # exposure: the source's mean colour difference to the frame
-            shift = np.mean(np.take(own - vals, ring, axis=0), axis=0)
+            shift = np.mean(np.take(own, ring, axis=0) - np.take(vals, ring, axis=0), axis=0)
             np.add(vals, shift, out=vals, where=mine[:, None])
-    alpha = np.where(hole, 1.0, 1.0 - dist / (feather + 1.0) if feather > 0 else 0.0)
-    alpha = np.where(which >= 0, alpha, 0.0)[:, None]
-    pixels[flat] = np.clip(alpha * vals + (1.0 - alpha) * own + 0.5, 0, 255).astype(out.dtype)
+    got = np.flatnonzero(which >= 0)  # the others keep their pixel (weight 0 on the fill)
+    alpha = np.take(np.where(hole, 1.0, 1.0 - dist / (feather + 1.0) if feather > 0 else 0.0), got)[:, None]
+    vals, own = np.take(vals, got, axis=0), np.take(own, got, axis=0)
+    pixels[np.take(flat, got)] = np.clip(alpha * vals + (1.0 - alpha) * own + 0.5, 0, 255).astype(out.dtype)
     left.reshape(-1)[flat[hole & (which >= 0)]] = False
     return left
 
