@@ -28,6 +28,7 @@ from .path.planner import Correction
 from .render import FramingParams, WarpParams
 from .render_stage import FrameLoader, RenderStage, StabilizedFrame
 
+
 class Tag(NamedTuple):
     """A correction's place in its planner release: the release, its index in it, the release's size
     and the newest frame the motion stage had taken when it released (``closed_by``: the frame whose
@@ -74,16 +75,16 @@ class ReleaseGroups:
 
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self.clock = clock  # when a release completed (how long it has waited for its frames)
-        self._open: dict[int, tuple[int, dict[int, Correction], int]] = {}
-        self._closed_by: dict[int, int | None] = {}  # per open release, the frame that closed it (its tags')
+        # per open release: its size, the corrections in, its numbering and the frame that closed it
+        self._open: dict[int, tuple[int, dict[int, Correction], int, int | None]] = {}
         self.ready: list[tuple[int, list[Correction], float, int, int | None]] = []
         self.abandoned = 0
         self.numbering = 0  # renumberings the corrections announced
         self._newest: int | None = None  # the newest correction seq of the current numbering
 
     def _hand_over(self, rel: int) -> None:
-        _, got, numbering = self._open.pop(rel)
-        self.ready.append((rel, [got[i] for i in sorted(got)], self.clock(), numbering, self._closed_by.pop(rel, None)))
+        _, got, numbering, closed_by = self._open.pop(rel)
+        self.ready.append((rel, [got[i] for i in sorted(got)], self.clock(), numbering, closed_by))
         self.ready.sort(key=lambda r: (r[3], r[1][0].seq))
 
     def _numbering(self, c: Correction) -> int:
@@ -107,9 +108,9 @@ class ReleaseGroups:
                                   or self._open[rel][2] != numbering):
             self.abandoned += 1
             self._hand_over(rel)
-        _, got, _ = self._open.setdefault(rel, (size, {}, numbering))
+        got = self._open[rel][1] if rel in self._open else {}
         got[idx] = c
-        self._closed_by[rel] = batch[3] if len(batch) > 3 else None
+        self._open[rel] = (size, got, numbering, batch[3] if len(batch) > 3 else None)
         if len(got) == size:
             self._hand_over(rel)
 
