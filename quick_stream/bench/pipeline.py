@@ -39,7 +39,7 @@ import numpy as np
 import zenoh
 
 from ..stream import keys
-from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor
+from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, router_spec
 from ..stream.wire import WireError
 from ..stream.wire.codec import unpack
 
@@ -145,7 +145,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     z = ["-e", endpoint, "--no-multicast-scouting"]
     frames = int((fps or 120) * (seconds + warmup_s)) + 1
     cams = [f"cam{i}" for i in range(streams)]
-    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
+    specs = [router_spec(["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
     if record:
         specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z,
                                               "--output", str(out / "recording.mcap")]

@@ -28,7 +28,7 @@ from ..io.recording import fresh_path
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at
-from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, free_port, open_when_up
+from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, free_port, open_when_up, router_spec
 from ..io.settings_file import settings_toml
 from ..io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 
@@ -118,7 +118,7 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
     if tls:
         d, n = tls_party(args, "router")
         router += ["-c", str(args.router_config), "--tls-dir", d, "--tls-name", n]
-    specs = [ServiceSpec("router", router)]
+    specs = [router_spec(router)]
     if not args.no_record:
         specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z("recorder"), *st,
                                               "--output", str(args.recording)]))
