@@ -142,25 +142,14 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: DepthAt, K: np.nd
     d[blank] = coarse
     q = zoom_matrix(w, h, zoom) @ np.vstack([xs, ys, np.ones(xs.size)])
     rays = np.linalg.inv(K) @ q * d  # virtual-camera points (3, n)
+    which, uv = first_seen(rays, virtual, sources)
     vals = np.zeros((xs.size, out.shape[2]), np.float32)
-    which = np.full(xs.size, -1)
-    todo = np.arange(xs.size)
-    for i, src in enumerate(sources):
-        u, v, ok = project(src, virtual, np.take(rays, todo, axis=1))
-        if not ok.any():
-            continue
-        got = todo[ok]
-        vals[got] = lookup(src.image, np.column_stack((u[ok], v[ok])).astype(np.float32), cv2.INTER_LINEAR,
-                           cv2.BORDER_REPLICATE)
-        which[got] = i
-        todo = todo[~ok]
-        if todo.size == 0:
-            break
     pixels = out.reshape(-1, out.shape[2])
     hole = np.take(uncovered.reshape(-1), flat)
     own = np.take(pixels, flat, axis=0).astype(np.float32)
     for i in np.flatnonzero(np.bincount(which + 1)[1:]):  # the sources used
         mine = which == i
+        vals[mine] = lookup(sources[i].image, uv[mine], cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
         ring = np.flatnonzero(mine & ~hole)
         if ring.size >= 16:  # exposure: the source's mean colour difference to the frame
             shift = np.mean(np.take(own, ring, axis=0) - np.take(vals, ring, axis=0), axis=0)
@@ -180,17 +169,23 @@ def raise_for(left: np.ndarray, zoom: float) -> float:
     return zoom / s if s > 0 else float("inf")
 
 
-def _reached(points: np.ndarray, virtual: np.ndarray, sources: list[FillSource]) -> np.ndarray:
-    """Which virtual-camera points (3, n) some source sees inside its image: (n,) bool."""
-    seen = np.zeros(points.shape[1], bool)
-    todo = np.arange(points.shape[1])
-    for src in sources:
-        ok = project(src, virtual, points[:, todo])[2]
-        seen[todo[ok]] = True
+def first_seen(points: np.ndarray, virtual: np.ndarray, sources: list[FillSource]) -> tuple[np.ndarray, np.ndarray]:
+    """For virtual-camera points (3, n), (14): the index of the first of ``sources`` that sees each inside
+    its image (-1: none does) and where it sees it, (n, 2) float32 pixel coordinates (0 where none)."""
+    n = points.shape[1]
+    which, uv = np.full(n, -1), np.zeros((n, 2), np.float32)
+    todo = np.arange(n)
+    for i, src in enumerate(sources):
+        u, v, ok = project(src, virtual, np.take(points, todo, axis=1))
+        if not ok.any():
+            continue
+        got = todo[ok]
+        which[got] = i
+        uv[got, 0], uv[got, 1] = u[ok], v[ok]
         todo = todo[~ok]
         if todo.size == 0:
             break
-    return seen
+    return which, uv
 
 
 def covered_zoom(mesh: MeshWarp, depth: np.ndarray, K: np.ndarray, zoom: float, virtual: np.ndarray | None,
@@ -224,7 +219,7 @@ def covered_zoom(mesh: MeshWarp, depth: np.ndarray, K: np.ndarray, zoom: float, 
             ci = np.clip(np.rint((ql[:, 0] - x0) / step), 0, gw - 1).astype(np.intp)
             ri = np.clip(np.rint((ql[:, 1] - y0) / step), 0, gh - 1).astype(np.intp)
             rays = np.linalg.inv(K) @ zoom_matrix(w, h, zoom) @ np.vstack([ql.T, np.ones(len(ql))]) * grid[ri, ci]
-            ql = ql[~_reached(rays, virtual, sources)]
+            ql = ql[first_seen(rays, virtual, sources)[0] < 0]
     if not len(ql):
         return zoom
     a, b = (w - 1) / 2.0, (h - 1) / 2.0
