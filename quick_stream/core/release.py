@@ -100,7 +100,7 @@ class ReleaseGroups:
         if batch is None:  # a sender without release tags: each correction is its own batch
             self.ready.append((-1, [c], self.clock(), numbering, None))
             return
-        rel, idx, size = batch[:3]
+        rel, idx, size, closed_by = Tag(*batch)
         for other in [r for r in self._open if r != rel]:
             self.abandoned += 1
             self._hand_over(other)
@@ -110,7 +110,7 @@ class ReleaseGroups:
             self._hand_over(rel)
         got = self._open[rel][1] if rel in self._open else {}
         got[idx] = c
-        self._open[rel] = (size, got, numbering, batch[3] if len(batch) > 3 else None)
+        self._open[rel] = (size, got, numbering, closed_by)
         if len(got) == size:
             self._hand_over(rel)
 

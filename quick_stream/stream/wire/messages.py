@@ -266,7 +266,7 @@ def encode_correction(c: Correction, stream: str, zoom: float | None = None,
     if batch is not None and not (len(batch) in (3, 4) and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
         raise WireError(f"batch must be (release >= 0, 0 <= index < size, size), got {batch}",
                         field="batch", stream=stream, seq=c.seq)
-    closed_by = batch[3] if batch is not None and len(batch) == 4 else None
+    closed_by = None if batch is None else Tag(*batch).closed_by
     f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
          "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom),
          "batch": None if batch is None else [int(x) for x in batch[:3]],
