@@ -99,9 +99,10 @@ def border_pixels(uncovered: np.ndarray, feather: int) -> tuple[np.ndarray, np.n
     parts = []
     for t0, t1, a, b, c0, c1 in patches(uncovered, feather + 2):
         hole = uncovered[a:b, c0:c1]
-        dist = cv2.distanceTransform(np.logical_not(hole).view(np.uint8), cv2.DIST_L2, 3)[t0 - a:t1 - a]
-        y, x = np.nonzero(hole[t0 - a:t1 - a] | ((dist > 0) & (dist <= feather)))
-        parts.append((y + t0, x + c0, dist[y, x]))
+        dist = cv2.distanceTransform(np.logical_not(hole).view(np.uint8), cv2.DIST_L2, 3)[t0 - a:t1 - a].ravel()
+        at = np.flatnonzero(dist <= feather)  # the hole (distance 0) and its ring: others are >= 0.955 from it
+        y, x = np.divmod(at, c1 - c0)
+        parts.append((y + t0, x + c0, np.take(dist, at)))
     if not parts:
         return np.zeros(0, np.intp), np.zeros(0, np.intp), np.zeros(0, np.float32)
     ys, xs, dist = (np.concatenate(p) for p in zip(*parts))
@@ -143,22 +144,27 @@ def fill_border(out: np.ndarray, uncovered: np.ndarray, depth: DepthAt, K: np.nd
     q = zoom_matrix(w, h, zoom) @ np.vstack([xs, ys, np.ones(xs.size)])
     rays = np.linalg.inv(K) @ q * d  # virtual-camera points (3, n)
     which, uv = first_seen(rays, virtual, sources)
-    vals = np.zeros((xs.size, out.shape[2]), np.float32)
-    pixels = out.reshape(-1, out.shape[2])
+    counts = np.bincount(which + 1, minlength=len(sources) + 1)
+    if counts[0] == which.size:
+        return left
+    # the points some source sees, grouped by source (each group in raster order): the others keep their pixel
+    seen = np.argsort(which, kind="stable")[counts[0]:]
+    flat, uv, dist = np.take(flat, seen), np.take(uv, seen, axis=0), np.take(dist, seen)
     hole = np.take(uncovered.reshape(-1), flat)
+    pixels = out.reshape(-1, out.shape[2])
     own = np.take(pixels, flat, axis=0).astype(np.float32)
-    for i in np.flatnonzero(np.bincount(which + 1)[1:]):  # the sources used
-        mine = which == i
+    vals = np.empty_like(own)
+    end = 0
+    for i in np.flatnonzero(counts[1:]):
+        mine = slice(end, end + counts[i + 1])
+        end = mine.stop
         vals[mine] = lookup(sources[i].image, uv[mine], cv2.INTER_LINEAR, cv2.BORDER_REPLICATE)
-        ring = np.flatnonzero(mine & ~hole)
+        ring = np.flatnonzero(~hole[mine])
         if ring.size >= 16:  # exposure: the source's mean colour difference to the frame
-            shift = np.mean(np.take(own, ring, axis=0) - np.take(vals, ring, axis=0), axis=0)
-            np.add(vals, shift, out=vals, where=mine[:, None])
-    got = np.flatnonzero(which >= 0)  # the others keep their pixel (weight 0 on the fill)
-    alpha = np.take(np.where(hole, 1.0, 1.0 - dist / (feather + 1.0) if feather > 0 else 0.0), got)[:, None]
-    vals, own = np.take(vals, got, axis=0), np.take(own, got, axis=0)
-    pixels[np.take(flat, got)] = np.clip(alpha * vals + (1.0 - alpha) * own + 0.5, 0, 255).astype(out.dtype)
-    left.reshape(-1)[flat[hole & (which >= 0)]] = False
+            vals[mine] += np.mean(np.take(own[mine], ring, axis=0) - np.take(vals[mine], ring, axis=0), axis=0)
+    alpha = np.where(hole, 1.0, 1.0 - dist / (feather + 1.0) if feather > 0 else 0.0)[:, None]
+    pixels[flat] = np.clip(alpha * vals + (1.0 - alpha) * own + 0.5, 0, 255).astype(out.dtype)
+    left.reshape(-1)[flat[hole]] = False
     return left
 
 
