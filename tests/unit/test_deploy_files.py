@@ -37,6 +37,7 @@ import pytest
 import yaml
 import zenoh
 
+from quick_stream.cli import main as cli_main
 from quick_stream.io.settings_file import load_settings_file
 from quick_stream.io.stabilizer_flags import SETTINGS_ENV
 from quick_stream.stream import keys
@@ -614,6 +615,15 @@ def test_the_deploy_settings_file_loads_and_the_unit_names_it():
     load_settings_file(SETTINGS)  # every key known, every value accepted
     unit = (UNITS / "quick-stream@.service").read_text()
     assert f"{SETTINGS_ENV}=/etc/quick-stream/settings.toml" in unit
+
+
+def test_the_deploy_settings_file_is_the_defaults_as_settings_show_prints_them():
+    """It says it is the defaults: every key, with the defaults' digest (a new setting or default shows)."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli_main(["settings", "show"]) == 0
+    assert SETTINGS.read_text() == out.getvalue(), \
+        "deploy/settings.toml is not the defaults: quick-stream settings show --output deploy/settings.toml"
 
 
 def test_each_stream_has_one_process_per_stage():

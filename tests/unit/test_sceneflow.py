@@ -107,16 +107,31 @@ def test_depth_is_not_blended_across_edges():
     np.testing.assert_allclose(z, [1.0, 0.0, 3.0])
 
 
-def test_lk_refinement_brings_sample_flow_closer_to_the_truth(pair):
+def flow_error(pair, **params) -> float:
+    """Median distance (px) from where the flow puts the samples in frame t+1 to where they really are."""
     a, b = pair
     M = point_motion(a, b)
     K = b.intrinsics
-    errs = {}
-    for refine in ("none", "lk"):
-        r = SceneFlow(SceneFlowParams(refine=refine)).compute(a, b)
-        y = r.points @ M[:3, :3].T + M[:3, 3]  # where the sample's 3D point really is in frame t+1
-        truth = np.column_stack((K.fx * y[:, 0] / y[:, 2] + K.cx, K.fy * y[:, 1] / y[:, 2] + K.cy))
-        errs[refine] = float(np.median(np.linalg.norm(r.pixels_next - truth, axis=1)))
+    r = SceneFlow(SceneFlowParams(**params)).compute(a, b)
+    y = r.points @ M[:3, :3].T + M[:3, 3]  # where the sample's 3D point really is in frame t+1
+    truth = np.column_stack((K.fx * y[:, 0] / y[:, 2] + K.cx, K.fy * y[:, 1] / y[:, 2] + K.cy))
+    return float(np.median(np.linalg.norm(r.pixels_next - truth, axis=1)))
+
+
+def test_lk_refinement_brings_sample_flow_closer_to_the_truth(pair):
+    errs = {refine: flow_error(pair, refine=refine) for refine in ("none", "lk")}
     assert errs["lk"] < 0.75 * errs["none"], errs
     with pytest.raises(ValueError, match="refine"):
         SceneFlowParams(refine="sift").validate()
+
+
+def test_lk_makes_up_for_a_sparser_dis_patch_grid(pair):
+    """DIS with its patches further apart is coarser (it is only LK's start); refined, the flow is as good."""
+    dis = {s: flow_error(pair, dis_stride=s, refine="none") for s in (4, 6, 8)}
+    lk = {s: flow_error(pair, dis_stride=s) for s in (4, 6, 8)}
+    assert dis[4] < dis[6] < dis[8], dis
+    assert max(lk.values()) < 1.1 * min(lk.values()) < 0.5 * dis[4], (lk, dis)
+    assert flow_error(pair, dis_stride=0) == lk[4]  # 0: the preset's own stride (ultrafast: 4)
+    for bad in (-1, 9):
+        with pytest.raises(ValueError, match="dis_stride"):
+            SceneFlowParams(dis_stride=bad).validate()

@@ -21,8 +21,8 @@ class SceneFlow:
     def __init__(self, params: SceneFlowParams | None = None) -> None:
         self.params = params or SceneFlowParams()
         self.params.validate()
-        self._dis = Dis(self.params.preset)
-        self._dis_fb = Dis("ultrafast")
+        self._dis = Dis(self.params.preset, self.params.dis_stride)
+        self._dis_fb = Dis("ultrafast", self.params.dis_stride)
         self._images = ImageCache(self.params, self._dis, self._dis_fb)
 
     def optical_flow(self, f0: RGBDFrame, f1: RGBDFrame) -> tuple[np.ndarray, np.ndarray | None]:

@@ -41,10 +41,13 @@ class FrameImages:
 
 
 class Dis:
-    """A DIS optical flow of one preset, computing at each input's :class:`DisInput` level."""
+    """A DIS optical flow of one preset, computing at each input's :class:`DisInput` level, its patches
+    ``stride`` px apart (0: the preset's own)."""
 
-    def __init__(self, preset: str) -> None:
+    def __init__(self, preset: str, stride: int = 0) -> None:
         self._dis = cv2.DISOpticalFlow_create(DIS_PRESETS[preset])
+        if stride:
+            self._dis.setPatchStride(stride)
         self.finest = self._dis.getFinestScale()
         self.patch = self._dis.getPatchSize()
 

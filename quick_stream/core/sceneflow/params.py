@@ -10,6 +10,7 @@ DIS_PRESETS = {
     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
 }
+DIS_MIN_PATCH = 8  # px: the smallest patch of the presets (the backward check's ultrafast has it)
 
 
 @dataclass
@@ -17,6 +18,7 @@ class SceneFlowParams:
     """Parameters of :class:`~quick_stream.core.sceneflow.SceneFlow` (each one documented where it acts)."""
 
     preset: str = "ultrafast"  # DIS preset: ultrafast | fast | medium
+    dis_stride: int = 6  # DIS patch stride, px at its finest level (ultrafast patches: 8 px); 0: the preset's own
     flow_scale: float = 1.0  # compute optical flow on images resized by this factor
     fb_check: bool = True  # forward-backward consistency test (occlusions)
     fb_scale: float = 0.5  # backward flow (used only for the test) at this image scale
@@ -49,6 +51,9 @@ class SceneFlowParams:
             val = getattr(self, name)
             if not 0.1 <= val <= 1.0:
                 raise ValueError(f"sceneflow {name} must be in [0.1, 1], got {val}")
+        if not 0 <= self.dis_stride <= DIS_MIN_PATCH:  # beyond its patch size, OpenCV's DIS reads out of bounds
+            raise ValueError(f"sceneflow dis_stride must be in [1, {DIS_MIN_PATCH}] px (the patch size; 0: the "
+                             f"preset's own), got {self.dis_stride}")
         if self.grid_step < 1 or self.max_points < 3:
             raise ValueError("sceneflow grid_step must be >= 1 and max_points >= 3")
         if self.refine not in ("lk", "none"):
