@@ -10,7 +10,7 @@ DIS_PRESETS = {
     "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
     "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
 }
-DIS_MIN_PATCH = 8  # px: the smallest patch of the presets (the backward check's ultrafast has it)
+DIS_MIN_PATCH = 8  # px: the presets' patch size (8 for each, OpenCV 5.0)
 
 
 @dataclass
@@ -18,7 +18,7 @@ class SceneFlowParams:
     """Parameters of :class:`~quick_stream.core.sceneflow.SceneFlow` (each one documented where it acts)."""
 
     preset: str = "ultrafast"  # DIS preset: ultrafast | fast | medium
-    dis_stride: int = 6  # DIS patch stride, px at its finest level (ultrafast patches: 8 px); 0: the preset's own
+    dis_stride: int = 6  # DIS patch stride (px, finest level), any preset; 0: the preset's own (4; medium 3)
     flow_scale: float = 1.0  # compute optical flow on images resized by this factor
     fb_check: bool = True  # forward-backward consistency test (occlusions)
     fb_scale: float = 0.5  # backward flow (used only for the test) at this image scale
