@@ -74,7 +74,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     if (code := open_live(source, args.source)) is not None:
         return code
     with ServiceRuntime("capture", args.stream, conf) as rt:
-        if hasattr(source, "stop"):
+        if callable(getattr(source, "open", None)):  # a live device (a file source's ``stop`` is its last frame)
             source.stop = rt.stop  # reconnection retries end when the service is asked to stop
         pub = rt.publisher("frame", lossless=True, cache=args.history)  # lost only where counted (inboxes)
         rt.ready()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 
@@ -65,7 +66,9 @@ class RGBDFrame:
     ``pose`` is the ground-truth camera-to-world transform (4x4) when the source
     knows it, else None. ``origin`` names where the frame came from (a file, a
     device, ``synthetic``) so errors can point at it. ``notes`` lists non-fatal
-    problems the source repaired (e.g. non-finite depth set to invalid).
+    problems the source repaired (e.g. non-finite depth set to invalid). ``luma`` (HxW uint8):
+    the colour's grey as its codec stored it (a JPEG's own Y channel), set by a decoder that
+    decoded it; the optical flow reads it instead of converting ``color`` (:meth:`grey`).
     """
 
     color: np.ndarray
@@ -77,6 +80,14 @@ class RGBDFrame:
     origin: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
     capture: dict[str, int | float | str] = field(default_factory=dict)
+    luma: np.ndarray | None = None
+
+    def grey(self) -> np.ndarray:
+        """The grey image the optical flow reads (docs/method.md section 1): ``luma`` when the decoder
+        gave it, else ``color`` converted (``cv2.COLOR_BGR2GRAY``)."""
+        if self.luma is not None:
+            return self.luma
+        return cv2.cvtColor(self.color, cv2.COLOR_BGR2GRAY)
 
     @property
     def label(self) -> str:
@@ -101,6 +112,10 @@ class RGBDFrame:
                 f"{self.label}: colour must be HxWx3 uint8 BGR, got "
                 f"{getattr(c, 'shape', type(c))} {getattr(c, 'dtype', '')}"
             )
+        lu = self.luma
+        if lu is not None and not (isinstance(lu, np.ndarray) and lu.dtype == np.uint8 and lu.shape == c.shape[:2]):
+            raise FrameError(f"{self.label}: luma must be {c.shape[0]}x{c.shape[1]} uint8 (the colour's size), got "
+                             f"{getattr(lu, 'shape', type(lu))} {getattr(lu, 'dtype', '')}")
         if not isinstance(d, np.ndarray) or d.ndim != 2:
             raise FrameError(f"{self.label}: depth must be HxW, got {getattr(d, 'shape', type(d))}")
         if d.shape != c.shape[:2]:
@@ -130,6 +145,9 @@ class RGBDFrame:
         return self
 
     def with_(self, **changes) -> "RGBDFrame":
+        """A copy with ``changes``; a new ``color`` drops the old colour's ``luma`` unless given too."""
+        if "color" in changes:
+            changes.setdefault("luma", None)
         return replace(self, **changes)
 
 

@@ -208,7 +208,7 @@ def _rerun_flow(ch: dict[str, list[_Msg]], stream: str, params: StabilizerParams
                 continue
             lost = [s for s in (logged.seq, logged.seq_next) if s not in frames]
             try:
-                pair = [decode(frames[s]).obj for s in (logged.seq, logged.seq_next)] if not lost else []
+                pair = [decode(frames[s], color="luma").obj for s in (logged.seq, logged.seq_next)] if not lost else []
             except WireError as e:
                 lost = [str(e)]
             if lost:

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from .inbox import Inbox
-from .wire import Decoded
+from .wire import COLOR_MODES, Decoded
 
 Handler = Callable[[Decoded], Any]
 TAKES = ("one", "pending", "all")
@@ -42,7 +42,9 @@ class Input:
     arriving faster than they are handled never starve the other inputs) or ``all`` of them.
     ``paused()``: True while the input is not to be read (render: the corrections of the next
     stream wait while the last one ends). ``label(msg)`` (``raw``: ``label(key)``) names the
-    data message in a contained error (default, and for ``end``: its type and seq)."""
+    data message in a contained error (default, and for ``end``: its type and seq). ``color``:
+    what a frame's JPEG colour decodes to (:func:`~quick_stream.stream.wire.decode`; the flow
+    service needs only its grey)."""
 
     inbox: Inbox
     on: dict[str, Handler | None] = field(default_factory=dict)
@@ -50,10 +52,13 @@ class Input:
     take: str = "one"
     paused: Callable[[], bool] | None = None
     label: Callable[[Any], str] | None = None
+    color: str = "bgr"
 
     def __post_init__(self) -> None:
         if self.take not in TAKES:
             raise ValueError(f"take must be one of {', '.join(TAKES)}, got {self.take!r}")
+        if self.color not in COLOR_MODES:
+            raise ValueError(f"color must be one of {', '.join(COLOR_MODES)}, got {self.color!r}")
         if (self.raw is None) == (not self.on):
             raise ValueError("an input has either handlers per message type or a raw handler")
 
@@ -110,7 +115,7 @@ class Loop:
             with self.contained((lambda: inp.label(key_expr)) if inp.label else f"message on {key_expr}"):
                 inp.raw(key_expr, payload, arrival_ns)
             return
-        msg = self.decode(key_expr, payload, tuple(inp.on))
+        msg = self.decode(key_expr, payload, tuple(inp.on), inp.color)
         if msg is None:
             return
         handler = inp.on[msg.type]
@@ -131,7 +136,7 @@ class Loop:
     def wait(self, timeout_s: float, inboxes: list[Inbox] | None = None) -> None:
         raise NotImplementedError
 
-    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...]) -> Decoded | None:
+    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr") -> Decoded | None:
         raise NotImplementedError
 
     def contained(self, what: str | Callable[[], str]) -> Any:

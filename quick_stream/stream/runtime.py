@@ -266,11 +266,12 @@ class ServiceRuntime(Cursors, Loop):
         if self.stats_due():
             self.publish_stats(values() if values is not None else None)
 
-    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...]) -> Decoded | None:
-        """The message decoded, if it is one of the ``expect`` types and of this service's stream;
-        otherwise None, logged (naming the key, field and problem) and counted in ``decode_errors``."""
+    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr") -> Decoded | None:
+        """The message decoded (a frame's JPEG colour as ``color`` asks, :func:`~quick_stream.stream.wire.decode`),
+        if it is one of the ``expect`` types and of this service's stream; otherwise None, logged (naming
+        the key, field and problem) and counted in ``decode_errors``."""
         try:
-            msg = decode(data)
+            msg = decode(data, color=color)
             if msg.stream != self.stream:
                 raise WireError(f"message of stream {msg.stream!r} on the key of stream {self.stream!r}",
                                 stream=msg.stream, seq=msg.seq, field="stream", type=msg.type)

@@ -109,6 +109,20 @@ def test_replaying_the_recording_reproduces_the_output(live_run, tmp_path):
     assert all(np.array_equal(a[s], b[s]) for s in a)
 
 
+def test_a_tum_folder_streamed_as_jpeg_is_stabilized_as_its_recording_is_offline(tmp_path):
+    # the capture streams a TUM folder (its own ``stop`` is not the device's stop event) with the colour as JPEG
+    # (the default): the flow service decodes each JPEG's own grey only, the in-process stabilizer reads the
+    # recorded frames with that grey too (mcap source), and the output agrees bit for bit
+    from tests.unit.test_cli_motion import write_tum_clip
+
+    write_tum_clip(tmp_path / "clip", n=30)
+    out = tmp_path / "up"
+    run_up(out, "--source", f"tum:{tmp_path / 'clip'}", "--pace", "fast", "--png", str(out / "png"))
+    got, offline = pngs(out / "png"), offline_images(f"mcap:{out / 'recording.mcap'}")
+    assert sorted(got) == sorted(offline) == list(range(30))
+    assert [s for s in offline if not np.array_equal(got[s], offline[s])] == []
+
+
 def test_recording_has_every_stage_and_valid_foxglove_channels(live_run):
     from quick_stream.io import foxglove as fx
 

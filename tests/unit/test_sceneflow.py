@@ -135,3 +135,19 @@ def test_lk_makes_up_for_a_sparser_dis_patch_grid(pair):
     for bad in (-1, 9):
         with pytest.raises(ValueError, match="dis_stride"):
             SceneFlowParams(dis_stride=bad).validate()
+
+
+def test_the_flow_reads_the_luma_a_decoder_gave(pair):
+    """A frame decoded with its JPEG's own grey (RGBDFrame.luma) is flowed on that grey, exactly as a frame whose
+    colour is that grey (BGR2GRAY gives back a grey replicated into B, G, R) and not as its colour's conversion."""
+    import cv2
+
+    def luma(f: RGBDFrame) -> np.ndarray:
+        return cv2.imdecode(cv2.imencode(".jpg", f.color, [cv2.IMWRITE_JPEG_QUALITY, 70])[1], cv2.IMREAD_GRAYSCALE)
+
+    a, b = pair
+    given = SceneFlow(SceneFlowParams()).compute(a.with_(luma=luma(a)), b.with_(luma=luma(b)))
+    grey = SceneFlow(SceneFlowParams()).compute(*(f.with_(color=cv2.merge([luma(f)] * 3)) for f in pair))
+    own = SceneFlow(SceneFlowParams()).compute(a, b)
+    assert np.array_equal(given.pixels_next, grey.pixels_next) and np.array_equal(given.points, grey.points)
+    assert not np.array_equal(given.pixels_next, own.pixels_next)

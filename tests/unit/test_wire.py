@@ -295,6 +295,57 @@ def test_reject_non_finite():
         encode_correction(Correction(0, np.full((4, 4), np.nan), 0, False), "cam0")
 
 
+def test_a_jpeg_colour_decodes_to_its_own_grey_for_the_flow():
+    """``color="luma"`` (the flow service) decodes a JPEG's Y channel only, ``"bgr+luma"`` (the recording's
+    frames offline) the colour and that same grey: the flow reads the same grey in both; raw colour has none."""
+    import cv2
+
+    f = make_frame(64, 48, seed=3)
+    data = encode_frame(f, "cam0", quality=80)
+    jpeg = np.frombuffer(raw(data)["color"]["data"], np.uint8)
+    own = cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE)
+    bgr, both, luma = (decode(data, color=c).obj for c in ("bgr", "bgr+luma", "luma"))
+    assert bgr.luma is None and np.array_equal(bgr.grey(), cv2.cvtColor(bgr.color, cv2.COLOR_BGR2GRAY))
+    assert np.array_equal(both.color, bgr.color) and np.array_equal(both.luma, own) and np.array_equal(luma.luma, own)
+    assert np.array_equal(luma.grey(), both.grey())
+    assert not np.array_equal(own, bgr.grey())  # the JPEG's grey is not the decoded colour's (chroma, rounding)
+    assert luma.color.shape == f.color.shape and not luma.color.flags.writeable and not luma.color.any()
+    luma.validate()
+    assert np.array_equal(luma.depth, bgr.depth)
+    for c in ("bgr", "bgr+luma", "luma"):
+        g = decode(encode_frame(f, "cam0", color="raw"), color=c).obj
+        assert g.luma is None and np.array_equal(g.color, f.color)
+    with pytest.raises(ValueError, match="color must be one of"):
+        decode(data, color="grey")
+
+
+
+def test_a_jpeg_whose_grey_fails_to_decode_is_refused(monkeypatch):
+    import cv2
+
+    data = encode_frame(make_frame(64, 48), "cam0")
+    real = cv2.imdecode
+    for result in (lambda buf: None, lambda buf: np.zeros((4, 4), np.uint8)):  # libjpeg gave up; another size
+        monkeypatch.setattr(cv2, "imdecode", lambda buf, flags, r=result: r(buf) if flags == cv2.IMREAD_GRAYSCALE
+                            else real(buf, flags))
+        assert decode(data).obj.luma is None
+        for c in ("luma", "bgr+luma"):
+            with pytest.raises(WireError, match="JPEG failed to decode.*'color.data'"):
+                decode(data, color=c)
+
+
+def test_a_luma_must_match_the_colour_and_a_new_colour_drops_it():
+    from quick_stream.core.frame import FrameError
+
+    f = make_frame()
+    g = f.with_(luma=np.zeros(f.color.shape[:2], np.uint8))
+    assert g.validate() is g and g.grey() is g.luma
+    assert f.with_(luma=g.luma).with_(color=f.color.copy()).luma is None
+    for bad in (np.zeros((5, 5), np.uint8), np.zeros(f.color.shape[:2], np.float32)):
+        with pytest.raises(FrameError, match="luma"):
+            f.with_(luma=bad).validate()
+
+
 def test_reject_bad_image():
     f = raw(encode_frame(make_frame(), "cam0"))
     f["color"]["data"] = b"not a jpeg at all"

@@ -95,7 +95,7 @@ class ImageCache:
         if hit is not None and hit[0] is frame.color:
             return hit[1]
         p = self.params
-        grey = cv2.cvtColor(frame.color, cv2.COLOR_BGR2GRAY)
+        grey = frame.grey()
         flow_grey = _scaled(grey, p.flow_scale)
         fb = self.dis_fb.dis_input(_scaled(grey, p.fb_scale * p.flow_scale)) if p.fb_check else None
         images = FrameImages(grey, self.dis.dis_input(flow_grey), fb, float(cv2.meanStdDev(flow_grey)[1][0, 0]))

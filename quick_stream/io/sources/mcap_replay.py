@@ -242,7 +242,7 @@ class McapSource:
         prev: tuple[int, int] | None = None  # (seq, timestamp_ns) of the last item yielded
         for index, (log_time, data) in enumerate(self._messages()):
             try:
-                msg = decode(data, pixels=pixels)
+                msg = decode(data, pixels=pixels, color="bgr+luma")  # the grey the flow service reads
                 if msg.type == "end":  # the capture's end marker: not a frame (a later run's frames may follow)
                     log.debug("%s: end marker at message %d", self.path, index)
                     continue

@@ -7,6 +7,7 @@ Every decoding failure is a :class:`WireError` (a ``ValueError``) naming the pro
 where known, the stream, seq and field.
 """
 from .codec import (
+    COLOR_MODES,
     DEFAULT_MAX_BYTES,
     FORMAT_VERSION,
     MESSAGE_TYPES,
@@ -32,7 +33,7 @@ from .messages import (
 )
 
 __all__ = [
-    "DEFAULT_MAX_BYTES", "FORMAT_VERSION", "MESSAGE_TYPES", "Decoded", "EndOfStream", "StabilizedImage", "Stats",
-    "WireError", "check", "decode", "dequantize_depth", "encode", "encode_correction", "encode_end", "encode_flow",
-    "encode_frame", "encode_motion", "encode_stabilized", "encode_stats", "quantize_depth",
+    "COLOR_MODES", "DEFAULT_MAX_BYTES", "FORMAT_VERSION", "MESSAGE_TYPES", "Decoded", "EndOfStream", "StabilizedImage",
+    "Stats", "WireError", "check", "decode", "dequantize_depth", "encode", "encode_correction", "encode_end",
+    "encode_flow", "encode_frame", "encode_motion", "encode_stabilized", "encode_stats", "quantize_depth",
 ]

@@ -27,6 +27,11 @@ DEFAULT_MAX_BYTES = 64 * 1024 * 1024
 
 MAX_LIST_LEN = 100_000  # msgpack arrays (lists); bulk data travels as bin, not lists
 MAX_MAP_LEN = 10_000
+# What a frame's JPEG colour decodes to: "bgr" the colour only; "bgr+luma" the colour and the JPEG's
+# own grey (its Y channel, RGBDFrame.luma, what the optical flow reads); "luma" the grey only, the
+# colour left a zero-filled read-only view of its declared shape (the flow service's decode: about
+# half the cost). A raw colour decodes to the colour and no luma in every mode.
+COLOR_MODES = ("bgr", "bgr+luma", "luma")
 MAX_STR_LEN = 1024 * 1024
 
 
@@ -158,6 +163,7 @@ class Reader:
     type: str | None = None
     pixels: bool = True  # False: check every field, but leave images and depth maps undecoded (:func:`check`)
     version: int = FORMAT_VERSION  # the message's format version (``v``)
+    color: str = "bgr"  # what a JPEG colour image decodes to (:data:`COLOR_MODES`)
 
     def error(self, name: str, problem: str) -> WireError:
         return WireError(problem, stream=self.stream, seq=self.seq, field=self.prefix + name, type=self.type)
@@ -215,7 +221,8 @@ class Reader:
         val = self._typed(name, (dict,), "map", optional)
         if val is None:
             return None
-        return Reader(val, self.stream, self.seq, f"{self.prefix}{name}.", self.type, self.pixels, self.version)
+        return Reader(val, self.stream, self.seq, f"{self.prefix}{name}.", self.type, self.pixels, self.version,
+                      self.color)
 
     def floats(self, name: str, n: int | None = None, finite: bool = True,
                optional: bool = False) -> np.ndarray | None:

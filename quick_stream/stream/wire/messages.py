@@ -17,6 +17,7 @@ from ...core.path.planner import Correction
 from ...core.release import Tag
 from ...core.sceneflow import SceneFlowResult
 from .codec import (
+    COLOR_MODES,
     DEFAULT_MAX_BYTES,
     FORMAT_VERSION,
     Reader,
@@ -151,7 +152,7 @@ def restamp_frame(data: bytes, stream: str, pub_ns: int, seq: int | None = None)
 def _decode_frame(r: Reader) -> Decoded:
     k = read_intrinsics(r, "intrinsics")
     t_ns = r.int("t_ns")
-    color, cenc = decode_image(r, "color")
+    color, cenc, luma = decode_image(r, "color")
     depth, denc, scale = decode_depth(r, "depth")
     if color.shape[:2] != (k.height, k.width):
         raise r.error("color", f"image is {color.shape[1]}x{color.shape[0]} but intrinsics say {k.width}x{k.height}")
@@ -166,7 +167,7 @@ def _decode_frame(r: Reader) -> Decoded:
                 raise cr.error(str(key_), f"expected int/float/str, got {type(v).__name__}")
             capture[key_] = v
     frame = RGBDFrame(color, depth, k, t_ns, r.seq, None if pose is None else pose.reshape(4, 4),
-                      r.str("origin", optional=True) or "", capture=capture)
+                      r.str("origin", optional=True) or "", capture=capture, luma=luma)
     return Decoded("frame", frame, r.stream, r.seq,
                    extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale,
                           "pub_ns": r.int("pub_ns", optional=True)})
@@ -310,7 +311,7 @@ def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", q
 
 
 def _decode_stabilized(r: Reader) -> Decoded:
-    img, enc = decode_image(r, "image")
+    img, enc, _ = decode_image(r, "image")
     flags = r.list("flags")
     if not all(isinstance(x, str) for x in flags):
         raise r.error("flags", "expected an array of str")
@@ -382,14 +383,18 @@ def encode(obj: Any, stream: str, **kw: Any) -> bytes:
     raise WireError(f"no wire message type for {type(obj).__name__}")
 
 
-def decode(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES, pixels: bool = True) -> Decoded:
+def decode(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES, pixels: bool = True, color: str = "bgr") -> Decoded:
     """Decode one message; raises :class:`WireError` (and nothing else) for any malformed input.
     ``pixels=False`` checks every field the same way but leaves images and depth maps undecoded
-    (zero-filled read-only views of the declared shape): :func:`check`."""
+    (zero-filled read-only views of the declared shape): :func:`check`. ``color``: what a frame's
+    JPEG colour decodes to, its BGR pixels and/or its own grey (:data:`~.codec.COLOR_MODES`; the
+    scene flow reads the grey, so every decode that feeds it asks for it)."""
+    if color not in COLOR_MODES:
+        raise ValueError(f"color must be one of {COLOR_MODES}, got {color!r}")
     r = None
     try:
         r = unpack(data, max_bytes)
-        r.pixels = pixels
+        r.pixels, r.color = pixels, color
         return _DECODERS[r.type](r)
     except WireError:
         raise

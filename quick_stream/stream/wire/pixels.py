@@ -47,14 +47,15 @@ def encode_image(img: np.ndarray, encoding: str = "jpeg", quality: int = 90) -> 
     return {"enc": "jpeg", "quality": int(quality), "shape": list(img.shape), "data": buf.tobytes()}
 
 
-def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str]:
-    """Decode a colour image field; returns (HxWx3 uint8 BGR, encoding)."""
+def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str, np.ndarray | None]:
+    """Decode a colour image field; returns (HxWx3 uint8 BGR, encoding, luma): a JPEG decodes as
+    ``r.color`` asks (:data:`~.codec.COLOR_MODES`), luma being its own Y channel (HxW uint8) or None."""
     m = r.map(name)
     enc = m.str("enc")
     if enc == "raw":
         img = r.array(name, "|u1", 3, (3,), max_elems=3 * MAX_IMAGE_SIDE**2)
         _check_side(m, img.shape)
-        return img, enc
+        return img, enc, None
     if enc != "jpeg":
         raise m.error("enc", f"unknown image encoding {enc!r} (expected 'jpeg' or 'raw')")
     shape = read_shape(m, 3)
@@ -73,14 +74,20 @@ def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str]:
     if size != (shape[1], shape[0]):
         raise m.error("data", f"JPEG is {size[0]}x{size[1]} but shape says {shape[1]}x{shape[0]}")
     if not r.pixels:
-        return np.broadcast_to(np.uint8(0), shape), enc
+        return np.broadcast_to(np.uint8(0), shape), enc, None
+    buf = np.frombuffer(data, np.uint8)
+    img = luma = None
     try:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        if r.color != "luma":
+            img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        if r.color != "bgr":
+            luma = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     except cv2.error as e:
         raise m.error("data", f"JPEG failed to decode: {e}") from None
-    if img is None or img.shape != shape:
+    if img is None and r.color != "luma" or img is not None and img.shape != shape or \
+            luma is None and r.color != "bgr" or luma is not None and luma.shape != shape[:2]:
         raise m.error("data", "JPEG failed to decode")
-    return img, enc
+    return (np.broadcast_to(np.uint8(0), shape) if img is None else img), enc, luma
 
 
 def _check_side(r: Reader, shape: tuple[int, ...]) -> None:
