@@ -19,7 +19,10 @@ and measures from a monitor session:
   live capture shed (offered faster than the pipeline takes them);
 * **CPU and memory per process** from ``/proc``: mean CPU % over the run, RSS once warm (the
   minute after the first) and over the last minute, the growth between them, the peak (VmHWM)
-  and the series from start-up.
+  and the series from start-up;
+* **CPU per stabilized frame**: each process's CPU time per frame stabilized (all streams), their
+  sum, and what the machine's cores give per frame at the rate reached (:func:`cpu_per_frame`):
+  a rate whose sum is near that budget is limited by the CPU, not by a stage waiting on another.
 
 Prints a table and writes JSON (``--json FILE``, ``-``: standard output); progress on stderr
 once a second. Numbers are for the machine it runs on.
@@ -215,11 +218,24 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
               "mean": round(sum(v) / len(v), 1)} for k, v in sorted(queues.items())}
     per = {cam: _report(fps, seconds, warmup_s, width, height, mons[cam], stats, record, cam) for cam in cams}
     capture = "replay of a pre-encoded recording" if replay else "synthetic, rendered live"
-    common = {"processes": procs, "queues": qs, "capture": capture}
+    rate = sum(x["stabilized_fps"] for x in per.values())
+    common = {"processes": procs, "queues": qs, "capture": capture,
+              "cpu_per_frame": cpu_per_frame(procs, rate, len(os.sched_getaffinity(0)))}
     if streams == 1:
         return {**per["cam0"], **common}
     return {"streams": per, **common, "size": f"{width}x{height}", "fps_target": fps or "fast",
             "seconds": seconds, "recording": record}
+
+
+def cpu_per_frame(procs: dict, rate: float, cores: int) -> dict:
+    """Each process's CPU ms per stabilized frame at ``rate`` frames/s (all streams together), their
+    sum (``total_ms``) and the CPU ms ``cores`` cores give per frame at that rate (``budget_ms``);
+    empty when nothing was stabilized."""
+    if not rate > 0:
+        return {}
+    ms = {name: round(p["cpu_pct"] * 10.0 / rate, 2) for name, p in procs.items()}  # (pct / 100) s/s * 1000 / rate
+    return {"ms": ms, "total_ms": round(sum(ms.values()), 2), "cores": cores, "budget_ms": round(cores * 1000.0 / rate, 2),
+            "rate_fps": round(rate, 2)}
 
 
 QUEUES = ("buffered", "pending_releases")  # besides every inbox's "inbox<i>_queued": render's held frames
@@ -302,12 +318,18 @@ def format_report(r: dict) -> str:
         if len(x.get("latency_p99_per_minute", [])) > 1:
             lines.append("  total latency p99 per minute (ms): "
                          + " ".join(f"{w['total_p99_ms']:.0f}" for w in x["latency_p99_per_minute"]))
-    lines.append(f"  {'process':<15} {'CPU %':>6} {'RSS warm':>9} {'RSS end':>8} {'growth':>7} {'peak RSS':>9} (MB)   "
-                 "RSS over the run, from start-up")
+    cpu = r.get("cpu_per_frame") or {}
+    lines.append(f"  {'process':<15} {'CPU %':>6} {'ms/frame':>8} {'RSS warm':>9} {'RSS end':>8} {'growth':>7} "
+                 f"{'peak RSS':>9} (MB)   RSS over the run, from start-up")
     for name, p in r["processes"].items():
-        lines.append(f"  {name:<15} {p['cpu_pct']:>6.1f} {p['rss_mb_warm']:>9.1f} {p['rss_mb_end']:>8.1f} "
-                     f"{p['rss_growth_pct']:>6.1f}% {p['peak_rss_mb']:>9.1f}        "
-                     f"{' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
+        per = cpu.get("ms", {}).get(name)
+        lines.append(f"  {name:<15} {p['cpu_pct']:>6.1f} {'-' if per is None else f'{per:.1f}':>8} "
+                     f"{p['rss_mb_warm']:>9.1f} {p['rss_mb_end']:>8.1f} {p['rss_growth_pct']:>6.1f}% "
+                     f"{p['peak_rss_mb']:>9.1f}        {' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
+    if cpu:
+        lines.append(f"  CPU per stabilized frame: {cpu['total_ms']:.1f} ms of the {cpu['budget_ms']:.1f} ms that "
+                     f"{cpu['cores']} cores give per frame at {cpu['rate_fps']:g} fps "
+                     f"({100.0 * cpu['total_ms'] / cpu['budget_ms']:.0f} % used)")
     if r.get("queues"):
         lines.append("  queue lengths after warm-up, sampled each second (max in the first half/max in the second "
                      "half/mean): " + ", ".join(f"{k} {q['max_first_half']:.0f}/{q['max_second_half']:.0f}/"
