@@ -29,8 +29,9 @@ MAX_LIST_LEN = 100_000  # msgpack arrays (lists); bulk data travels as bin, not 
 MAX_MAP_LEN = 10_000
 # What a frame's JPEG colour decodes to: "bgr" the colour only; "bgr+luma" the colour and the JPEG's
 # own grey (its Y channel, RGBDFrame.luma, what the optical flow reads); "luma" the grey only, the
-# colour left a zero-filled read-only view of its declared shape (the flow service's decode: about
-# half the cost). A raw colour decodes to the colour and no luma in every mode.
+# colour left a zero-filled read-only view of its declared shape (the flow service's decode: the
+# JPEG's grey alone costs about 60 % of its colour). A raw colour decodes to the colour and no luma
+# in every mode.
 COLOR_MODES = ("bgr", "bgr+luma", "luma")
 MAX_STR_LEN = 1024 * 1024
 
