@@ -24,6 +24,7 @@ import sys
 from types import ModuleType
 
 from ..stream.argtypes import check_outputs, claim_outputs
+from ..stream.heap import keep_freed_buffers
 
 COMMANDS = ("stabilize", "settings", "evaluate", "motion", "bench", "recover", "rerun", "recording-stats", "router", "up", "acl")
 
@@ -54,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    keep_freed_buffers()  # the in-process stages allocate frame-sized buffers as the services do
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",

@@ -2,8 +2,9 @@
 
 :func:`service_main` is every service's ``main`` (parse, log, build the zenoh config, check,
 run); :func:`service_parser` the parser with the standard zenoh flags, ``--stream``, ``-v`` and
-``--max-frame-side``. :func:`trim_heap` hands freed heap pages back to the OS (the runtime calls it
-every ``TRIM_EVERY`` stats), :func:`lower_priority` lowers the process's CPU priority.
+``--max-frame-side``; it has the C heap keep the frame-sized buffers it frees for the next frame
+(:mod:`.heap`, whose ``trim_heap`` the runtime calls every ``TRIM_EVERY`` stats to hand freed
+pages back to the OS). :func:`lower_priority` lowers the process's CPU priority.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from typing import Any, Callable
 
 import zenoh
 
+from .heap import keep_freed_buffers
 from .wire.pixels import set_max_image_side
 
 MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's --max-frame-side
@@ -54,27 +56,6 @@ def service_parser(service: str, description: str | None) -> argparse.ArgumentPa
 TRIM_EVERY = 10  # stats periods (about 10 s)
 
 
-def _libc_trim() -> Callable[[int], int] | None:
-    try:
-        import ctypes
-
-        return ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return None  # not glibc: nothing to do
-
-
-_MALLOC_TRIM = _libc_trim()
-
-
-def trim_heap() -> None:
-    """Hand freed heap pages back to the OS (glibc ``malloc_trim``). Frames and messages of many
-    sizes, allocated in zenoh's threads and freed in the service's, leave free memory spread over
-    several malloc arenas; without this the resident size of a long run creeps up by several
-    percent (10-minute soak, docs/reliability.md). A few milliseconds, every ``TRIM_EVERY`` stats."""
-    if _MALLOC_TRIM is not None:
-        _MALLOC_TRIM(0)
-
-
 def lower_priority(niceness: int) -> None:
     """Raise this process's nice value by ``niceness`` (background work such as recording yields
     the CPU to the live path on a busy machine; its queue absorbs the wait)."""
@@ -111,6 +92,7 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
 
     args = parser.parse_args(argv)
     setup_logging(service, args.verbose)
+    keep_freed_buffers()
     atexit.unregister(_ignore_term_while_exiting)  # once, however often main() runs in one process
     atexit.register(_ignore_term_while_exiting)
     if early is not None and (code := early(args)) is not None:

@@ -42,7 +42,8 @@ from .arrivals import Gap
 from .cursor import Cursors
 from .inbox import HEARTBEAT_S, LOSSLESS_STAGES, RECOVERY_CACHE, Inbox, TimedPublisher
 from .loop import Input, Loop
-from .process import TRIM_EVERY, trim_heap
+from .heap import trim_heap
+from .process import TRIM_EVERY
 from .wire import Decoded, Stats, WireError, decode, encode_stats
 
 __all__ = ["ServiceRuntime", "Input", "Inbox", "TimedPublisher"]
