@@ -76,18 +76,15 @@ def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str, np.ndarray | No
     if not r.pixels:
         return np.broadcast_to(np.uint8(0), shape), enc, None
     buf = np.frombuffer(data, np.uint8)
-    img = luma = None
+    want_bgr, want_luma = r.color != "luma", r.color != "bgr"
     try:
-        if r.color != "luma":
-            img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-        if r.color != "bgr":
-            luma = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+        img = cv2.imdecode(buf, cv2.IMREAD_COLOR) if want_bgr else np.broadcast_to(np.uint8(0), shape)
+        luma = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE) if want_luma else None
     except cv2.error as e:
         raise m.error("data", f"JPEG failed to decode: {e}") from None
-    if img is None and r.color != "luma" or img is not None and img.shape != shape or \
-            luma is None and r.color != "bgr" or luma is not None and luma.shape != shape[:2]:
+    if img is None or img.shape != shape or want_luma and (luma is None or luma.shape != shape[:2]):
         raise m.error("data", "JPEG failed to decode")
-    return (np.broadcast_to(np.uint8(0), shape) if img is None else img), enc, luma
+    return img, enc, luma
 
 
 def _check_side(r: Reader, shape: tuple[int, ...]) -> None:
