@@ -13,6 +13,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import msgpack
 import numpy as np
 
@@ -277,6 +278,28 @@ def encode_array(arr: np.ndarray, dtype: str) -> dict[str, Any]:
     """``{dtype, shape, data}`` with the array cast to ``dtype`` (little-endian, C order)."""
     a = np.ascontiguousarray(np.asarray(arr), dtype=np.dtype(dtype))
     return {"dtype": dtype, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def byte_planes(arr: np.ndarray) -> bytes:
+    """The array's bytes (C order) regrouped by byte position: every element's first byte, then every
+    second byte, ... (the "byte shuffle" before zstd: the high bytes of depth and of small values
+    compress far better together). One ``cv2.split`` of the elements as channels (a transposed copy
+    is 2-3x slower)."""
+    a = np.ascontiguousarray(arr)
+    size = a.dtype.itemsize
+    if size == 1 or a.size == 0:
+        return a.tobytes()
+    return b"".join(cv2.split(a.view(np.uint8).reshape(-1, 1, size)))
+
+
+def from_byte_planes(raw: bytes, dtype: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The array of ``dtype`` and ``shape`` whose :func:`byte_planes` are ``raw`` (exactly its size), a new
+    writable array. One ``cv2.merge`` of the planes as channels (a transposed copy is 50x slower)."""
+    dt = np.dtype(dtype)
+    planes = np.frombuffer(raw, np.uint8).reshape(dt.itemsize, -1)
+    if dt.itemsize == 1 or planes.shape[1] == 0:
+        return planes.view(dt).reshape(shape).copy()
+    return cv2.merge([p.reshape(-1, 1) for p in planes]).view(dt).reshape(shape)
 
 
 def float_list(name: str, values: Any, n: int | None = None) -> list[float]:

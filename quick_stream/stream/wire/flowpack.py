@@ -28,7 +28,7 @@ import numpy as np
 import zstandard
 
 from ...core.sceneflow import SceneFlowResult, lift_pairs
-from .codec import Reader, encode_array
+from .codec import Reader, byte_planes, encode_array, from_byte_planes
 
 MAX_GRID_CELLS = 1 << 24  # grid cells a mask may cover (a 4096 x 4096 image sampled at every pixel)
 MAX_EXP = 64  # |k| of the fixed-point steps 2^-k
@@ -49,9 +49,8 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
 def pack_array(a: np.ndarray, dtype: str) -> dict[str, Any]:
     """``{enc: "zstd", dtype, shape, data}``: a zstd frame of the byte-shuffled array."""
     d = encode_array(a, dtype)
-    size = np.dtype(dtype).itemsize
-    raw = np.frombuffer(d["data"], np.uint8).reshape(-1, size).T.tobytes() if size > 1 else d["data"]
-    d["data"] = zstandard.ZstdCompressor(level=_ZSTD_LEVEL, write_content_size=True).compress(raw)
+    d["data"] = zstandard.ZstdCompressor(level=_ZSTD_LEVEL, write_content_size=True).compress(
+        byte_planes(np.frombuffer(d["data"], dtype)))
     d["enc"] = "zstd"
     return d
 
@@ -81,8 +80,7 @@ def read_packed(r: Reader, name: str, dtype: str, shape: tuple[int, ...]) -> np.
         raise a.error("data", f"zstd decompression failed: {e}") from None
     if len(raw) != want:
         raise a.error("data", f"decompressed {len(raw)} bytes, expected {want}")
-    planes = np.frombuffer(raw, np.uint8).reshape(size, -1)
-    return np.ascontiguousarray(planes.T).view(dtype).reshape(shape).copy()
+    return from_byte_planes(raw, dtype, shape)
 
 
 # --- encoding -----------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import numpy as np
 import zstandard
 
 from ...core.frame import dequantize_depth, quantize_depth
-from .codec import MAX_DEPTH_SCALE, MIN_DEPTH_SCALE, Reader, WireError, read_shape, encode_array
+from .codec import MAX_DEPTH_SCALE, MIN_DEPTH_SCALE, Reader, WireError, byte_planes, encode_array, from_byte_planes, read_shape
 
 MAX_IMAGE_SIDE = 4096  # images larger in either dimension are refused from their header, before decoding
 _ZSTD_LEVEL = 1
@@ -132,8 +132,8 @@ def encode_depth(depth: np.ndarray, encoding: str = "raw", scale: float = 1000.0
     q = quantize_depth(depth, scale)
     d = encode_array(q, "<u2")
     if encoding == "zstd":
-        shuffled = np.ascontiguousarray(q.astype("<u2").view(np.uint8).reshape(-1, 2).T).tobytes()
-        d["data"] = zstandard.ZstdCompressor(level=_ZSTD_LEVEL, write_content_size=True).compress(shuffled)
+        d["data"] = zstandard.ZstdCompressor(level=_ZSTD_LEVEL, write_content_size=True).compress(
+            byte_planes(q.astype("<u2", copy=False)))
     elif encoding != "raw":
         raise WireError(f"depth encoding must be 'raw' or 'zstd', got {encoding!r}", field="depth.enc")
     d.update(enc=encoding, scale=float(scale))
@@ -174,8 +174,4 @@ def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
         raise m.error("data", f"zstd decompression failed: {e}") from None
     if len(raw) != want:
         raise m.error("data", f"decompressed {len(raw)} bytes, expected {want}")
-    planes = np.frombuffer(raw, np.uint8).reshape(2, -1)
-    q = np.empty((planes.shape[1], 2), np.uint8)
-    q[:, 0], q[:, 1] = planes[0], planes[1]  # un-shuffle (a transposed copy is ~8x slower)
-    q = q.view("<u2").reshape(shape)
-    return dequantize_depth(q, scale), enc, scale
+    return dequantize_depth(from_byte_planes(raw, "<u2", shape), scale), enc, scale
