@@ -24,7 +24,7 @@ import numpy as np
 from ..core.motion import integrate_path
 from ..core.stabilizer import StabilizedFrame, Stabilizer
 from ..io.plot import path_components, plot_paths
-from ..io.sinks import BackgroundSink, VideoSink
+from ..io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink
 from ..core.settings import settings_dict, settings_digest
 from ..io.sources import SourceError, open_source, source_settings
 from ..io.sources.prefetch import Prefetch
@@ -48,6 +48,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                              "unless --force.")
     g.add_argument("--output", type=at.output_file("--output", at.VIDEO_SUFFIXES, "video"), metavar="FILE",
                    default=at.default_name("out/stabilized.mp4"), help="MP4 file, '' for none (default: %(default)s)")
+    g.add_argument("--video-codec", choices=VIDEO_CODECS, default="mp4v",
+                   help="--output's codec: mp4v (MPEG-4 Part 2) or mjpeg (JPEG quality 90: 3x the file size, "
+                   "8 dB closer to the render, 1.5 against 2.5 ms a 640x480 frame to encode; default mp4v)")
     g.add_argument("--png", type=at.output_dir("--png", files="*.png"), default=None, metavar="DIR",
                    help="also write every stabilized frame as PNG here (default: none)")
     g.add_argument("--report", type=at.output_file("--report"), default=at.default_name("out/report.json"),
@@ -109,7 +112,7 @@ def _run(args: argparse.Namespace) -> int:
     total = len(source) if args.frames is None else min(args.frames, len(source))
     # the next frames are read, and the output written, on the second core while this one stabilizes
     frames = Prefetch(source if args.frames is None else itertools.islice(source, args.frames))
-    sink = BackgroundSink(VideoSink(args.output or None, args.png, source.fps))
+    sink = BackgroundSink(VideoSink(args.output or None, args.png, source.fps, args.video_codec))
     records: list[dict] = []
     out_ms: list[float] = []
     progress = Progress(total, not args.quiet)

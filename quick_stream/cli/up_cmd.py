@@ -25,6 +25,7 @@ from pathlib import Path
 import zenoh
 
 from ..io.recording import fresh_path
+from ..io.sinks import VIDEO_CODECS
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at
@@ -59,6 +60,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=at.port, default=0, help="router port on 127.0.0.1 (default: a free one)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg",
                    help="frame colour encoding on the wire (default: jpeg)")
+    p.add_argument("--video-codec", choices=VIDEO_CODECS, default="mjpeg",
+                   help="the stabilized video's codec: mjpeg stores the JPEGs the render publishes, with no second "
+                   "encode; mp4v encodes each frame again (~2.5 ms a 640x480 frame), files a third of the size "
+                   "(default mjpeg)")
     p.add_argument("--png", type=at.output_dir("--png", files="*.png"), default=None, metavar="DIR",
                    help="render also writes every frame as PNG here (default: none)")
     p.add_argument("--force", action="store_true",
@@ -126,7 +131,8 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
         ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
         ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
         ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
-                               "--output", str(getattr(args, "video", out / "stabilized.mp4"))]
+                               "--output", str(getattr(args, "video", out / "stabilized.mp4")),
+                               "--video-codec", getattr(args, "video_codec", "mjpeg")]
                     + (["--png", args.png] if args.png else [])),
     ]
     wait = ",".join(s.name for s in specs[1:])

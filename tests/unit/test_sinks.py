@@ -4,6 +4,7 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -17,9 +18,9 @@ class GatedSink(VideoSink):
         super().__init__(None, png_dir, 30.0)
         self.gate = threading.Event()
 
-    def write(self, seq: int, image: np.ndarray) -> None:
+    def write(self, seq: int, image: np.ndarray, jpeg: bytes | None = None) -> None:
         self.gate.wait()
-        super().write(seq, image)
+        super().write(seq, image, jpeg)
 
 
 def test_drain_returns_once_every_accepted_frame_is_on_disk(tmp_path):
@@ -52,3 +53,54 @@ def test_drain_reports_the_writers_error(tmp_path):
         bg.drain()
     with pytest.raises(OSError):
         bg.close()
+
+
+def _frames(n: int, h: int = 48, w: int = 64) -> list[np.ndarray]:
+    rng = np.random.default_rng(7)
+    return [cv2.GaussianBlur(rng.integers(0, 256, (h, w, 3), dtype=np.uint8), (9, 9), 0) for _ in range(n)]
+
+
+def _packets(path: Path) -> list[bytes]:
+    """The video's frames as stored (encoded packets, not decoded)."""
+    cap = cv2.VideoCapture(str(path), cv2.CAP_FFMPEG)
+    assert cap.set(cv2.CAP_PROP_FORMAT, -1)
+    out = []
+    while (got := cap.read())[0]:
+        out.append(got[1].tobytes())
+    return out
+
+
+def test_mjpeg_stores_the_jpegs_it_is_given_as_they_are(tmp_path):
+    frames = _frames(6)
+    given = [cv2.imencode(".jpg", f, [cv2.IMWRITE_JPEG_QUALITY, 60])[1].tobytes() for f in frames]
+    with BackgroundSink(VideoSink(tmp_path / "v.mp4", None, 30.0, "mjpeg", quality=95)) as bg:
+        for seq, (f, j) in enumerate(zip(frames, given)):
+            bg.write(seq, f, j if seq != 3 else None)  # frame 3 without its JPEG: encoded by the sink
+    stored = _packets(tmp_path / "v.mp4")
+    assert len(stored) == 6
+    assert [s == g for s, g in zip(stored, given)] == [True, True, True, False, True, True]
+    assert stored[3] == cv2.imencode(".jpg", frames[3], [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+    cap = cv2.VideoCapture(str(tmp_path / "v.mp4"))
+    assert cap.get(cv2.CAP_PROP_FPS) == pytest.approx(30.0)
+    for f, jpeg in zip(frames, stored):
+        ok, img = cap.read()  # FFmpeg's decoder, as players decode: the JPEG's image, to its rounding
+        assert ok and img.shape == f.shape and cv2.PSNR(img, cv2.imdecode(np.frombuffer(jpeg, np.uint8), 1)) > 30
+
+
+def test_a_frame_of_another_size_is_letterboxed_into_the_video_whatever_its_codec(tmp_path):
+    for codec in ("mjpeg", "mp4v"):
+        big, small = _frames(1)[0], _frames(1, 24, 32)[0]
+        jpeg = cv2.imencode(".jpg", small)[1].tobytes()  # of the small frame: not what the video can store
+        sink = VideoSink(tmp_path / f"{codec}.mp4", None, 25.0, codec)
+        sink.write(0, big)
+        sink.write(1, small, jpeg)
+        sink.close()
+        assert sink.resized == 1
+        cap = cv2.VideoCapture(str(tmp_path / f"{codec}.mp4"))
+        shapes = [img.shape for ok, img in iter(cap.read, (False, None)) if ok]
+        assert shapes == [big.shape, big.shape], codec
+
+
+def test_an_unknown_video_codec_is_refused():
+    with pytest.raises(ValueError, match="video codec must be one of"):
+        VideoSink("x.mp4", None, 30.0, "h264")

@@ -295,15 +295,18 @@ def _decode_correction(r: Reader) -> Decoded:
 # --- stabilized ---------------------------------------------------------------------------------
 
 def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", quality: int = 90,
-                      src_pub_ns: int | None = None, ready_pub_ns: int | None = None) -> bytes:
-    """A StabilizedImage as a ``stabilized`` message (image ``jpeg``/``raw``).
+                      src_pub_ns: int | None = None, ready_pub_ns: int | None = None,
+                      image: dict[str, Any] | None = None) -> bytes:
+    """A StabilizedImage as a ``stabilized`` message (image ``jpeg``/``raw``; ``image``: its image already
+    encoded by :func:`encode_image`, which ``color`` and ``quality`` then do not change).
 
     Latency accounting (optional): ``src_pub_ns`` is when the capture published the source
     frame, ``ready_pub_ns`` when it published the frame that closed this frame's segment
     (so the wait for the segment is ready - src, and the processing is now - ready)."""
     if not (np.isfinite(s.zoom) and s.zoom > 0):
         raise WireError(f"zoom must be finite and > 0, got {s.zoom}", field="zoom", stream=stream, seq=s.seq)
-    f = {"t_ns": int(s.timestamp_ns), "image": encode_image(s.image, color, quality), "zoom": float(s.zoom),
+    f = {"t_ns": int(s.timestamp_ns), "image": encode_image(s.image, color, quality) if image is None else image,
+         "zoom": float(s.zoom),
          "flags": [_str("flags", x) for x in s.flags],
          "src_pub_ns": None if src_pub_ns is None else int(src_pub_ns),
          "ready_pub_ns": None if ready_pub_ns is None else int(ready_pub_ns)}
