@@ -23,7 +23,7 @@ import zenoh
 
 from quick_stream.core.release import RenderDriver, Rendered
 from quick_stream.core.settings import settings_digest
-from quick_stream.io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink
+from quick_stream.io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink, check_video
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import Latency, RateMeter
 from quick_stream.stream.process import service_main, service_parser
@@ -109,7 +109,11 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return service_main("render", build_parser(), run, argv, check=stabilizer_params)
+    def check(args: argparse.Namespace) -> None:
+        check_video(args.output, args.video_codec)
+        stabilizer_params(args)
+
+    return service_main("render", build_parser(), run, argv, check=check)
 
 
 if __name__ == "__main__":

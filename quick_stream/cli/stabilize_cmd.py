@@ -24,7 +24,7 @@ import numpy as np
 from ..core.motion import integrate_path
 from ..core.stabilizer import StabilizedFrame, Stabilizer
 from ..io.plot import path_components, plot_paths
-from ..io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink
+from ..io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink, check_video
 from ..core.settings import settings_dict, settings_digest
 from ..io.sources import SourceError, open_source, source_settings
 from ..io.sources.prefetch import Prefetch
@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     cv2.setNumThreads(args.threads or len(os.sched_getaffinity(0)))
     try:
+        check_video(args.output, args.video_codec)
         source = open_source(args.source)
         params = stabilizer_params(args, recorded=source_settings(args.source))
         stab = Stabilizer(params, keep_inputs=not args.no_metrics, keep_motions=True)

@@ -16,6 +16,16 @@ import cv2
 import numpy as np
 
 VIDEO_CODECS = ("mjpeg", "mp4v")
+MJPEG_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")  # the video files FFmpeg writes Motion JPEG into (not .m4v)
+
+
+def check_video(path: str | Path | None, codec: str, flag: str = "--output") -> None:
+    """ValueError naming ``flag`` when the video file ``path`` (None or "": none) cannot hold ``codec``."""
+    if codec not in VIDEO_CODECS:
+        raise ValueError(f"video codec must be one of {VIDEO_CODECS}, got {codec!r}")
+    if path and codec == "mjpeg" and Path(path).suffix.lower() not in MJPEG_SUFFIXES:
+        raise ValueError(f"{flag} {path}: a {Path(path).suffix} file cannot hold Motion JPEG; name it "
+                         f"{'/'.join(MJPEG_SUFFIXES)} or give --video-codec mp4v")
 
 
 def fit(image: np.ndarray, w: int, h: int) -> np.ndarray:
@@ -39,8 +49,7 @@ class VideoSink:
 
     def __init__(self, mp4: str | Path | None, png_dir: str | Path | None, fps: float, codec: str = "mp4v",
                  quality: int = 90) -> None:
-        if codec not in VIDEO_CODECS:
-            raise ValueError(f"video codec must be one of {VIDEO_CODECS}, got {codec!r}")
+        check_video(mp4, codec)
         self.mp4 = Path(mp4) if mp4 else None
         self.png_dir = Path(png_dir) if png_dir else None
         self.fps = fps

@@ -211,6 +211,8 @@ RENDER_RECORDER_QUEUES = [
     c("tools.slow_render", "--slow-ms 5 --max-frames 0", "--max-frames", "'0'"),  # the render service's own flags
     c("render", "--output {d}/file.txt/out.mp4", "--output", "file.txt", "not a directory"),
     c("render", "--output {d}/out.txt", "--output", "out.txt", ".mp4"),
+    c("render", "--output {d}/out.m4v", "--output", "out.m4v", "cannot hold Motion JPEG", "--video-codec mp4v"),
+    c("render", "--video-codec h264", "--video-codec", "'h264'"),
     c("render", "--png {d}/file.txt", "--png", "file.txt", "not a directory"),
     c("render", "--png {d}/file.txt/png", "--png", "file.txt", "not a directory"),
     *(c("recorder", f"--flush {v}", "--flush", f"'{v}'") for v in ("0", "-1", "nan")),
@@ -230,6 +232,7 @@ COMMANDS = [
     c("qs", f"stabilize {SMALL} --threads 0", "--threads", "'0'"),
     c("qs", f"stabilize {SMALL} --output {{d}}/file.txt/o.mp4", "--output", "file.txt"),
     c("qs", f"stabilize {SMALL} --output {{d}}/o.txt", "--output", "o.txt"),
+    c("qs", f"stabilize {SMALL} --output {{d}}/o.m4v --video-codec mjpeg", "--output", "o.m4v", "Motion JPEG"),
     c("qs", f"stabilize {SMALL} --report {{d}}/file.txt/r.json", "--report", "file.txt"),
     c("qs", f"stabilize {SMALL} --plot {{d}}/file.txt/p.png", "--plot", "file.txt"),
     c("qs", f"stabilize {SMALL} --plot {{d}}/p.xyz", "--plot", "'.xyz'"),
