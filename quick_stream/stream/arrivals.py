@@ -30,9 +30,12 @@ from dataclasses import dataclass, field
 
 from ..core.continuity import JumpGuard, published_after
 from . import keys
-from .wire import WireError, check
+from .wire import Decoded, WireError, check
 
 log = logging.getLogger(__name__)
+
+# Message types the check decodes whole (they carry no image or depth): its result is the message decoded.
+WHOLE_WHEN_CHECKED = ("flow", "motion", "correction", "end", "stats")
 
 
 @dataclass
@@ -72,6 +75,9 @@ class ArrivalLedger:
         self.jumps = 0  # far ahead of the stage's newest and not (yet) confirmed by a run: not accounted
         self.renumberings = 0  # a stage's numbering went back, confirmed by a run: followed
         self.last_error: str | None = None  # why the newest invalid one failed
+        # the newest message checked whole (WHOLE_WHEN_CHECKED) and its decode, for its consumer to reuse
+        # (a flow decodes in ~0.35 ms): (payload, decoded), the payload the very bytes object checked
+        self.last: tuple[bytes, Decoded] | None = None
 
     def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None] | None:
         """(type, seq, publication time ns or None) of a message that passes
@@ -84,6 +90,8 @@ class ArrivalLedger:
             self.invalid += 1
             self.last_error = f"{key_expr}: {e}"
             return None
+        if d.type in WHOLE_WHEN_CHECKED:
+            self.last = (payload, d)
         return d.type, d.seq, d.extra.get("pub_ns") if d.extra else None
 
     def add(self, key_expr: str, payload: bytes) -> Gap | None:

@@ -115,7 +115,9 @@ class Loop:
             with self.contained((lambda: inp.label(key_expr)) if inp.label else f"message on {key_expr}"):
                 inp.raw(key_expr, payload, arrival_ns)
             return
-        msg = self.decode(key_expr, payload, tuple(inp.on), inp.color)
+        last = getattr(getattr(inp.inbox, "arrivals", None), "last", None)  # these bytes' check, if it decoded them whole
+        msg = self.decode(key_expr, payload, tuple(inp.on), inp.color,
+                          checked=last[1] if last is not None and last[0] is payload else None)
         if msg is None:
             return
         handler = inp.on[msg.type]
@@ -136,7 +138,8 @@ class Loop:
     def wait(self, timeout_s: float, inboxes: list[Inbox] | None = None) -> None:
         raise NotImplementedError
 
-    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr") -> Decoded | None:
+    def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr",
+               checked: Decoded | None = None) -> Decoded | None:
         raise NotImplementedError
 
     def contained(self, what: str | Callable[[], str]) -> Any:
