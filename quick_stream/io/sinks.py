@@ -67,14 +67,15 @@ class VideoSink:
         if self.mp4 is not None:
             if self._writer is None:
                 self._open(image.shape[1], image.shape[0])
+            frame = image
             if (image.shape[1], image.shape[0]) != self._size:
                 self.resized += 1
-                image, jpeg = fit(image, *self._size), None
+                frame, jpeg = fit(image, *self._size), None  # the PNG keeps the frame's own size
             if self.codec == "mp4v":
-                self._writer.write(image)
+                self._writer.write(frame)
             else:
                 if jpeg is None:
-                    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
+                    ok, buf = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
                     if not ok:
                         raise OSError(f"cannot encode frame {seq} as JPEG for {self.mp4}")
                     jpeg = buf

@@ -91,11 +91,12 @@ def test_a_frame_of_another_size_is_letterboxed_into_the_video_whatever_its_code
     for codec in ("mjpeg", "mp4v"):
         big, small = _frames(1)[0], _frames(1, 24, 32)[0]
         jpeg = cv2.imencode(".jpg", small)[1].tobytes()  # of the small frame: not what the video can store
-        sink = VideoSink(tmp_path / f"{codec}.mp4", None, 25.0, codec)
+        sink = VideoSink(tmp_path / f"{codec}.mp4", tmp_path / codec, 25.0, codec)
         sink.write(0, big)
         sink.write(1, small, jpeg)
         sink.close()
         assert sink.resized == 1
+        assert cv2.imread(str(tmp_path / codec / "000001.png")).shape == small.shape  # a PNG keeps its size
         cap = cv2.VideoCapture(str(tmp_path / f"{codec}.mp4"))
         shapes = [img.shape for ok, img in iter(cap.read, (False, None)) if ok]
         assert shapes == [big.shape, big.shape], codec
