@@ -176,7 +176,7 @@ def quantize_depth(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
     d = np.multiply(depth, scale, dtype=np.float64)
     # OpenCV's conversion rounds half to even (as np.rint) and saturates: NaN, -inf and anything
     # rounding below 0 give 0, as they must; what rounds above 65535 saturates and is zeroed below
-    # (a third of the time of rint, a range mask and a masked copy)
+    # (two thirds of the time of rint, a range mask and a masked copy)
     if d.size == 0:
         return np.zeros(d.shape, np.uint16)
     out = cv2.multiply(d.reshape(1, -1), 1.0, dtype=cv2.CV_16U).reshape(d.shape)

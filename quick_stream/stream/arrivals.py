@@ -76,7 +76,7 @@ class ArrivalLedger:
         self.renumberings = 0  # a stage's numbering went back, confirmed by a run: followed
         self.last_error: str | None = None  # why the newest invalid one failed
         # the newest message checked whole (WHOLE_WHEN_CHECKED) and its decode, for its consumer to reuse
-        # (a flow decodes in ~0.35 ms): (payload, decoded), the payload the very bytes object checked
+        # (a flow's decode costs 0.4-0.7 ms): (payload, decoded), the payload the very bytes object checked
         self.last: tuple[bytes, Decoded] | None = None
 
     def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None] | None:

@@ -115,7 +115,7 @@ class Loop:
             with self.contained((lambda: inp.label(key_expr)) if inp.label else f"message on {key_expr}"):
                 inp.raw(key_expr, payload, arrival_ns)
             return
-        last = getattr(getattr(inp.inbox, "arrivals", None), "last", None)  # these bytes' check, if it decoded them whole
+        last = getattr(getattr(inp.inbox, "arrivals", None), "last", None)  # the check's decode, when whole
         msg = self.decode(key_expr, payload, tuple(inp.on), inp.color,
                           checked=last[1] if last is not None and last[0] is payload else None)
         if msg is None:

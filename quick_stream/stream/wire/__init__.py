@@ -36,5 +36,6 @@ from .pixels import encode_image
 __all__ = [
     "COLOR_MODES", "DEFAULT_MAX_BYTES", "FORMAT_VERSION", "MESSAGE_TYPES", "Decoded", "EndOfStream", "StabilizedImage",
     "Stats", "WireError", "check", "decode", "dequantize_depth", "encode", "encode_correction", "encode_end",
-    "encode_flow", "encode_frame", "encode_image", "encode_motion", "encode_stabilized", "encode_stats", "quantize_depth",
+    "encode_flow", "encode_frame", "encode_image", "encode_motion", "encode_stabilized", "encode_stats",
+    "quantize_depth",
 ]

@@ -11,7 +11,8 @@ import numpy as np
 import zstandard
 
 from ...core.frame import dequantize_depth, quantize_depth
-from .codec import MAX_DEPTH_SCALE, MIN_DEPTH_SCALE, Reader, WireError, byte_planes, encode_array, from_byte_planes, read_shape
+from .codec import (MAX_DEPTH_SCALE, MIN_DEPTH_SCALE, Reader, WireError, byte_planes, encode_array, from_byte_planes,
+                    read_shape)
 
 MAX_IMAGE_SIDE = 4096  # images larger in either dimension are refused from their header, before decoding
 _ZSTD_LEVEL = 1
