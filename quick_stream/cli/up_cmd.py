@@ -132,7 +132,7 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
         ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
         ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
                                "--output", str(getattr(args, "video", out / "stabilized.mp4")),
-                               "--video-codec", getattr(args, "video_codec", "mjpeg")]
+                               "--video-codec", args.video_codec]
                     + (["--png", args.png] if args.png else [])),
     ]
     wait = ",".join(s.name for s in specs[1:])
