@@ -7,7 +7,7 @@ import pytest
 from quick_stream.core.render import MeshWarp, inverse_map, map_points, render, valid_mask
 from quick_stream.core.render.fill import FillSource, border_pixels, fill_border, nearest_depth
 from quick_stream.core.render.mapping import map_samples, render_covered
-from quick_stream.core.render.uncovered import depth_lookup, lookup, patches
+from quick_stream.core.render.uncovered import MERGE_GAP, depth_lookup, lookup, patches
 from tests.unit.test_render import H, W, texture
 
 
@@ -99,6 +99,52 @@ def test_patches_hold_every_pixel_near_a_marked_one_in_exactly_one_rectangle(see
         count[t0:t1, c0:c1] += 1
     assert np.all(count[near] == 1)
     assert patches(np.zeros((H, W), bool), margin) == []
+
+
+def strip_by_strip(mask: np.ndarray, margin: int, rows: int) -> list[tuple[int, int, int, int, int, int]]:
+    """:func:`patches` written plainly, one strip at a time (the reference its vectorised strips must match)."""
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    if ys.size == 0:
+        return []
+    a, b = max(int(ys.min()) - margin, 0), min(int(ys.max()) + 1 + margin, h)
+    c0, c1 = max(int(xs.min()) - margin, 0), min(int(xs.max()) + 1 + margin, w)
+    if (b - a) * (c1 - c0) <= h * w // 8 or b - a <= rows + 2 * margin:
+        return [(a, b, a, b, c0, c1)]
+    marked = np.flatnonzero(mask.any(axis=1))
+    out = []
+    for r0 in range(a // rows * rows, b, rows):
+        r1 = min(r0 + rows, h)
+        near = marked[(marked >= r0 - margin) & (marked < r1 + margin)]
+        if near.size == 0:
+            continue
+        t0, t1 = max(r0, int(near[0]) - margin), min(r1, int(near[-1]) + margin + 1)
+        ra, rb = max(t0 - margin, 0), min(t1 + margin, h)
+        cols = np.flatnonzero(mask[ra:rb].any(axis=0))
+        run = [int(cols[0])]
+        for c, prev in zip(cols[1:].tolist(), cols[:-1].tolist()):
+            if c - prev > max(2 * margin + 1, MERGE_GAP):
+                out.append((t0, t1, ra, rb, max(run[0] - margin, 0), min(prev + 1 + margin, w)))
+                run = [c]
+        out.append((t0, t1, ra, rb, max(run[0] - margin, 0), min(int(cols[-1]) + 1 + margin, w)))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_patches_are_the_strip_by_strip_rectangles(seed):
+    """Any mask (rows of whole 8-pixel words or not, strided, bands and specks), margin and strip height:
+    the strips worked out together give the plain per-strip rectangles, in the same order."""
+    rng = np.random.default_rng(seed)
+    cases = [(bands(seed), 6, 32), (bands(seed + 10)[::-1], 0, 16)]
+    for _ in range(400):
+        h, w = int(rng.integers(1, 90)), int(rng.integers(1, 100))
+        m = rng.random((h, w)) < rng.choice([0.002, 0.02, 0.2, 0.6])
+        m = m[:, ::-1] if rng.random() < 0.3 else m
+        cases.append((m, int(rng.integers(0, 8)), int(rng.integers(1, 40))))
+    for m, margin, rows in cases:
+        got = patches(m, margin, rows)
+        assert got == strip_by_strip(m, margin, rows)
+        assert all(type(v) is int for r in got for v in r)
 
 
 def test_lookup_takes_any_number_of_points():

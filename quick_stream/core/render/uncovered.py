@@ -26,23 +26,29 @@ _LOOKUP_COLS = 4096  # cv2.remap takes maps under 32767 columns: lookups go in r
 DepthAt = Callable[[np.ndarray | slice, np.ndarray | slice], np.ndarray]
 
 
+def _marked_rows(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The indices of the rows of a bool ``mask`` holding a True pixel, and the mask's rows as 8-byte
+    words (8 pixels a word: reductions 8x shorter) or the mask itself when its rows are not whole words."""
+    words = mask.view(np.uint64) if mask.flags.c_contiguous and mask.shape[1] % 8 == 0 else mask
+    return np.flatnonzero(words.any(axis=1)), words
+
+
+def _columns(words: np.ndarray, width: int) -> np.ndarray:
+    """A row of ``_marked_rows``'s words (or of the mask) or-reduced: bool (width,), the columns marked."""
+    return words.view(np.uint8).view(bool)[..., :width] if words.dtype == np.uint64 else words
+
+
 def bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
     """The bounding box ``(y0, y1, x0, x1)`` (ends excluded) of the True pixels of ``mask``, None when there is none."""
-    words = _words(mask)
-    rows = np.flatnonzero(words.any(axis=1))
+    rows, words = _marked_rows(mask)
+    return _box(rows, words, mask.shape[1])
+
+
+def _box(rows: np.ndarray, words: np.ndarray, width: int) -> tuple[int, int, int, int] | None:
     if rows.size == 0:
         return None
-    marked = np.bitwise_or.reduce(words[rows[0]:rows[-1] + 1], axis=0)
-    cols = np.flatnonzero(marked.view(bool)[:mask.shape[1]] if words is not mask else marked)
+    cols = np.flatnonzero(_columns(np.bitwise_or.reduce(words[rows[0]:rows[-1] + 1], axis=0), width))
     return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-
-
-def _words(mask: np.ndarray) -> np.ndarray:
-    """A bool mask's rows as 8-byte words (8 pixels a word: reductions 8x shorter), or the mask itself
-    when its rows are not whole words."""
-    if mask.flags.c_contiguous and mask.shape[1] % 8 == 0:
-        return mask.view(np.uint64)
-    return mask
 
 
 def patches(mask: np.ndarray, margin: int, rows: int = PATCH_ROWS) -> list[tuple[int, int, int, int, int, int]]:
@@ -56,30 +62,41 @@ def patches(mask: np.ndarray, margin: int, rows: int = PATCH_ROWS) -> list[tuple
     ``margin`` of a True pixel, ``a:b`` those widened by ``margin``, and ``c0:c1`` a run of columns
     holding True pixels in rows ``a:b`` widened by ``margin`` (runs further apart than
     ``max(2 margin + 1, MERGE_GAP)`` columns are separate rectangles). A band along several edges
-    (what a render leaves uncovered) gives a few thin rectangles.
+    (what a render leaves uncovered) gives a few thin rectangles. The strips are worked out together
+    (one reduction over their rows, the runs from one pass over the strips' columns).
     """
     h, w = mask.shape
-    box = bounds(mask)
+    marked, words = _marked_rows(mask)
+    box = _box(marked, words, w)
     if box is None:
         return []
     a, b, c0, c1 = max(box[0] - margin, 0), min(box[1] + margin, h), max(box[2] - margin, 0), min(box[3] + margin, w)
     if (b - a) * (c1 - c0) <= h * w // 8 or b - a <= rows + 2 * margin:
         return [(a, b, a, b, c0, c1)]
-    marked = np.flatnonzero(_words(mask).any(axis=1))
-    gap = max(2 * margin + 1, MERGE_GAP)
-    out = []
-    for r0 in range(a // rows * rows, b, rows):
-        r1 = min(r0 + rows, h)
-        lo, hi = np.searchsorted(marked, (r0 - margin, r1 + margin)).tolist()  # True rows within margin of the strip
-        if lo == hi:
-            continue
-        t0, t1 = max(r0, int(marked[lo]) - margin), min(r1, int(marked[hi - 1]) + margin + 1)
-        ra, rb = max(t0 - margin, 0), min(t1 + margin, h)
-        cols = np.flatnonzero(mask[ra:rb].any(axis=0))
-        cut = np.flatnonzero(np.diff(cols) > gap)
-        starts, ends = [cols[0], *cols[cut + 1].tolist()], [*cols[cut].tolist(), cols[-1]]
-        out += [(t0, t1, ra, rb, max(int(s) - margin, 0), min(int(e) + 1 + margin, w)) for s, e in zip(starts, ends)]
-    return out
+    r0 = np.arange(a // rows * rows, b, rows)
+    r1 = np.minimum(r0 + rows, h)
+    lo, hi = np.searchsorted(marked, r0 - margin), np.searchsorted(marked, r1 + margin)  # True rows near each strip
+    near = hi > lo
+    r0, r1, lo, hi = r0[near], r1[near], lo[near], hi[near]
+    t0 = np.maximum(r0, marked[lo] - margin)
+    t1 = np.minimum(r1, marked[hi - 1] + margin + 1)
+    ra, rb = np.maximum(t0 - margin, 0), np.minimum(t1 + margin, h)
+    # the columns marked in rows ra:rb of each strip: one reduction over [ra0, rb0, ra1, rb1, ...], every other
+    # result (the ranges may overlap); the strips whose rows reach the mask's end (the last one or two: rb
+    # never falls from one strip to the next) are reduced to the end one by one
+    inner = rb < h
+    occ = [np.bitwise_or.reduceat(words, np.column_stack((ra[inner], rb[inner])).ravel(), axis=0)[0::2]]
+    occ += [np.bitwise_or.reduce(words[x:], axis=0, keepdims=True) for x in ra[~inner].tolist()]
+    occ = _columns(np.concatenate(occ) if len(occ) > 1 else occ[0], w)
+    f = np.flatnonzero(occ)
+    strip, col = np.divmod(f, occ.shape[1])
+    first = np.ones(f.size, bool)  # a run starts at a strip's first marked column and after a wider gap
+    first[1:] = (strip[1:] != strip[:-1]) | (np.diff(col) > max(2 * margin + 1, MERGE_GAP))
+    starts = np.flatnonzero(first)
+    ends = np.append(starts[1:] - 1, f.size - 1)
+    i = strip[starts]
+    return list(zip(t0[i].tolist(), t1[i].tolist(), ra[i].tolist(), rb[i].tolist(),
+                    np.maximum(col[starts] - margin, 0).tolist(), np.minimum(col[ends] + 1 + margin, w).tolist()))
 
 
 def uncovered_pixels(samples: np.ndarray, inv_map: np.ndarray, step: int) -> np.ndarray | None:
