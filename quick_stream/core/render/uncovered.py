@@ -82,8 +82,8 @@ def patches(mask: np.ndarray, margin: int, rows: int = PATCH_ROWS) -> list[tuple
     t1 = np.minimum(r1, marked[hi - 1] + margin + 1)
     ra, rb = np.maximum(t0 - margin, 0), np.minimum(t1 + margin, h)
     # the columns marked in rows ra:rb of each strip: one reduction over [ra0, rb0, ra1, rb1, ...], every other
-    # result (the ranges may overlap); the strips whose rows reach the mask's end (the last one or two: rb
-    # never falls from one strip to the next) are reduced to the end one by one
+    # result (the ranges may overlap); the strips whose rows reach the mask's end (the last few: rb never
+    # falls from one strip to the next) are reduced to the end one by one
     inner = rb < h
     occ = [np.bitwise_or.reduceat(words, np.column_stack((ra[inner], rb[inner])).ravel(), axis=0)[0::2]]
     occ += [np.bitwise_or.reduce(words[x:], axis=0, keepdims=True) for x in ra[~inner].tolist()]
