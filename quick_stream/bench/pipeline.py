@@ -11,9 +11,11 @@ and measures from a monitor session:
   (scene flow of the closing pair, motion, path, transport, warp, render, encode,
   and the wait for the frames before it in the same segment, rendered in order);
   *processing, first of batch* = the same for the first frame of each released
-  segment (nothing ahead of it); *beyond longest wait* = total - the longest segment
-  wait seen: what a player showing every frame at one fixed delay needs on top of
-  the one-segment latency (later frames of a batch have a frame period of slack each);
+  segment (nothing ahead of it), and, with recording on, that frame's wait split into the
+  stages it crosses (:mod:`.release_steps`, from the recorder's arrival times); *beyond
+  longest wait* = total - the longest segment wait seen: what a player showing every frame
+  at one fixed delay needs on top of the one-segment latency (later frames of a batch have a
+  frame period of slack each);
 * **throughput and drops**: frames sent, stabilized, flagged (orphans: frames some
   stage dropped), per-service inbox drops, render's dropped/missing counters and the frames a
   live capture shed (offered faster than the pipeline takes them);
@@ -41,10 +43,12 @@ from typing import Callable
 import numpy as np
 import zenoh
 
+from ..io.recording import RecordingError
 from ..stream import keys
 from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, router_spec
 from ..stream.wire import WireError
 from ..stream.wire.codec import unpack
+from .release_steps import release_steps
 
 CLK = os.sysconf("SC_CLK_TCK")
 
@@ -217,6 +221,15 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     qs = {k: {"max_first_half": max(v[:max(1, len(v) // 2)]), "max_second_half": max(v[len(v) // 2:]),
               "mean": round(sum(v) / len(v), 1)} for k, v in sorted(queues.items())}
     per = {cam: _report(fps, seconds, warmup_s, width, height, mons[cam], stats, record, cam) for cam in cams}
+    if record:  # the recorder has stopped: its file is whole
+        for cam in cams:
+            seqs = mons[cam].seqs
+            skip = _warmup_frames(fps, warmup_s, len(seqs))
+            try:
+                per[cam]["release_steps_ms"] = release_steps(out / "recording.mcap", cam,
+                                                             seqs[skip] if skip < len(seqs) else 0)
+            except (RecordingError, WireError) as e:
+                per[cam]["release_steps_ms"] = {"error": str(e)}
     capture = "replay of a pre-encoded recording" if replay else "synthetic, rendered live"
     rate = sum(x["stabilized_fps"] for x in per.values())
     common = {"processes": procs, "queues": qs, "capture": capture,
@@ -273,9 +286,14 @@ def _processes(samples: dict[str, list[tuple[float, float, int, int]]], warm_s: 
     return procs
 
 
+def _warmup_frames(fps: float | None, warmup_s: float, n: int) -> int:
+    """How many of the ``n`` stabilized frames the report leaves out as warm-up."""
+    return int(round((fps or 0) * warmup_s)) if fps else min(n // 5, 150)
+
+
 def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, record, stream: str = "cam0") -> dict:
     n = len(mon.seqs)
-    skip = int(round((fps or 0) * warmup_s)) if fps else min(n // 5, 150)
+    skip = _warmup_frames(fps, warmup_s, n)
     w_max = max(mon.wait_ms[skip:], default=0.0)
     lat = {"total_ms": _pct(mon.total_ms[skip:]), "segment_wait_ms": _pct(mon.wait_ms[skip:]),
            "beyond_longest_wait_ms": _pct([t - w_max for t in mon.total_ms[skip:]]),
@@ -315,6 +333,12 @@ def format_report(r: dict) -> str:
             if v:
                 lines.append(f"  latency {k:<29} p50 {v['p50']:7.1f}  p90 {v['p90']:7.1f}  p99 {v['p99']:7.1f}  "
                              f"max {v['max']:7.1f} ms  (n={v['n']})")
+        steps = x.get("release_steps_ms")
+        if steps:
+            lines.append("  first frame of a release, by step (the recorder's arrival times): " + (
+                steps["error"] if "error" in steps else ", ".join(
+                    f"{k} p50 {v['p50']:.1f} p90 {v['p90']:.1f} ms" for k, v in steps.items())
+                + f" (n={max(v['n'] for v in steps.values())})"))
         if len(x.get("latency_p99_per_minute", [])) > 1:
             lines.append("  total latency p99 per minute (ms): "
                          + " ".join(f"{w['total_p99_ms']:.0f}" for w in x["latency_p99_per_minute"]))
