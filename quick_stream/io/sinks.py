@@ -15,6 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..stream.wire import WireError, encode_image
+
 VIDEO_CODECS = ("mjpeg", "mp4v")
 MJPEG_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")  # the video files FFmpeg writes Motion JPEG into (not .m4v)
 
@@ -74,11 +76,11 @@ class VideoSink:
             if self.codec == "mp4v":
                 self._writer.write(frame)
             else:
-                if jpeg is None:
-                    ok, buf = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
-                    if not ok:
-                        raise OSError(f"cannot encode frame {seq} as JPEG for {self.mp4}")
-                    jpeg = buf
+                if jpeg is None:  # the wire's JPEG of the frame, at the sink's quality
+                    try:
+                        jpeg = encode_image(frame, "jpeg", self.quality)["data"]
+                    except WireError as e:
+                        raise OSError(f"cannot encode frame {seq} as JPEG for {self.mp4}: {e}") from None
                 self._writer.write(np.frombuffer(jpeg, np.uint8).reshape(1, -1))
         if self.png_dir is not None:
             path = self.png_dir / f"{seq:06d}.png"

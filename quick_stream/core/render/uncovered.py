@@ -38,13 +38,9 @@ def _columns(words: np.ndarray, width: int) -> np.ndarray:
     return words.view(np.uint8).view(bool)[..., :width] if words.dtype == np.uint64 else words
 
 
-def bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    """The bounding box ``(y0, y1, x0, x1)`` (ends excluded) of the True pixels of ``mask``, None when there is none."""
-    rows, words = _marked_rows(mask)
-    return _box(rows, words, mask.shape[1])
-
-
 def _box(rows: np.ndarray, words: np.ndarray, width: int) -> tuple[int, int, int, int] | None:
+    """The bounding box ``(y0, y1, x0, x1)`` (ends excluded) of a mask's True pixels from its marked ``rows``
+    and ``words`` (:func:`_marked_rows`), None when there is none."""
     if rows.size == 0:
         return None
     cols = np.flatnonzero(_columns(np.bitwise_or.reduce(words[rows[0]:rows[-1] + 1], axis=0), width))
