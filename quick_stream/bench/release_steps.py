@@ -11,8 +11,9 @@ step is as the recorder saw it, a few ms late under load):
 * *motion and path*: that flow -> its motion (the motion service solves the closed segment's path
   before it publishes);
 * *correction*: that motion -> the release's first correction;
-* *render*: the release's first correction -> its first stabilized frame (the render's warps and
-  zoom track of the whole release, then the frame's render and JPEG).
+* *render*: the release's first correction -> its first stabilized frame (the warps and border
+  estimates of that frame and the ``fill_lookahead`` frames after it, docs/method.md (14a), then the
+  frame's render and JPEG).
 
 Releases without ``closed_by`` (the end of a stream), or missing any of the messages, are left out.
 """

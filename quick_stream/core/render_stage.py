@@ -55,17 +55,20 @@ class StabilizedFrame:
 
 @dataclass
 class _Plan:
-    """A frame about to be rendered: its correction, frame, warp and zoom, the numbering it was taken
+    """A frame about to be rendered: its correction, frame, warp (None until solved, from the warp
+    input made on arrival, ``prepared``, and the ms that took) and zoom, the numbering it was taken
     in, its share of the batch's framing time (ms) and, when the border fill's estimate made them,
     the map samples at that zoom (the render reuses them)."""
 
     c: Correction
     f: RGBDFrame
-    mesh: MeshWarp
+    mesh: MeshWarp | None
     zoom: float
     numbering: int
     framing_ms: float
     samples: np.ndarray | None = None
+    prepared: WarpInput | None = None
+    prep_ms: float = 0.0
 
 
 ORPHAN = "no correction: frame skipped upstream"
@@ -219,9 +222,11 @@ class RenderStage:
     def iter_batch(self, corrections: list[Correction]) -> Iterator[StabilizedFrame]:
         """Render one correction batch and the orphans it reveals, yielding frames in seq order.
 
-        Warps and the batch's zoom track are solved first (cheap); each frame is then
-        rendered only when the caller asks for it, so a service can publish the first
-        frame while the rest of the batch waits. Orphans are held frames older than the
+        Each frame is rendered only when the caller asks for it, so a service can publish the
+        first frame while the rest of the batch waits. What it waits for is what its zoom needs:
+        with the border fill and zooms planned with the path (``auto``), its own warp and border
+        estimate and those of the ``fill_lookahead`` frames after it (docs/method.md (14a));
+        otherwise every warp of the batch and its zoom track. Orphans are held frames older than the
         batch's newest that the batch does not cover (skipped upstream: no correction
         will ever come); each is framed on its own, uncorrected and flagged."""
         if not corrections:
@@ -250,51 +255,62 @@ class RenderStage:
         ahead = [FillSource(p.c.seq, p.c.chain, p.c.camera, p.f.color, p.f.intrinsics.K) for p in plans
                  if p.c.camera is not None] if self.framing.fill_frames else []
         if ahead and self.framing.mode == "auto":
-            self._cover(plans, ahead)
+            # each frame as soon as its zoom is known: its own and the look-ahead's estimates made
+            zooms = self.zoom.cover_frames([p.zoom for p in plans], lambda j: self._need(plans[j], ahead))
+            for p, z in zip(plans, zooms):
+                if z != p.zoom:  # zoomed in further: the samples read from those at the plan's zoom
+                    p.samples = rezoom_samples(p.samples, p.mesh.width, p.mesh.height, p.zoom, z)
+                    p.zoom = z
+                yield self._timed(p, lambda p=p: self._render(p, ahead))
+            return
         for p in plans:
             yield self._timed(p, lambda p=p: self._render(p, ahead))
 
     def _timed(self, p: _Plan, draw: Callable[[], tuple[np.ndarray, float]]) -> StabilizedFrame:
-        """The stabilized frame ``draw`` renders for plan ``p``, its render time and its framing
-        share recorded (one sample per frame)."""
+        """The stabilized frame ``draw`` renders for plan ``p`` (its warp solved first), its render time
+        and its framing share recorded (one sample per frame)."""
+        mesh = self._solve(p)
         t0 = time.perf_counter()
         image, z = draw()
-        sf = StabilizedFrame(p.c.seq, p.f.timestamp_ns, image, p.c, z, p.mesh,
+        sf = StabilizedFrame(p.c.seq, p.f.timestamp_ns, image, p.c, z, mesh,
                              p.f.color if self.keep_inputs else None, p.numbering)
         self.timer.add("render", (time.perf_counter() - t0) * 1e3)
         self.timer.add("framing", p.framing_ms)
         return sf
+
+    def _solve(self, p: _Plan) -> MeshWarp:
+        """Plan ``p``'s warp, solved now if it was not (its time, with its preparation's, one "warp" sample)."""
+        if p.mesh is None:
+            t0 = time.perf_counter()
+            p.mesh = solve_warp(p.f, p.c.point_transform, self.warp, p.prepared)
+            p.prepared = None
+            self.timer.add("warp", (time.perf_counter() - t0) * 1e3 + p.prep_ms)
+        return p.mesh
 
     def _sources(self, c: Correction, ahead: list[FillSource]) -> list[FillSource]:
         if c.camera is None:
             return []
         return ordered_sources(c.seq, c.chain, self._past + ahead, self.framing.fill_frames)
 
-    def _cover(self, plans: list[_Plan], ahead: list[FillSource]) -> None:
-        """Zooms raised, smoothly, where the border fill will not cover what the mesh leaves at the
-        planned zoom (docs/method.md 5.4): estimated before rendering, on every 4th pixel. Each plan
-        keeps the map samples at its zoom for its render (read from those at the planned zoom where
-        the zoom rises, :func:`~quick_stream.core.render.mapping.rezoom_samples`)."""
+    def _need(self, p: _Plan, ahead: list[FillSource]) -> float:
+        """The zoom plan ``p`` needs so that the border fill covers what its mesh leaves at the planned zoom
+        (docs/method.md 5.4), estimated before rendering, on every 4th pixel; the plan keeps the map
+        samples at its zoom for its render (:func:`~quick_stream.core.render.mapping.rezoom_samples`
+        reads them where the zoom rises). Its time is the plan's framing share."""
+        mesh = self._solve(p)
         t0 = time.perf_counter()
-        need = []
-        for p in plans:
-            p.samples = map_samples(p.mesh, p.zoom)
-            need.append(covered_zoom(p.mesh, p.f.depth, p.f.intrinsics.K, p.zoom,
-                                     None if p.c.camera is None else p.c.camera @ p.c.matrix,
-                                     self._sources(p.c, ahead), samples=p.samples))
-        zooms = self.zoom.cover([p.zoom for p in plans], need)
-        share = (time.perf_counter() - t0) * 1e3 / max(len(plans), 1)
-        for p, z in zip(plans, zooms):
-            if float(z) != p.zoom:  # zoomed in further: the samples read from those at the plan's zoom
-                p.samples = rezoom_samples(p.samples, p.mesh.width, p.mesh.height, p.zoom, float(z))
-                p.zoom = float(z)
-            p.framing_ms += share
+        p.samples = map_samples(mesh, p.zoom)
+        need = covered_zoom(mesh, p.f.depth, p.f.intrinsics.K, p.zoom,
+                            None if p.c.camera is None else p.c.camera @ p.c.matrix,
+                            self._sources(p.c, ahead), samples=p.samples)
+        p.framing_ms += (time.perf_counter() - t0) * 1e3
+        return need
 
     def _render(self, p: _Plan, ahead: list[FillSource]) -> tuple[np.ndarray, float]:
         """One frame at its zoom, its border filled from its neighbours (the batch's frames ``ahead``
         and the last frames rendered before it) when the correction carries a camera pose;
         what fill leaves uncovered is zoomed away (docs/method.md 5.4). Returns (image, zoom)."""
-        c, f, mesh, zoom = p.c, p.f, p.mesh, p.zoom
+        c, f, mesh, zoom = p.c, p.f, self._solve(p), p.zoom
         reach = self.framing.fill_frames
         if not reach:
             return render(f.color, mesh, zoom), zoom
@@ -331,31 +347,33 @@ class RenderStage:
         return out
 
     def _plan(self, corrections: list[Correction], numbering: int) -> list[_Plan]:
-        """Load the frames (of ``numbering``), solve their warps and the batch's zoom track."""
+        """Load the frames (of ``numbering``) and the batch's zoom track; the warps are solved when a
+        frame needs its own (:meth:`_solve`), unless the zoom track needs them all first."""
         t0 = time.perf_counter()
         items = []
-        prep_ms = 0.0
         for c in corrections:
             f = self._load(numbering, c.seq)
             if f is None:
                 self.missing += 1
                 continue
             prepared, ms = self._prepared.pop((numbering, c.seq), (None, 0.0))
-            prep_ms += ms
-            items.append((c, f, solve_warp(f, c.point_transform, self.warp, prepared)))
+            items.append(_Plan(c, f, None, 1.0, numbering, 0.0, prepared=prepared, prep_ms=ms))
         if not items:
             return []
         t1 = time.perf_counter()
-        planned = [c.zoom for c, _, _ in items]
+        for p in items:  # loading is the warp's share (decoding, where frames were held compressed)
+            p.prep_ms += (t1 - t0) * 1e3 / len(items)
+        planned = [p.c.zoom for p in items]
         if self.framing.fill_frames and self.framing.mode == "auto" and None not in planned:
             # the plan counted on the border fill (docs/method.md 5.4): rendering zooms further only
             # where fill leaves a border, not where the frame's own mesh does
             zooms = np.clip(np.asarray(planned, dtype=np.float64), 1.0, None)
             self.zoom.last = float(zooms[-1])
         else:
-            zooms = segment_zooms([m for _, _, m in items], self.framing, self.zoom, planned)
-        t2 = time.perf_counter()
-        n = len(items)
-        for _ in range(n):  # per-frame samples (the batch's average; the warp's share made on arrival included)
-            self.timer.add("warp", ((t1 - t0) * 1e3 + prep_ms) / n)
-        return [_Plan(c, f, mesh, float(z), numbering, (t2 - t1) * 1e3 / n) for (c, f, mesh), z in zip(items, zooms)]
+            meshes = [self._solve(p) for p in items]
+            t1 = time.perf_counter()  # the warps' time is theirs
+            zooms = segment_zooms(meshes, self.framing, self.zoom, planned)
+        share = (time.perf_counter() - t1) * 1e3 / len(items)
+        for p, z in zip(items, zooms):
+            p.zoom, p.framing_ms = float(z), share
+        return items

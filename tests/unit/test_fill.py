@@ -15,7 +15,9 @@ from quick_stream.bench.variants import parse_settings
 from quick_stream.core.lie import get_group
 from quick_stream.core.motion import MotionEstimate
 from quick_stream.core.path.budget import BudgetParams
-from quick_stream.core.path.planner import PathPlanner, PlannerParams
+from quick_stream.core.path.planner import Correction, PathPlanner, PlannerParams
+from quick_stream.core.render import FramingParams, ZoomSmoother
+from quick_stream.core.render_stage import RenderStage
 from quick_stream.core.render.fill import FillSource, covered_zoom, fill_border, nearest_depth, ordered_sources
 from quick_stream.io.sources.synthetic import SyntheticSource
 from quick_stream.quality.metrics_border import uncovered_mask
@@ -95,6 +97,53 @@ def test_covered_zoom_is_enough_for_the_renderer():
         z = covered_zoom(sf.mesh, f.depth, f.intrinsics.K, sf.zoom, c.camera @ c.matrix,
                          ordered_sources(sf.seq, c.chain, srcs, 8))
         assert z == pytest.approx(sf.zoom)  # what was rendered needed no more
+
+
+def test_a_frame_renders_once_its_lookahead_is_estimated(scene, monkeypatch):
+    """The first frame of a batch waits for the estimates of the ``fill_lookahead`` frames after it
+    only (docs/method.md (14a)), and each warp is solved once, when first needed; the zooms are the
+    zoom track of the whole batch's estimates."""
+    _, frames = scene
+    framing = FramingParams(mode="auto", fill_lookahead=3)
+    stage, batch = RenderStage(framing=framing), frames[:12]
+    for f in batch:
+        stage.add_frame(f.seq, f)
+    # the virtual camera turned away at frame 8: more than the neighbours saw, the zoom rises early
+    turn = {8: 4.0, 9: 2.0}
+    corr = [Correction(f.seq, SE3.exp(np.array([0, 0, 0, 0, np.radians(turn.get(f.seq, 0.0)), 0])), 0, False,
+                       zoom=1.0, camera=f.pose, chain=0) for f in batch]
+    estimated, solved, needs, zooms = [], [], [], []
+    need, solve, cover = RenderStage._need, RenderStage._solve, ZoomSmoother.cover_frames
+
+    def counted_need(self, p, ahead):
+        estimated.append(p.c.seq)
+        needs.append(need(self, p, ahead))
+        return needs[-1]
+
+    def counted_solve(self, p):
+        solved.extend([p.c.seq] if p.mesh is None else [])
+        return solve(self, p)
+
+    def recorded_cover(self, planned, required):
+        for z in cover(self, planned, required):
+            zooms.append(z)
+            yield z
+
+    monkeypatch.setattr(RenderStage, "_need", counted_need)
+    monkeypatch.setattr(RenderStage, "_solve", counted_solve)
+    monkeypatch.setattr(ZoomSmoother, "cover_frames", recorded_cover)
+    out = []
+    for sf in stage.iter_batch(corr):
+        ahead = list(range(batch[0].seq, min(sf.seq + framing.fill_lookahead, batch[-1].seq) + 1))
+        assert estimated == ahead and solved == ahead, sf.seq
+        out.append(sf)
+    assert [sf.seq for sf in out] == [f.seq for f in batch]
+    got = list(zooms)
+    want = ZoomSmoother(framing).cover([c.zoom for c in corr], needs)
+    assert np.array_equal(got, want)
+    h, rate = framing.fill_lookahead, framing.fill_lift_rate
+    assert want[8] > 1.1  # the turn needs more than the neighbours saw: the zoom rises h frames early, not earlier
+    assert want[8 - h] == pytest.approx(want[8] - h * rate) and want[8 - h - 1] < want[8] - 0.1
 
 
 def test_corrections_carry_the_camera_pose_and_its_chain_on_the_wire():

@@ -297,6 +297,60 @@ def test_zoom_smoother():
     assert sm.smooth([1.0, 1.0])[0] == 1.0
 
 
+def _cover_whole_segment(p: FramingParams, last_lift: float, planned, required) -> tuple[np.ndarray, float]:
+    """The zoom track with every frame of the segment ahead (docs/method.md (14a) with no look-ahead
+    bound): one backward pass over the segment, then the slow fall forward; and its last raise."""
+    z = np.asarray(planned, float)
+    lift = np.maximum(np.clip(np.nan_to_num(np.asarray(required, float), nan=np.inf), 1.0,
+                              max(p.fill_zoom_max, z.max())) - z, 0.0)
+    for i in range(len(lift) - 2, -1, -1):
+        lift[i] = max(lift[i], lift[i + 1] - p.fill_lift_rate)
+    for i in range(len(lift)):
+        lift[i] = last_lift = max(lift[i], last_lift - p.fill_lift_rate)
+    return z + lift, last_lift
+
+
+def test_cover_with_the_whole_segment_ahead_is_one_backward_pass():
+    rng = np.random.default_rng(3)
+    p = FramingParams(mode="auto", fill_lookahead=1000)
+    sm, lift = ZoomSmoother(p), 0.0
+    for n in (1, 7, 30):
+        planned = 1.0 + np.abs(rng.normal(0, 0.02, n))
+        required = planned + np.where(rng.random(n) < 0.3, rng.uniform(0, 0.05, n), -0.01)
+        required[rng.integers(n)] = np.nan  # no zoom covers it: capped at fill_zoom_max
+        want, lift = _cover_whole_segment(p, lift, planned, required)
+        got = sm.cover(planned, required)
+        assert np.array_equal(got, want)  # bit for bit
+        assert sm.last == want[-1] and sm.lift == lift
+
+
+def test_cover_rises_start_at_most_the_lookahead_ahead_and_estimates_are_asked_lazily():
+    p = FramingParams(mode="auto", fill_lookahead=4)
+    planned, raise_at = np.ones(30), 20
+    required = planned.copy()
+    required[raise_at] = 1.05
+    asked: list[int] = []
+
+    def need(j: int) -> float:
+        asked.append(j)
+        return float(required[j])
+
+    zooms = ZoomSmoother(p).cover_frames(planned, need)
+    got = []
+    for i in range(30):
+        got.append(next(zooms))
+        assert asked == list(range(min(i + p.fill_lookahead, 29) + 1))  # each once, in order, no further
+    got = np.array(got)
+    start = raise_at - p.fill_lookahead
+    assert np.all(got[:start] == 1.0)  # nothing before the look-ahead sees the rise
+    ramp = 1.05 - p.fill_lift_rate * (raise_at - np.arange(start, raise_at + 1))
+    assert got[start:raise_at + 1] == pytest.approx(ramp, abs=1e-12)
+    assert np.all(np.diff(got[raise_at:]) == pytest.approx(-p.fill_lift_rate, abs=1e-12))  # falls slowly
+    assert np.array_equal(ZoomSmoother(p).cover(planned, required), got)
+    with pytest.raises(ValueError, match="fill_lookahead"):
+        FramingParams(fill_lookahead=-1).validate()
+
+
 def test_framing_modes_and_validation():
     assert Framing.parse("auto") is Framing.AUTO and Framing.parse(Framing.CROP) is Framing.CROP
     with pytest.raises(ValueError, match="framing must be one of"):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 from enum import Enum
-from typing import Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -51,6 +51,7 @@ class FramingParams:
     fill_frames: int = 8  # border fill (docs/method.md 5.4): neighbours searched on each side; 0 = no fill
     fill_zoom_max: float = 1.6  # border fill: what fill leaves uncovered is zoomed away, up to this zoom
     fill_lift_rate: float = 0.002  # border fill: largest change per frame of that extra zoom (rises start early)
+    fill_lookahead: int = 8  # border fill: frames ahead a rise of that extra zoom is started from (docs/method.md (14a))
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -71,6 +72,8 @@ class FramingParams:
             raise ValueError(f"framing fill_zoom_max must be >= 1, got {self.fill_zoom_max}")
         if not self.fill_lift_rate > 0:
             raise ValueError(f"framing fill_lift_rate must be > 0, got {self.fill_lift_rate}")
+        if not (isinstance(self.fill_lookahead, int) and self.fill_lookahead >= 0):
+            raise ValueError(f"framing fill_lookahead must be an integer >= 0, got {self.fill_lookahead!r}")
 
 
 def outline(dst: np.ndarray) -> np.ndarray:
@@ -171,27 +174,38 @@ class ZoomSmoother:
         return z
 
     def cover(self, planned: Sequence[float], required: Sequence[float]) -> np.ndarray:
-        """Zooms planned with the path, raised where a frame ``required`` more (docs/method.md 5.4):
-        the raise (zoom above the plan) changes by at most ``fill_lift_rate`` per frame, rising
-        early within the segment and falling slowly, continuing from the last segment's; zooms
-        capped at ``fill_zoom_max``."""
+        """Zooms planned with the path, raised where a frame ``required`` more (docs/method.md (14a)):
+        :meth:`cover_frames` of a segment whose requirements are all known."""
+        req = np.asarray(required, dtype=np.float64).ravel()
+        return np.fromiter(self.cover_frames(planned, lambda j: float(req[j])), dtype=np.float64,
+                           count=len(req))
+
+    def cover_frames(self, planned: Sequence[float], required: Callable[[int], float]) -> Iterator[float]:
+        """Zooms planned with the path, raised where a frame requires more (docs/method.md (14a)), one
+        frame at a time: the raise (zoom above the plan) changes by at most ``fill_lift_rate`` per
+        frame, rising early over the ``fill_lookahead`` frames ahead within the segment and falling
+        slowly, continuing from the last segment's; zooms capped at ``fill_zoom_max``.
+
+        ``required(j)``: frame j's required zoom, asked once per frame, in order, and only when a zoom
+        needs it: frame i's zoom is yielded once frames up to i + ``fill_lookahead`` are known, so a
+        renderer can show it before estimating the rest of the segment."""
         p = self.params
         z = np.asarray(planned, dtype=np.float64).ravel()
-        req = np.clip(np.nan_to_num(np.asarray(required, dtype=np.float64).ravel(), nan=np.inf), 1.0,
-                      max(p.fill_zoom_max, float(z.max(initial=1.0))))
-        lift = np.maximum(req - z, 0.0)
-        for i in range(len(lift) - 2, -1, -1):
-            lift[i] = max(lift[i], lift[i + 1] - p.fill_lift_rate)
-        prev = self.lift
-        for i in range(len(lift)):
-            lift[i] = max(lift[i], prev - p.fill_lift_rate)
-            prev = lift[i]
-        self.lift = prev
-        self.raised += int(np.count_nonzero(lift > 1e-9))
-        out = z + lift
-        if len(out):
-            self.last = float(out[-1])
-        return out
+        top = max(p.fill_zoom_max, float(z.max(initial=1.0)))
+        need: list[float] = []  # each known frame's required raise
+        for i in range(len(z)):
+            last = min(i + p.fill_lookahead, len(z) - 1)
+            while len(need) <= last:
+                r = float(required(len(need)))
+                need.append(max(min(max(np.inf if np.isnan(r) else r, 1.0), top) - z[len(need)], 0.0))
+            lift = need[last]
+            for j in range(last - 1, i - 1, -1):  # rises start early (a backward pass over the frames ahead)
+                lift = max(need[j], lift - p.fill_lift_rate)
+            lift = max(lift, self.lift - p.fill_lift_rate)  # falls are slow, from the last frame's
+            self.lift = lift
+            self.raised += lift > 1e-9
+            self.last = float(z[i] + lift)
+            yield self.last
 
     def smooth(self, required: Sequence[float]) -> np.ndarray:
         """Zooms for one segment's ``required`` zooms (inf/NaN = no border-free zoom: max_zoom)."""
