@@ -196,14 +196,16 @@ class ZoomSmoother:
         for i in range(len(z)):
             last = min(i + p.fill_lookahead, len(z) - 1)
             while len(need) <= last:
-                r = float(required(len(need)))
-                need.append(max(min(max(np.inf if np.isnan(r) else r, 1.0), top) - z[len(need)], 0.0))
+                j = len(need)
+                r = float(required(j))
+                r = top if np.isnan(r) else min(max(r, 1.0), top)  # NaN: no zoom covers it
+                need.append(max(r - z[j], 0.0))
             lift = need[last]
             for j in range(last - 1, i - 1, -1):  # rises start early (a backward pass over the frames ahead)
                 lift = max(need[j], lift - p.fill_lift_rate)
             lift = max(lift, self.lift - p.fill_lift_rate)  # falls are slow, from the last frame's
             self.lift = lift
-            self.raised += lift > 1e-9
+            self.raised += int(lift > 1e-9)
             self.last = float(z[i] + lift)
             yield self.last
 
