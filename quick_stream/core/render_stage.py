@@ -56,9 +56,10 @@ class StabilizedFrame:
 @dataclass
 class _Plan:
     """A frame about to be rendered: its correction, frame, warp (None until solved, from the warp
-    input made on arrival, ``prepared``, and the ms that took) and zoom, the numbering it was taken
-    in, its share of the batch's framing time (ms) and, when the border fill's estimate made them,
-    the map samples at that zoom (the render reuses them)."""
+    input made on arrival, ``prepared``; ``prep_ms``: the ms that took plus the frame's share of
+    loading, counted with the solve as its warp time) and zoom, the numbering it was taken in, its
+    share of the batch's framing time (ms) and, when the border fill's estimate made them, the map
+    samples at that zoom (the render reuses them)."""
 
     c: Correction
     f: RGBDFrame
