@@ -308,6 +308,7 @@ class MetricsAccumulator:
         self._centre: dict[str, tuple[float, float]] = {}
         self._seconds = 0.0
         self._failure = ""
+        self.last_homography: np.ndarray | None = None  # output -> input of the last frame added, if sound
 
     def add(self, input_frame: np.ndarray, output_frame: np.ndarray) -> FrameMetrics:
         t0 = time.perf_counter()
@@ -317,6 +318,7 @@ class MetricsAccumulator:
         for name, img in (("input", input_frame), ("output", output_frame)):
             self._centre.setdefault(name, ((img.shape[1] - 1) / 2.0, (img.shape[0] - 1) / 2.0))
         fm = FrameMetrics(len(self.frames), black_fraction=fout.black_fraction)
+        self.last_homography = None
         if fout.black_fraction > p.max_black_fraction:
             fm.problem = f"output is {100 * fout.black_fraction:.0f}% black (mapped out of view)"
             fm.cropping = fm.distortion = float("nan")
@@ -330,6 +332,8 @@ class MetricsAccumulator:
                 fm.cropping, fm.distortion, det = scale_and_distortion(fit.H)
                 if det <= 0 or not p.min_scale <= fm.cropping <= p.max_scale:
                     fm.problem = f"degenerate input-output homography (scale {fm.cropping:.3g}, det {det:.3g})"
+                else:
+                    self.last_homography = fit.H  # centred coordinates (module docstring)
         if fm.problem and not self._failure:
             self._failure = f"frame {fm.index}: {fm.problem}"
         if self._prev is not None:
