@@ -1,15 +1,21 @@
-"""Quality benchmark: ours against the 2D stabilisers people use, on real and known-shake clips.
+"""Quality benchmark: ours against the 2D stabilisers people use, on real footage, known-shake
+clips and degraded sensors.
 
-Clips (TUM layout, read with :class:`~quick_stream.io.sources.tum.TumSource`):
+Clips (TUM layout, read with :class:`~quick_stream.io.sources.tum.TumSource`; ``frames``
+shortens every clip to its first N; :mod:`.quality_clips` makes and caches them under
+``WORK/clips``):
 
-* ``DATA/7scenes_redkitchen``, every frame (``frames`` shortens every clip to its first N);
-* known-shake clips made from it by the external shake tool (:mod:`.shake_clips`): per
-  ``SEED:FIRST-LAST`` a shaken clip (RMS pitch/yaw/roll, default 0.6/0.6/0.8 deg) and its
-  unshaken reference (same seed, frames and crop, no shake), cached under ``WORK/clips``.
+* real clips ``DATA/NAME`` (``--real``; default ``7scenes_redkitchen`` and ``tum_fr1_rpy``);
+* known-shake clips made from any real clip by the external shake tool (:mod:`.shake_clips`):
+  per ``[SRC:]SEED:FIRST-LAST`` a shaken clip (RMS pitch/yaw/roll, default 0.6/0.6/0.8 deg) and
+  its unshaken reference (same seed, frames and crop, no shake);
+* degraded copies of each known-shake clip and of its reference, one per degrade cell
+  (``--degrade``, ``--degrade-grid``; :mod:`.degrade_clips`), by the external degrade tool.
 
 Methods, all given the same BGR input frames and all scored by :mod:`quick_stream.quality.metrics`
 (:class:`~quick_stream.quality.metrics.MetricsAccumulator`, one scorer for everyone) plus the
-border-free cropping of :mod:`quick_stream.quality.metrics_border`:
+border-free cropping of :mod:`quick_stream.quality.metrics_border` (which uses the scorer's
+input-output homography to tell dark scene content from uncovered borders):
 
 * ``ours``: the stabiliser at exactly the settings ``quick-stream stabilize`` uses with no flags
   (the stabiliser flags of :mod:`quick_stream.io.stabilizer_flags` parsed from an empty argv, then
@@ -20,15 +26,20 @@ border-free cropping of :mod:`quick_stream.quality.metrics_border`:
 * the textbook LK + moving-average stabiliser (:mod:`.lk_average`);
 * the unstabilised input.
 
-Columns: residual jitter (px, deg), cropping, border-free cropping, distortion, stability (as
-``quick_stream.quality.metrics`` defines it), the method's own wall time per frame (ours: the
-stabiliser's push/finish, no reading, no scoring; FFmpeg: its passes on the lossless
-intermediate, decoding included; peers: their calls), and failure.
+Every method runs on every clip, degraded copies included. Columns: residual jitter (px, deg),
+cropping, border-free cropping, distortion, stability (as ``quick_stream.quality.metrics``
+defines it), the method's own wall time per frame (ours: the stabiliser's push/finish, no
+reading, no scoring; FFmpeg: its passes on the lossless intermediate, decoding included; peers:
+their calls), failure, and for ours and its variants the output frames not corrected
+(``uncorrected``: ``correction.valid`` False) with the count of frames by how their motion was
+known (``motion_kinds``: ``correction.motion``, "fit" when the motion was fitted; the fallbacks
+under each table).
 
 On the known-shake clips, the share of the injected high-frequency rotation ours (and each
 variant) removed, per axis: ours' per-frame corrections on the shaken clip and, with the same
 settings, on the unshaken reference go to ``WORK/corrections`` and through the tool's
-``score_rotation.py`` without and with ``--reference``.
+``score_rotation.py`` without and with ``--reference``. With degrade cells, the robustness grid
+(:mod:`.quality_robustness`) sums up ours against the best peer per known-shake clip and cell.
 """
 from __future__ import annotations
 
@@ -38,140 +49,69 @@ import re
 import subprocess
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable
 
 import cv2
 import numpy as np
 
-from ..core.frame import BadFrame
+from ..core.path.planner import Correction
 from ..core.stabilizer import Stabilizer
 from ..io.sources import SourceError
 from ..io.sources.tum import TumSource
 from ..quality.evaluate import run_timed
-from ..quality.metrics import MetricsAccumulator
-from ..quality.metrics_border import BorderFreeAccumulator, border_free_cropping
-from . import ffmpeg_baselines, lk_average, peers
+from . import ffmpeg_baselines, peers
+from .degrade_clips import DEFAULT_TOOL as DEFAULT_DEGRADE_TOOL, DegradeCell
+from .quality_clips import DEFAULT_REAL, Clip, ShakeClip, default_shake_clips, load_frames, prepare_clips
+from .quality_peers import peer_rows
+from .quality_robustness import robustness_rows
+from .quality_scoring import Scorer, score_frames
 from .variants import Variant, default_settings
-from .shake_clips import DEFAULT_AMPLITUDES, DEFAULT_TOOL, ShakeSpec, make_clip, score_rotation, write_corrections
+from .shake_clips import DEFAULT_AMPLITUDES, DEFAULT_TOOL, score_rotation, write_corrections
 
-REAL_CLIP = "7scenes_redkitchen"
-DEFAULT_CLIPS = ("7:0-149", "11:100-249")
 DEFAULT_WORK = Path("out/bench-quality")
-COLUMNS = (("jitter_px", "jitter px", "{:10.3f}"), ("jitter_deg", "jitter deg", "{:10.4f}"),
-           ("cropping", "cropping", "{:10.3f}"), ("border_free_cropping", "bf crop", "{:10.3f}"),
-           ("distortion", "distortion", "{:10.3f}"), ("stability", "stability", "{:10.3f}"),
-           ("ms_per_frame", "ms/frame", "{:10.1f}"), ("failed", "failed", "{!s:>10}"))
-AXES = ("pitch", "yaw", "roll", "total")
-
 Progress = Callable[[str], None]
 
 
 # ----------------------------------------------------------------------------------------------
-# configuration and clips
+# configuration
 
 
 @dataclass
 class QualityConfig:
     data: Path = Path("../shared/data")
     frames: int | None = None  # every clip shortened to its first N frames
-    clips: list[ShakeSpec] = field(default_factory=lambda: [ShakeSpec.parse(c) for c in DEFAULT_CLIPS])
+    real: list[str] = field(default_factory=lambda: list(DEFAULT_REAL))  # real clips: folders under data
+    clips: list[ShakeClip] = field(default_factory=default_shake_clips)
     shake_tool: Path = DEFAULT_TOOL
+    degrade: list[DegradeCell] = field(default_factory=list)  # degrade cells (clean: the clip itself)
+    degrade_tool: Path = DEFAULT_DEGRADE_TOOL
     work: Path = DEFAULT_WORK
     variants: list[Variant] = field(default_factory=list)
     baselines: bool = True  # FFmpeg, vidstab, vidgear, LK moving average
+    notes: list[str] = field(default_factory=list)  # e.g. default clips skipped (no folder)
+
+
+# ----------------------------------------------------------------------------------------------
+# ours
 
 
 @dataclass
-class Clip:
-    name: str
-    folder: Path
-    spec: ShakeSpec | None = None  # shaken clips only
-    reference: Path | None = None  # the unshaken reference clip's folder
-    made: dict = field(default_factory=dict)  # "shaken"/"reference" -> inject command, or "cached"
+class CorrectionCounts:
+    """Ours' output frames: those not corrected (``valid`` False) and all by ``correction.motion``."""
 
+    uncorrected: int = 0
+    motion: Counter = field(default_factory=Counter)
 
-def source_folder(data: Path) -> Path:
-    folder = Path(data) / REAL_CLIP
-    if not folder.is_dir():
-        raise SourceError(f"TUM folder not found: {folder}")
-    return folder
+    def add(self, correction: Correction) -> None:
+        self.uncorrected += not correction.valid
+        self.motion[correction.motion] += 1
 
-
-def prepare_clips(cfg: QualityConfig, progress: Progress | None = None) -> list[Clip]:
-    """The real clip and the shaken clips with their references (made or taken from the cache)."""
-    src = source_folder(cfg.data)
-    clips = [Clip(REAL_CLIP, src)]
-    for spec in cfg.clips:
-        made = {}
-        folders = {}
-        for kind, s in (("shaken", spec), ("reference", spec.reference())):
-            if progress:
-                progress(f"clip {s.folder_name(src)}")
-            folders[kind], cmd = make_clip(src, s, Path(cfg.work) / "clips", cfg.shake_tool)
-            made[kind] = "cached" if cmd is None else cmd
-        clips.append(Clip(folders["shaken"].name, folders["shaken"], spec, folders["reference"], made))
-    return clips
-
-
-def load_frames(folder: Path, frames: int | None) -> tuple[list[int], list[np.ndarray], list[int], float]:
-    """(seqs, BGR images, timestamps ns, fps) of the readable frames of a TUM clip (first ``frames``)."""
-    src = TumSource(folder, count=frames)
-    seqs, images, stamps = [], [], []
-    for fr in src:
-        if isinstance(fr, BadFrame):
-            continue
-        seqs.append(fr.seq)
-        images.append(fr.color)
-        stamps.append(fr.timestamp_ns)
-    return seqs, images, stamps, src.fps
-
-
-# ----------------------------------------------------------------------------------------------
-# scoring
-
-
-class Scorer:
-    """The one scorer: quality metrics and border-free cropping, frame pair by frame pair."""
-
-    def __init__(self, fps: float) -> None:
-        self.metrics = MetricsAccumulator(fps)
-        self.border = BorderFreeAccumulator()
-        self.seconds = 0.0
-
-    def add(self, input_frame: np.ndarray, output_frame: np.ndarray) -> None:
-        t0 = time.perf_counter()
-        self.metrics.add(input_frame, output_frame)
-        self.border.add(output_frame)
-        self.seconds += time.perf_counter() - t0
-
-    def result(self) -> dict:
-        m = self.metrics.result().as_dict()
-        m.update(self.border.as_dict())
-        m["border_free_cropping"] = border_free_cropping(m["cropping"], self.border.scale)
-        m["scorer_seconds"] = self.seconds
-        return m
-
-
-def score_frames(inputs: list[np.ndarray], outputs: Iterable[np.ndarray], fps: float) -> dict:
-    """Metrics of ``outputs`` (aligned with ``inputs``, same count) with :class:`Scorer`."""
-    sc = Scorer(fps)
-    n = 0
-    for a, b in zip(inputs, outputs):
-        sc.add(a, b)
-        n += 1
-    if n != len(inputs):
-        raise ValueError(f"{n} output frames for {len(inputs)} inputs")
-    return sc.result()
-
-
-def _row(status: str = "ok", **kw: object) -> dict:
-    return {"status": status, **kw}
-
-
-# ----------------------------------------------------------------------------------------------
-# methods
+    def as_dict(self) -> dict:
+        """``uncorrected`` and ``motion_kinds`` (kind -> frames, most frames first)."""
+        return {"uncorrected": self.uncorrected, "motion_kinds": dict(self.motion.most_common())}
 
 
 def run_ours(folder: Path, variant: Variant, frames: int | None, inputs: dict[int, np.ndarray] | None,
@@ -184,12 +124,14 @@ def run_ours(folder: Path, variant: Variant, frames: int | None, inputs: dict[in
     st = Stabilizer(variant.params)
     scorer = Scorer(fps) if inputs is not None else None
     corrections: list[tuple[int, np.ndarray]] = []
+    counts = CorrectionCounts()
     flagged, missing = 0, 0
 
     def take(batch: list) -> None:
         nonlocal flagged, missing
         for sf in batch:
             corrections.append((sf.timestamp_ns, np.array(sf.correction.matrix, float)))
+            counts.add(sf.correction)
             flagged += bool(sf.flags)
             if scorer is not None:
                 if sf.seq in inputs:
@@ -201,64 +143,10 @@ def run_ours(folder: Path, variant: Variant, frames: int | None, inputs: dict[in
     row: dict = scorer.result() if scorer is not None else {}
     row.update(status="ok", ms_per_frame=1e3 * t / max(n_in, 1), seconds=t, frames_in=n_in,
                frames_out=len(corrections), flagged_frames=flagged, bad_frames=len(st.bad_frames),
-               segments=len(st.planner.segments))
+               segments=len(st.planner.segments), **counts.as_dict())
     if inputs is not None and len(corrections) != len(inputs):
         row["notes"] = [f"{len(corrections)} output frames for {len(inputs)} readable inputs"]
     return row, corrections
-
-
-def _peer_rows(inputs: list[np.ndarray], fps: float, work: Path, progress: Progress | None) -> tuple[dict, dict]:
-    """Rows of the 2D peers (FFmpeg, vidstab, vidgear, LK) and the FFmpeg commands run."""
-    rows: dict[str, dict] = {}
-    commands: dict = {}
-    n = len(inputs)
-    problem = ffmpeg_baselines.ffmpeg_problem()
-    if problem:
-        rows["vid.stab 2-pass (ffmpeg)"] = rows["deshake (ffmpeg)"] = _row("not run", reason=problem)
-    else:
-        if progress:
-            progress("ffmpeg vid.stab + deshake")
-        try:
-            outs = ffmpeg_baselines.run_baselines(inputs, fps, workdir=work)
-            commands = {k: " ".join(v[1:]) for k, v in outs.commands.items()}
-            for key, name in (("vidstab", "vid.stab 2-pass (ffmpeg)"), ("deshake", "deshake (ffmpeg)")):
-                frames_out = outs.pop(key)
-                row = score_frames(inputs, frames_out, fps)
-                del frames_out
-                row.update(status="ok", seconds=outs.seconds[key], cpu_seconds=outs.cpu_seconds[key],
-                           ms_per_frame=1e3 * outs.seconds[key] / n)
-                rows[name] = row
-        except (RuntimeError, AssertionError, OSError) as e:
-            rows.setdefault("vid.stab 2-pass (ffmpeg)", _row("error", reason=str(e)))
-            rows.setdefault("deshake (ffmpeg)", _row("error", reason=str(e)))
-    avail = peers.available()
-    for key, name, runner in (("vidstab", "vidstab (python)", peers.run_vidstab),
-                              ("vidgear", "vidgear Stabilizer", peers.run_vidgear)):
-        if avail[key]:
-            rows[name] = _row("not run", reason=avail[key])
-            continue
-        if progress:
-            progress(name)
-        try:
-            pr = runner(inputs)
-        except Exception as e:  # noqa: BLE001 - a peer that crashes is a row, not the end of the benchmark
-            rows[name] = _row("error", reason=f"{type(e).__name__}: {e}")
-            continue
-        row = score_frames(inputs, pr.frames, fps)
-        row.update(status="ok", seconds=pr.seconds, ms_per_frame=1e3 * pr.seconds / n, calls=pr.calls,
-                   notes=pr.notes)
-        rows[name] = row
-        del pr
-    if progress:
-        progress("LK moving average")
-    t0 = time.perf_counter()
-    lk = lk_average.stabilize(inputs)
-    t = time.perf_counter() - t0
-    row = score_frames(inputs, lk, fps)
-    row.update(status="ok", seconds=t, ms_per_frame=1e3 * t / n,
-               notes=[f"GFTT + LK + estimateAffinePartial2D, centred moving average +-{lk_average.LKParams.radius}"])
-    rows["LK moving average"] = row
-    return rows, commands
 
 
 def _slug(name: str) -> str:
@@ -278,7 +166,10 @@ def run_clip(clip: Clip, cfg: QualityConfig, progress: Progress | None = None) -
     out: dict = {"name": clip.name, "folder": str(clip.folder), "frames": len(images), "size": f"{w}x{h}",
                  "fps": fps, "methods": {}}
     if clip.spec is not None:
-        out.update(shake=dataclasses.asdict(clip.spec), reference_folder=str(clip.reference), made=clip.made)
+        out.update(shake=dataclasses.asdict(clip.spec), known_shake=clip.label, source=clip.source,
+                   reference_folder=str(clip.reference), made=clip.made)
+        if clip.cell is not None:
+            out["degrade"] = {"cell": clip.cell.name, "argv": clip.cell.argv()}
     inputs = dict(zip(seqs, images))
     ours = [default_settings(), *cfg.variants]
     corr_dir = Path(cfg.work) / "corrections" / (clip.name + (f"_first{cfg.frames}" if cfg.frames else ""))
@@ -305,7 +196,7 @@ def run_clip(clip: Clip, cfg: QualityConfig, progress: Progress | None = None) -
         except (RuntimeError, ValueError, OSError) as e:
             shake_scores[label] = {"error": str(e)}
     if cfg.baselines:
-        rows, commands = _peer_rows(images, fps, Path(cfg.work) / "ffmpeg" / clip.name, say)
+        rows, commands = peer_rows(images, fps, Path(cfg.work) / "ffmpeg" / clip.name, say)
         out["methods"].update(rows)
         out["ffmpeg_commands"] = commands
     say("input (unstabilized)")
@@ -341,14 +232,18 @@ def run(cfg: QualityConfig, progress: Progress | None = None) -> dict:
     """The benchmark (module docstring); a JSON-able dict with every setting, command, version and metric."""
     cv2.setNumThreads(1)
     started = time.time()
-    clips = prepare_clips(cfg, progress)
+    clips = prepare_clips(cfg.data, cfg.real, cfg.clips, cfg.degrade, cfg.work, cfg.shake_tool, cfg.degrade_tool,
+                          progress)
     ours = default_settings()
+    shakes = [c.shake for c in cfg.clips]
     r: dict = {
-        "settings": {"data": str(cfg.data), "frames": cfg.frames, "clips": [f"{c.seed}:{c.frames}" for c in cfg.clips],
-                     "amplitudes_deg": [cfg.clips[0].pitch, cfg.clips[0].yaw, cfg.clips[0].roll]
-                     if cfg.clips else list(DEFAULT_AMPLITUDES),
-                     "shake_tool": str(cfg.shake_tool), "work": str(cfg.work), "baselines": cfg.baselines,
-                     "opencv_threads": 1},
+        "settings": {"data": str(cfg.data), "frames": cfg.frames, "real": list(cfg.real),
+                     "clips": [c.label for c in cfg.clips],
+                     "amplitudes_deg": [shakes[0].pitch, shakes[0].yaw, shakes[0].roll]
+                     if shakes else list(DEFAULT_AMPLITUDES),
+                     "shake_tool": str(cfg.shake_tool), "degrade_tool": str(cfg.degrade_tool),
+                     "degrade_cells": {c.name: c.argv() for c in cfg.degrade},
+                     "work": str(cfg.work), "baselines": cfg.baselines, "opencv_threads": 1, "notes": list(cfg.notes)},
         "ours": {"argv": [], "flags": ours.flags, "params": dataclasses.asdict(ours.params)},
         "variants": {v.name: {"argv": v.argv, "flags": v.flags, "params": dataclasses.asdict(v.params)}
                      for v in cfg.variants},
@@ -358,6 +253,8 @@ def run(cfg: QualityConfig, progress: Progress | None = None) -> dict:
     }
     for clip in clips:
         r["clips"].append(run_clip(clip, cfg, progress))
+    if any(c.cell is not None and not c.cell.is_clean for c in clips):
+        r["robustness"] = robustness_rows(r)
     r["seconds"] = time.time() - started
     return r
 

@@ -7,30 +7,54 @@ from pathlib import Path
 
 import numpy as np
 
-from .quality import AXES, COLUMNS
+from .quality_robustness import AXES, format_robustness
+
+COLUMNS = (("jitter_px", "jitter px", "{:10.3f}"), ("jitter_deg", "jitter deg", "{:10.4f}"),
+           ("cropping", "cropping", "{:10.3f}"), ("border_free_cropping", "bf crop", "{:10.3f}"),
+           ("distortion", "distortion", "{:10.3f}"), ("stability", "stability", "{:10.3f}"),
+           ("ms_per_frame", "ms/frame", "{:10.1f}"), ("failed", "failed", "{!s:>10}"),
+           ("uncorrected", "uncorrect.", "{:10d}"))
+
 
 def _fmt(fmt: str, v: object) -> str:
+    if v is None:  # a column the method has not (uncorrected: ours and its variants only)
+        return f"{'-':>10}"
     if isinstance(v, float) and not math.isfinite(v):
         return f"{'nan':>10}"
     return fmt.format(v)
+
+
+def motion_lines(methods: dict) -> list[str]:
+    """Ours' (and each variant's) frames by how their motion was known, and those not corrected."""
+    out = []
+    for name, m in methods.items():
+        kinds = m.get("motion_kinds")
+        if m.get("status") == "ok" and kinds is not None:
+            out.append(f"  {name}: frames by motion: " + ", ".join(f"{k} {n}" for k, n in kinds.items())
+                       + f"; not corrected {m.get('uncorrected', 0)}")
+    return out
 
 
 def format_clip(c: dict) -> str:
     title = f"{c['name']}: {c['frames']} frames {c['size']} @ {c['fps']:.3g} fps"
     if "shake" in c:
         s = c["shake"]
-        title += (f"; known shake seed {s['seed']}, frames {s['first']}-{s['last']}, "
-                  f"RMS {s['pitch']:g}/{s['yaw']:g}/{s['roll']:g} deg (pitch/yaw/roll)")
+        what = c.get("known_shake") or f"seed {s['seed']}, frames {s['first']}-{s['last']}"
+        title += f"; known shake {what}, RMS {s['pitch']:g}/{s['yaw']:g}/{s['roll']:g} deg (pitch/yaw/roll)"
+    if c.get("degrade", {}).get("argv"):
+        title += f"; degrade cell {c['degrade']['cell']}: {' '.join(c['degrade']['argv'])}"
     width = max(30, *(len(k) for k in c["methods"]))
     lines = [title, f"{'method':{width}s} " + " ".join(f"{h:>10s}" for _, h, _ in COLUMNS)]
     for name, m in c["methods"].items():
         if m.get("status") != "ok":
             lines.append(f"{name:{width}s} {m.get('status')}: {m.get('reason', '')}")
             continue
-        lines.append(f"{name:{width}s} " + " ".join(_fmt(f, m.get(k, float('nan'))) for k, _, f in COLUMNS))
+        lines.append(f"{name:{width}s} " + " ".join(_fmt(f, m.get(k, None if k == "uncorrected" else float("nan")))
+                                                    for k, _, f in COLUMNS))
     for name, m in c["methods"].items():
         if m.get("status") == "ok" and m.get("failed"):
             lines.append(f"  {name} failed: {m.get('failure_reason')}")
+    lines += motion_lines(c["methods"])
     sr = c.get("shake_removed")
     if sr:
         lines.append("injected high-frequency rotation removed (score_rotation.py, kind correction, > 1 Hz):")
@@ -55,6 +79,9 @@ def format_clip(c: dict) -> str:
 
 def format_tables(r: dict) -> str:
     out = [format_clip(c) for c in r["clips"]]
+    if r.get("robustness"):
+        out.append(format_robustness(r["robustness"]))
+    out += [f"note: {n}" for n in r.get("settings", {}).get("notes", [])]
     v = r["versions"]
     out.append("versions: " + ", ".join(f"{k} {v[k]}" for k in ("ffmpeg", "vidstab", "vidgear", "opencv") if v.get(k)))
     cmds = next((c.get("ffmpeg_commands") for c in r["clips"] if c.get("ffmpeg_commands")), None)
@@ -63,6 +90,8 @@ def format_tables(r: dict) -> str:
                                                                                   for k, c in cmds.items()))
     for name, var in r.get("variants", {}).items():
         out.append(f"variant {name}: {' '.join(shlex.quote(a) for a in var['argv'])}")
+    for name, argv in r.get("settings", {}).get("degrade_cells", {}).items():
+        out.append(f"degrade cell {name}: " + (f"degrade.py --seed SEED {' '.join(argv)}" if argv else "no degrade"))
     return "\n\n".join(out)
 
 

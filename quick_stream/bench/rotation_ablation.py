@@ -33,7 +33,7 @@ from ..core.motion import MotionEstimate
 from ..core.stabilizer import Stabilizer, StabilizerParams
 from ..core.stages import FlowStage, MotionStage
 from ..io.sources.tum import TumSource
-from .quality import source_folder
+from .quality_clips import source_folder
 from .variants import parse_settings
 from .shake_clips import DEFAULT_TOOL, ShakeSpec, make_clip, score_rotation, write_corrections
 

@@ -104,12 +104,31 @@ def _record(spec: ShakeSpec, source: Path) -> dict:
     return {"spec": asdict(spec), "source": str(Path(source).resolve())}
 
 
-def is_cached(folder: Path, spec: ShakeSpec, source: Path) -> bool:
-    rec = Path(folder) / RECORD
+def is_recorded(folder: Path, record: dict) -> bool:
+    """Whether ``folder`` holds a finished clip made with the parameters ``record`` spells."""
     try:
-        return json.loads(rec.read_text()) == _record(spec, source)
+        return json.loads((Path(folder) / RECORD).read_text()) == record
     except (OSError, ValueError):
         return False
+
+
+def is_cached(folder: Path, spec: ShakeSpec, source: Path) -> bool:
+    return is_recorded(folder, _record(spec, source))
+
+
+def run_recorded(folder: Path, record: dict, cmd: list[str], what: str) -> list[str]:
+    """Make ``folder`` with ``cmd`` (a tool run with ``--force``), then write ``record`` in it, last.
+
+    Any earlier record goes first, so a run that fails or is interrupted leaves no record and the
+    clip is made again next time. RuntimeError naming ``what`` and the command when the tool fails.
+    """
+    Path(folder).parent.mkdir(parents=True, exist_ok=True)
+    (Path(folder) / RECORD).unlink(missing_ok=True)
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"{what} failed (rc {r.returncode}): {' '.join(cmd)}\n{r.stderr.strip()[-1500:]}")
+    (Path(folder) / RECORD).write_text(json.dumps(record, indent=1))
+    return cmd
 
 
 def make_clip(source: Path, spec: ShakeSpec, cache: Path, tool: Path = DEFAULT_TOOL,
@@ -119,17 +138,12 @@ def make_clip(source: Path, spec: ShakeSpec, cache: Path, tool: Path = DEFAULT_T
     Returns (folder, the command run or None when the cached clip was reused).
     """
     folder = Path(cache) / spec.folder_name(source)
-    if is_cached(folder, spec, source):
+    record = _record(spec, source)
+    if is_recorded(folder, record):
         return folder, None
     check_tool(tool)
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    (folder / RECORD).unlink(missing_ok=True)
     cmd = [python, str(Path(tool) / "inject.py"), str(source), str(folder), *spec.inject_args(), "--force"]
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    if r.returncode != 0:
-        raise RuntimeError(f"shake tool failed (rc {r.returncode}): {' '.join(cmd)}\n{r.stderr.strip()[-1500:]}")
-    (folder / RECORD).write_text(json.dumps(_record(spec, source), indent=1))
-    return folder, cmd
+    return folder, run_recorded(folder, record, cmd, "shake tool")
 
 
 def rotation_part(g: np.ndarray) -> np.ndarray:

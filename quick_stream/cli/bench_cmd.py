@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING
 from ..core.lie import GROUPS
 from ..io.sources import SourceError
 from ..stream import argtypes as at
+from . import bench_quality_cmd
 from .jsonout import add_json, text_out, write_json
 from .progress import Progress
 
 if TYPE_CHECKING:
-    from ..bench.variants import Variant
     from ..bench.shake_clips import ShakeSpec
 
 DEFAULT_DATA = Path("../shared/data")
@@ -56,7 +56,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     m = _bench(b, "moving-objects", "robust vs mean estimators on jointvosf_pairs (people moving)")
     m.add_argument("--data", type=Path, default=DEFAULT_DATA, metavar="DIR",
                    help=f"folder holding jointvosf_pairs (default: {DEFAULT_DATA})")
-    _add_quality_parser(b)
+    q = _bench(b, "quality", bench_quality_cmd.HELP, description=bench_quality_cmd.DESCRIPTION)
+    bench_quality_cmd.add_arguments(q)
     ra = _bench(b, "rotation", "known-shake clips: which part of the pipeline leaves injected rotation "
                 "(motion noise, path, warp; single changes to the defaults)")
     ra.add_argument("--data", type=Path, default=DEFAULT_DATA, metavar="DIR", help=f"folder holding 7scenes_redkitchen "
@@ -107,86 +108,10 @@ def _shake(text: str) -> tuple[float, float]:
     return deg, m
 
 
-def _variant(text: str) -> "Variant":
-    from ..bench.variants import parse_variant
-
-    return parse_variant(text)
-
-
 def _clip(text: str) -> "ShakeSpec":
     from ..bench.shake_clips import ShakeSpec
 
     return ShakeSpec.parse(text)
-
-
-def _amplitudes(text: str) -> tuple[float, float, float]:
-    from ..bench.shake_clips import parse_amplitudes
-
-    return parse_amplitudes(text)
-
-
-def _add_quality_parser(b: argparse._SubParsersAction) -> None:
-    q = _bench(b, "quality", "ours vs FFmpeg vid.stab/deshake, vidstab, vidgear and an LK baseline, "
-               "on 7scenes_redkitchen and known-shake clips made from it",
-               description="Quality benchmark (quick_stream/bench/quality.py): every method scored by "
-               "quick_stream.quality.metrics against the same input frames; on the known-shake clips also the "
-               "share of the injected rotation ours removed (the shake tool's score_rotation.py).")
-    q.add_argument("--data", type=Path, default=DEFAULT_DATA, metavar="DIR", help=f"folder holding 7scenes_redkitchen "
-                   f"(default: {DEFAULT_DATA})")
-    q.add_argument("--frames", type=at.positive_int, default=None,
-                   help="use only the first N frames of every clip (default: all)")
-    q.add_argument("--clip", dest="clips", action="append", type=at.checked(_clip, "clip"), default=None,
-                   metavar="SEED:FIRST-LAST", help="a known-shake clip: inject.py seed and inclusive source "
-                   "frame range; repeatable (default: 7:0-149 and 11:100-249)")
-    q.add_argument("--no-shake", action="store_true", help="only the real clip, no known-shake clips")
-    q.add_argument("--amplitude", type=at.checked(_amplitudes, "amplitude"), default=(0.6, 0.6, 0.8),
-                   metavar="PITCH,YAW,ROLL", help="RMS shake in deg per axis (default: 0.6,0.6,0.8)")
-    q.add_argument("--shake-tool", type=Path, default=Path("../shared/tools/shake"), metavar="DIR",
-                   help="folder of the shake tool, inject.py and score_rotation.py (default: ../shared/tools/shake)")
-    q.add_argument("--work", type=at.output_dir("--work"), default="out/bench-quality", metavar="DIR",
-                   help="cache of made clips (DIR/clips, reused), corrections, FFmpeg files "
-                   "(default: out/bench-quality)")
-    q.add_argument("--variant", dest="variants", action="append", type=at.checked(_variant, "variant"),
-                   default=[], metavar="NAME='--flag value ...'",
-                   help="also run ours with these stabilizer flags, those of quick-stream stabilize; repeatable "
-                   "(default: none)")
-    q.add_argument("--grid", action="store_true",
-                   help="add the variants every group x both end modes, and the paper's path (se3, identity, "
-                   "--lowpass-sigma 0)")
-    q.add_argument("--no-baselines", action="store_true",
-                   help="skip the peers (FFmpeg, vidstab, vidgear, LK moving average): ours and the input only")
-    add_json(q, "everything (settings, commands, versions, metrics)")
-    at.add_force(q)
-
-
-def _quality(args: argparse.Namespace) -> int:
-    from ..bench import quality, quality_tables, variants
-    from ..bench.shake_clips import ShakeSpec, check_tool
-
-    quality.source_folder(args.data)  # SourceError (exit 2) before any work
-    specs = [] if args.no_shake else (args.clips or [ShakeSpec.parse(c) for c in quality.DEFAULT_CLIPS])
-    specs = [ShakeSpec(s.seed, s.first, s.last, *args.amplitude) for s in specs]
-    names = [v.name for v in args.variants] + ([v.name for v in variants.grid_variants()] if args.grid else [])
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        print(f"quick-stream bench quality: --variant: name(s) used twice: {', '.join(dup)}", file=sys.stderr)
-        return 2
-    if specs:
-        try:
-            check_tool(args.shake_tool)
-        except FileNotFoundError as e:
-            print(f"quick-stream bench quality: {e}", file=sys.stderr)
-            return 2
-    variants = list(args.variants) + (variants.grid_variants() if args.grid else [])
-    cfg = quality.QualityConfig(data=args.data, frames=args.frames, clips=specs, shake_tool=args.shake_tool,
-                                work=Path(args.work), variants=variants, baselines=not args.no_baselines)
-    r = quality.run(cfg, quality.progress_to_stderr())
-    print(quality_tables.format_tables(r), file=text_out(args))
-    if args.json:
-        write_json(args.json, r, default=quality_tables.json_default)
-        if args.json != "-":
-            print(f"wrote {args.json}")
-    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -206,7 +131,7 @@ def _run(args: argparse.Namespace) -> int:
             return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
                                  streams=args.streams, size=args.size, replay=args.replay, progress=progress)
     if args.bench == "quality":
-        return _quality(args)
+        return bench_quality_cmd.run(args)
     with progress:
         if args.bench == "speed" and args.versus_vidstab:
             from ..bench import speed_versus

@@ -312,6 +312,10 @@ def test_run_clip_end_to_end(tmp_path):
     inp = r["methods"]["input (unstabilized)"]
     assert inp["cropping"] == pytest.approx(1.0, abs=1e-6) and inp["border_free_scale"] == 1.0
     assert r["methods"]["ours"]["settings"]["group"] == "se3"
+    ours = r["methods"]["ours"]
+    assert ours["uncorrected"] >= 0 and sum(ours["motion_kinds"].values()) == ours["frames_out"] == 12
+    assert inp["border_frames_unaligned"] == 0  # every frame's border judged with its input-output homography
     text = quality_tables.format_clip(r)
-    assert "bf crop" in text and "LK moving average" in text
+    assert "bf crop" in text and "LK moving average" in text and "uncorrect." in text
+    assert "  ours: frames by motion: " in text
     json.dumps(r, default=quality_tables.json_default)

@@ -5,8 +5,8 @@ read with its line breaks folded, and must not name what a reader of the reposit
 
 * a path outside the repository. The one exception is the workplace's shared folder beside the
   checkout where code reads or runs something from it: ``../shared/data`` (the real clips, see the
-  README's "Data") and ``../shared/tools/shake`` (the shake tool the benchmarks run). Anything
-  else there (design notes, seeds, ...) is not a reference;
+  README's "Data"), ``../shared/tools/shake`` and ``../shared/tools/degrade`` (the shake and degrade
+  tools the benchmarks run). Anything else there (design notes, seeds, ...) is not a reference;
 * the paper's LaTeX source (``.tex``, its equation labels such as ``eq. (phi)``, its sections),
   ``transport-facts``, ``quick-method.md``, a "design note", an "issue N" of a tracker;
 * a test file (``tests/....py``, optionally ``::name``) that does not exist, or lacks that name;
@@ -30,7 +30,8 @@ from tests.tools import REPO
 ROOTS = ("quick_stream", "services")
 
 OUTSIDE = [
-    (re.compile(r"\.\./shared(?!/data\b|/tools/shake\b)"), "a path in ../shared other than data/ or tools/shake"),
+    (re.compile(r"\.\./shared(?!/data\b|/tools/(?:shake|degrade)\b)"),
+     "a path in ../shared other than data/, tools/shake or tools/degrade"),
     (re.compile(r"\.\./(?!shared/)[\w.-]+/"), "a path outside the repository"),
     (re.compile(r"\.tex\b"), "the paper's .tex source"),
     (re.compile(r"transport-facts", re.I), "transport-facts (not in the repository)"),
@@ -122,6 +123,7 @@ def test_comments_and_docstrings_point_inside_the_repository():
     ("docs/method.md (99)", True), ("docs/method.md section 9.9", True), ("docs/nope.md", True),
     ("tests/unit/test_doc_references.py::no_such_test", True), ('docs/method.md, "No such section"', True),
     ("clips in ../shared/data/7scenes_redkitchen", False), ("default ../shared/tools/shake", False),
+    ("default ../shared/tools/degrade", False), ("../shared/tools/degraded/x", True),
     ("docs/method.md (3e), (3f)", False), ("docs/method.md (10)-(11)", False), ("docs/method.md 5.4", False),
     ("docs/method.md section 2.3, equation (3b)", False), ('docs/reliability.md, "Bad input"', False),
     ("tests/unit/test_doc_references.py::test_comments_and_docstrings_point_inside_the_repository", False),

@@ -1,0 +1,47 @@
+"""The one scorer of ``quick-stream bench quality``: every method's output frames against the same
+input frames, through :class:`~quick_stream.quality.metrics.MetricsAccumulator` and the
+border-free cropping of :mod:`quick_stream.quality.metrics_border` (given the metrics'
+input-output homography of each frame, so dark scene content is not taken for a border)."""
+from __future__ import annotations
+
+import time
+from typing import Iterable
+
+import numpy as np
+
+from ..quality.metrics import MetricsAccumulator
+from ..quality.metrics_border import BorderFreeAccumulator, border_free_cropping
+
+
+class Scorer:
+    """The one scorer: quality metrics and border-free cropping, frame pair by frame pair."""
+
+    def __init__(self, fps: float) -> None:
+        self.metrics = MetricsAccumulator(fps)
+        self.border = BorderFreeAccumulator()
+        self.seconds = 0.0
+
+    def add(self, input_frame: np.ndarray, output_frame: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        self.metrics.add(input_frame, output_frame)
+        self.border.add(output_frame, input_frame, self.metrics.last_homography)
+        self.seconds += time.perf_counter() - t0
+
+    def result(self) -> dict:
+        m = self.metrics.result().as_dict()
+        m.update(self.border.as_dict())
+        m["border_free_cropping"] = border_free_cropping(m["cropping"], self.border.scale)
+        m["scorer_seconds"] = self.seconds
+        return m
+
+
+def score_frames(inputs: list[np.ndarray], outputs: Iterable[np.ndarray], fps: float) -> dict:
+    """Metrics of ``outputs`` (aligned with ``inputs``, same count) with :class:`Scorer`."""
+    sc = Scorer(fps)
+    n = 0
+    for a, b in zip(inputs, outputs):
+        sc.add(a, b)
+        n += 1
+    if n != len(inputs):
+        raise ValueError(f"{n} output frames for {len(inputs)} inputs")
+    return sc.result()
