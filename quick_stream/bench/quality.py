@@ -107,7 +107,8 @@ class CorrectionCounts:
 
     def add(self, correction: Correction) -> None:
         self.uncorrected += not correction.valid
-        self.motion[correction.motion] += 1
+        # "fit" is the field's default; read so that a planner without the field still counts
+        self.motion[getattr(correction, "motion", "fit")] += 1
 
     def as_dict(self) -> dict:
         """``uncorrected`` and ``motion_kinds`` (kind -> frames, most frames first)."""
@@ -183,7 +184,7 @@ def run_clip(clip: Clip, cfg: QualityConfig, progress: Progress | None = None) -
         if clip.spec is None:
             continue
         say(f"{label} on the unshaken reference")
-        _, corr_ref = run_ours(clip.reference, v, cfg.frames, None, fps)
+        ref_row, corr_ref = run_ours(clip.reference, v, cfg.frames, None, fps)
         est, ref = corr_dir / f"{_slug(v.name)}.txt", corr_dir / f"{_slug(v.name)}_reference.txt"
         write_corrections(est, corr)
         write_corrections(ref, corr_ref)
@@ -192,7 +193,9 @@ def run_clip(clip: Clip, cfg: QualityConfig, progress: Progress | None = None) -
             plain = score_rotation(cfg.shake_tool, shake, est)
             with_ref = score_rotation(cfg.shake_tool, shake, est, ref)
             shake_scores[label] = {"without_reference": plain, "with_reference": with_ref,
-                                   "corrections": str(est), "reference_corrections": str(ref)}
+                                   "corrections": str(est), "reference_corrections": str(ref),
+                                   "reference_run": {k: ref_row[k] for k in ("frames_out", "uncorrected",
+                                                                             "motion_kinds")}}
         except (RuntimeError, ValueError, OSError) as e:
             shake_scores[label] = {"error": str(e)}
     if cfg.baselines:

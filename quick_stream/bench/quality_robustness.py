@@ -84,8 +84,8 @@ def format_robustness(rows: list[dict]) -> str:
     cw = max(16, *(len(x["clip"]) for x in rows))
     nw = max(7, *(len(x["cell"]) for x in rows))
     head = (f"{'known-shake clip':{cw}s} {'cell':{nw}s} {'ours px':>8s} {'  best peer px':21s} {'ours deg':>8s} "
-            f"{'  best peer deg':21s} {'bf crop':>7s} {'distort':>7s} {'uncorr':>6s}  "
-            + " ".join(f"{a:>6s}" for a in AXES) + "  peers not scored")
+            f"{'  best peer deg':21s} {'bf crop':>7s} {'distort':>7s} {'uncorr':>6s} "
+            + " ".join(f"{a:>8s}" for a in AXES) + "  peers not scored")
     lines = ["robustness: ours vs the best peer per column (lowest jitter); shake removed with --reference, "
              "per axis", head]
     notes = []
@@ -99,10 +99,10 @@ def format_robustness(rows: list[dict]) -> str:
         cells += [_num(o.get("border_free_cropping"), ".3f", 7), _num(o.get("distortion"), ".3f", 7),
                   str(o.get("uncorrected", "-")).rjust(6)]
         rm = x.get("removed_with_reference")
-        removed = (" ".join(f"{100 * v:5.1f}%" for v in rm) if rm else
-                   " ".join("-".rjust(6) for _ in AXES))
+        removed = (" ".join(f"{100 * v:7.1f}%" for v in rm) if rm else
+                   " ".join("-".rjust(8) for _ in AXES))
         unscored = ", ".join(short(n) for n in x["peers_not_scored"]) or "-"
-        lines.append(" ".join(cells) + "  " + removed + "  " + unscored)
+        lines.append(" ".join(cells) + " " + removed + "  " + unscored)
         where = f"  {x['clip']} {x['cell']}:"
         if o.get("failed"):
             notes.append(f"{where} ours: scorer failed: {o.get('failure_reason', '')}")

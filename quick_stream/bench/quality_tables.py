@@ -67,6 +67,11 @@ def format_clip(c: dict) -> str:
             a = " ".join(f"{100 * x:6.1f}%" for x in s["without_reference"]["removed_fraction"])
             b = " ".join(f"{100 * x:6.1f}%" for x in s["with_reference"]["removed_fraction"])
             lines.append(f"{name:{width}s} {a}   |                   {b}")
+            run = s.get("reference_run")
+            if run:
+                lines.append(f"  {name} on the unshaken reference: frames by motion: "
+                             + ", ".join(f"{k} {n}" for k, n in run["motion_kinds"].items())
+                             + f"; not corrected {run['uncorrected']}")
             for key in ("without_reference", "with_reference"):
                 if "warning" in s[key]:
                     lines.append(f"  {name} ({key.replace('_', ' ')}): WARNING {s[key]['warning']}")

@@ -295,7 +295,7 @@ def test_robustness_grid_and_its_table():
     lines = text.splitlines()
     assert lines[0].startswith("robustness") and "best peer px" in lines[1] and "uncorr" in lines[1]
     assert lines[2].split()[:7] == ["src:3:0-9", "clean", "0.500", "0.200", "deshake", "0.0500", "0.0200"]
-    assert "90.0%  80.0%  70.0%  75.0%" in lines[2] and lines[2].endswith("vidstab.py, vidgear")
+    assert "   90.0%    80.0%    70.0%    75.0%  " in lines[2] and lines[2].endswith("vidstab.py, vidgear")
     assert lines[3].split()[:5] == ["src:3:0-9", "blur1", "0.500", "0.300", "vidgear"]
     assert "deshake" in lines[3].split("%")[-1]
     assert any("blur1: deshake (ffmpeg): scorer failed: frame 4" in ln for ln in lines[4:])
@@ -347,7 +347,9 @@ def test_run_with_a_degrade_cell_through_stand_in_tools(tmp_path):
     assert degraded["made"]["degrade"]["shaken"][-1] == "--force" and degraded["source"] == "src"
     assert [(x["clip"], x["cell"]) for x in r["robustness"]] == [("src:2:0-9", "clean"), ("src:2:0-9", "b")]
     assert r["robustness"][1]["removed_with_reference"] == [0.9, 0.8, 0.7, 0.75]
+    ref_run = degraded["shake_removed"]["ours"]["reference_run"]
+    assert ref_run["frames_out"] == 8 and sum(ref_run["motion_kinds"].values()) == 8
     text = quality_tables.format_tables(r)
-    assert "robustness:" in text and "degrade cell b: " in text
+    assert "robustness:" in text and "degrade cell b: " in text and "ours on the unshaken reference: frames by" in text
     json.dumps(r, default=quality_tables.json_default)
     shutil.rmtree(tmp_path / "work")
