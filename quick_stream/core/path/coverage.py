@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..render.framing import outline
-from .budget import SegmentMeshes
+from .budget import SegmentMeshes, dual_qp
 from .smoother import SegmentSystem
 
 
@@ -117,9 +117,7 @@ def bounded_zoom_track(zoom_system: SegmentSystem, committed_w: np.ndarray, uppe
                        lower: float) -> np.ndarray:
     """The zoom track w (N,) of docs/method.md (11) (``zoom_system`` continuing ``committed_w``) with
     ``lower`` <= w_t <= ``upper``_t (an upper bound below ``lower`` gives way to it), solved in its
-    dual by non-negative least squares like :func:`.budget.constrain`."""
-    from scipy.optimize import nnls  # not at module level: only the motion stage needs it (PathPlanner loads it)
-
+    dual by non-negative least squares (:func:`.budget.dual_qp`)."""
     N = len(upper)
     w0 = zoom_system.unconstrained(np.ones((N, 1)), np.asarray(committed_w, dtype=np.float64).reshape(-1, 1))[:, 0]
     u = np.maximum(np.asarray(upper, dtype=np.float64), lower)
@@ -128,9 +126,4 @@ def bounded_zoom_track(zoom_system: SegmentSystem, committed_w: np.ndarray, uppe
     d = np.concatenate([-u[bounded], np.full(N, lower)])
     if np.all(C @ w0 >= d - 1e-12):
         return w0
-    HinvCt = zoom_system.solve(C.T)
-    M = C @ HinvCt
-    M[np.diag_indices_from(M)] += 1e-10 * max(float(np.trace(M)) / len(M), 1e-30)
-    L = np.linalg.cholesky(M)
-    y, _ = nnls(L.T, np.linalg.solve(L, d - C @ w0), maxiter=50 * len(d))
-    return w0 + HinvCt @ y
+    return dual_qp(C, d, zoom_system.solve(C.T), w0)[0]

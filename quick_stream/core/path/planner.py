@@ -104,7 +104,11 @@ class SegmentInfo:
     solve_ms: float
     reason: str = ""
     budget_frames: int = 0  # smooth mode: frames that got crop-budget constraints
-    budget_margin_px: float = float("inf")  # smooth mode: smallest margin to the border left (px; < 0 over budget)
+    budget_margin_px: float = float("inf")  # smooth mode: smallest margin to the border the released frames
+    # keep at their released zoom (px; < 0: over budget; docs/method.md (10), (10a))
+    budget_rounds: int = 0  # smooth mode: QPs the budget's SQP solved (0: the path was kept, zoom planned alone)
+    budget_converged: bool = True  # smooth mode: the SQP met its stopping rule (False: stopped at max_rounds)
+    budget_gap: float = 0.0  # smooth mode: share of the budget's cost its last QP still promised to save
 
 
 class PathPlanner:
@@ -246,6 +250,7 @@ class PathPlanner:
             if p.budget.fill > 0 and p.budget.fill_reach > 0:
                 w = self._fill_zoom(meshes, correction, X, base @ g.exp(q), q, w, rep.upper, zoom_system)
             zooms = [float(z) for z in np.clip(1.0 / np.maximum(w, 1e-9), 1.0, p.budget.max_zoom)]
+            rep.worst_margin_px = rep.margin_px(1.0 / np.asarray(zooms[:R]), p.budget.margin_px)  # as released
         # The EP problem (docs/method.md (4)-(6)) with the smoothed path's own velocities as
         # targets and its keyframe pose as end-constraint: its solution is that path.
         Q = g.exp(q[:R])
@@ -256,7 +261,7 @@ class PathPlanner:
         ms = (time.perf_counter() - t0) * 1e3
         self.segments.append(SegmentInfo(seg, self._start, self._seqs[R - 1], closed_by, sol.converged,
                                          sol.iterations, sol.residual, sol.cost, ms, sol.reason, rep.constrained,
-                                         rep.worst_margin_px))
+                                         rep.worst_margin_px, rep.rounds, rep.converged, rep.gap))
         if zooms[0] is not None:
             self._zooms = (self._zooms + zooms[:R])[-3:]
         out = [Correction(s, corrections[i], seg, i == R - 1, zoom=zooms[i], camera=X[i], chain=self._chain)
