@@ -213,5 +213,146 @@ def test_adapter_on_real_depthai_imgframes_from_a_host_only_pipeline(tmp_path):
     assert 6 not in [f.capture["seq_color"] for f in frames]
 
 
+# --- stereo settings: parsed from the spec, written into the StereoDepth node the device backend builds ----
+
+from unittest import mock  # noqa: E402
+
+from quick_stream.io.sources import check_source  # noqa: E402
+from quick_stream.io.sources.oak import PRESETS, StereoSettings, oak_settings  # noqa: E402
+from quick_stream.io.sources.oak_device import DepthaiBackend, preset_mode, stereo_config  # noqa: E402
+
+
+def test_stereo_options_have_measured_defaults_and_bad_values_are_named():
+    s = oak_settings({})["stereo"]
+    assert s == StereoSettings(preset="fast_accuracy", subpixel=3, lr_check=True, confidence=55, median=7,
+                               spatial=False, temporal=False, speckle=False, extended=False)
+    got = oak_settings({"preset": "ROBOTICS", "subpixel": "off", "median": "5", "lr_check": "0", "confidence": "200",
+                        "spatial": "on", "temporal": "true", "speckle": "1", "extended": "yes"})["stereo"]
+    assert got == StereoSettings("robotics", 0, False, 200, 5, True, True, True, True)
+    assert oak_settings({"subpixel": "5", "median": "off"})["stereo"].subpixel == 5
+    for spec, message in [("preset=turbo", "preset='turbo' must be one of fast_accuracy, fast_density"),
+                          ("subpixel=2", "subpixel='2' must be one of 0, 3, 4, 5"),
+                          ("median=9", "median='9' must be one of 0, 3, 5, 7"),
+                          ("confidence=300", r"confidence='300' must be an integer in \[0, 255\]"),
+                          ("confidence=-1", "confidence='-1' must be an integer"),
+                          ("lr_check=maybe", "lr_check='maybe' must be 1 or 0"),
+                          ("subpixel=5", "median=7 runs only with subpixel=3 or subpixel=0")]:
+        with pytest.raises(SourceError, match=message):
+            open_source(f"depthai:,{spec}")
+        with pytest.raises(SourceError, match=message):  # the launcher's check, before any process starts
+            check_source(f"depthai:,{spec}")
+    assert len(list(open_source(fake_spec(frames=2) + ",median=5,subpixel=3"))) == 2  # the fake has no matcher
+
+
+def test_every_preset_name_is_one_of_the_installed_depthai():
+    assert {preset_mode(dai, p).name for p in PRESETS} == set(dai.node.StereoDepth.PresetMode.__members__)
+    with pytest.raises(ValueError, match="has no stereo preset 'turbo' .it has: fast_accuracy"):
+        preset_mode(dai, "turbo")
+
+
+def _config_as_a_preset_leaves_it():
+    """A StereoDepthConfig as depthai's DEFAULT preset leaves it (filters on, decimation 2, 5 bits)."""
+    c = dai.StereoDepthConfig()
+    c.setConfidenceThreshold(15)
+    c.setSubpixelFractionalBits(5)
+    c.setMedianFilter(dai.StereoDepthConfig.MedianFilter.MEDIAN_OFF)
+    c.setDepthUnit(dai.StereoDepthConfig.AlgorithmControl.DepthUnit.METER)
+    for f in (c.postProcessing.spatialFilter, c.postProcessing.temporalFilter, c.postProcessing.speckleFilter):
+        f.enable = True
+    c.postProcessing.decimationFilter.decimationFactor = 2
+    return c
+
+
+def _stereo_state(c) -> dict:
+    pp = c.postProcessing
+    return {"lr_check": c.getLeftRightCheck(), "extended": c.getExtendedDisparity(), "subpixel": c.getSubpixel(),
+            "bits": c.getSubpixelFractionalBits(), "confidence": c.getConfidenceThreshold(),
+            "median": c.getMedianFilter().name, "unit": c.getDepthUnit().name, "spatial": pp.spatialFilter.enable,
+            "temporal": pp.temporalFilter.enable, "speckle": pp.speckleFilter.enable,
+            "decimation": pp.decimationFilter.decimationFactor}
+
+
+def test_stereo_settings_overwrite_what_a_preset_left_in_a_real_depthai_config():
+    c = stereo_config(dai, _config_as_a_preset_leaves_it(), StereoSettings())
+    assert _stereo_state(c) == {"lr_check": True, "extended": False, "subpixel": True, "bits": 3, "confidence": 55,
+                                "median": "KERNEL_7x7", "unit": "MILLIMETER", "spatial": False, "temporal": False,
+                                "speckle": False, "decimation": 1}
+    c = stereo_config(dai, dai.StereoDepthConfig(), StereoSettings(subpixel=0, median=3, lr_check=False, spatial=True))
+    assert (c.getSubpixel(), c.getMedianFilter().name, c.getLeftRightCheck(), c.postProcessing.spatialFilter.enable) \
+        == (False, "KERNEL_3x3", False, True)
+
+
+class StandInDevice:
+    """depthai with its device side stood in, for building the device backend's pipeline without a
+    camera: depthai makes device nodes (Camera, StereoDepth, Sync) only on a pipeline that holds a
+    device. ``Pipeline.create`` gives stand-ins specced on the real node classes (a method depthai's
+    node lacks fails); the StereoDepth stand-in holds a real ``StereoDepthConfig`` as its
+    ``initialConfig``, and its ``setDefaultProfilePreset`` rewrites that config as a depthai preset
+    does. Everything else is the real depthai."""
+
+    def __init__(self) -> None:
+        self.nodes: dict[str, list] = {}
+        info = mock.Mock()
+        info.getDeviceId.return_value = "14442C10D13EABCE00"
+        owner = self
+
+        class Device:
+            getAllAvailableDevices = staticmethod(lambda: [info])
+
+            def __init__(self, found) -> None:
+                self.info = found
+
+        class Pipeline:
+            def __init__(self, device) -> None:
+                self.device = device
+
+            def create(self, kind):
+                node = mock.create_autospec(kind, instance=True)
+                if kind is dai.node.StereoDepth:
+                    node.initialConfig = dai.StereoDepthConfig()
+
+                    def preset(mode, node=node):
+                        node.initialConfig = _config_as_a_preset_leaves_it()
+
+                    node.setDefaultProfilePreset.side_effect = preset
+                owner.nodes.setdefault(kind.__name__, []).append(node)
+                return node
+
+        self.Device, self.Pipeline = Device, Pipeline
+
+    def __getattr__(self, name):
+        return getattr(dai, name)
+
+
+@pytest.mark.parametrize("options, preset, state, shaves", [
+    ("", "FAST_ACCURACY", {"subpixel": True, "bits": 3, "median": "KERNEL_7x7", "confidence": 55, "spatial": False,
+                           "temporal": False}, False),
+    (",preset=robotics,subpixel=0,median=5,confidence=200,speckle=1", "ROBOTICS",
+     {"subpixel": False, "median": "KERNEL_5x5", "confidence": 200, "speckle": True, "temporal": False}, True),
+])
+def test_the_device_backend_builds_its_stereo_node_with_the_specs_settings(options, preset, state, shaves):
+    src = open_source(f"depthai:14442C10D13EABCE00,width=640,height=400{options}")
+    backend = src.backend
+    assert isinstance(backend, DepthaiBackend)
+    backend.dai = device = StandInDevice()
+    backend.build()
+    (stereo,) = device.nodes["StereoDepth"]
+    assert stereo.setDefaultProfilePreset.call_args == mock.call(getattr(dai.node.StereoDepth.PresetMode, preset))
+    got = _stereo_state(stereo.initialConfig)  # the config the node was left with, after its preset
+    assert {k: got[k] for k in state} == state
+    assert (got["lr_check"], got["decimation"], got["unit"]) == (True, 1, "MILLIMETER")
+    assert stereo.setRectifyEdgeFillColor.call_args == mock.call(0)
+    assert stereo.setPostProcessingHardwareResources.called == shaves
+    colour, left, right = (c.build.return_value for c in device.nodes["Camera"])
+    assert [c.build.call_args for c in device.nodes["Camera"]] == \
+        [mock.call(s) for s in (dai.CameraBoardSocket.CAM_A, dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C)]
+    rgb = colour.requestOutput.return_value
+    assert mock.call(stereo.inputAlignTo) in rgb.link.call_args_list  # depth aligned to the colour output
+    assert left.requestOutput.return_value.link.call_args == mock.call(stereo.left)
+    assert right.requestOutput.return_value.link.call_args == mock.call(stereo.right)
+    (sync,) = device.nodes["Sync"]
+    assert stereo.depth.link.call_args == mock.call(sync.inputs["depth"])
+
+
 # --- end to end: the fake device feeds capture, the pipeline stabilizes, the recording replays -------
 

@@ -8,6 +8,13 @@ entry point raises an ImportError naming the extra. Pipeline (depthai v3):
     Camera CAM_B/CAM_C --requestOutput--> StereoDepth.left/right --depth (uint16 mm)--> Sync.inputs["depth"]
     Sync (threshold: the source's tolerance_ms) --MessageGroup--> one output queue
 
+The StereoDepth node gets the source's :class:`~quick_stream.io.sources.oak.StereoSettings`
+(:func:`configure_stereo`): its preset first, then every setting on the node's ``initialConfig``
+(in depthai v3 the node's own ``setLeftRightCheck``/``setSubpixel``/... write to that same config),
+so nothing is left to defaults that differ between depthai versions and presets (depthai 3.12's
+config defaults to 5 subpixel bits and no median; its DEFAULT preset decimates by 2, which would
+halve the depth's size).
+
 Colour and depth are paired on the device: the ``Sync`` node sends a group only when it holds a
 colour and a depth frame within the threshold of each other, so a frame whose partner was lost
 never reaches the host (it shows as a gap in the device sequence numbers). The queue is
@@ -22,7 +29,7 @@ import datetime
 import logging
 from typing import Any
 
-from .oak import DeviceGone, EXTRA_HINT, NoDevice
+from .oak import DeviceGone, EXTRA_HINT, NoDevice, StereoSettings
 
 log = logging.getLogger("quick_stream.io.sources.oak_device")
 
@@ -65,6 +72,51 @@ def synced_queue(dai: Any, pipeline: Any, color: Any, depth: Any, tolerance_ms: 
     color.link(sync.inputs[COLOR])
     depth.link(sync.inputs[DEPTH])
     return sync.out.createOutputQueue(maxSize=queue_size, blocking=False)
+
+
+MEDIAN_KERNELS = {0: "MEDIAN_OFF", 3: "KERNEL_3x3", 5: "KERNEL_5x5", 7: "KERNEL_7x7"}
+
+
+def preset_mode(dai: Any, name: str) -> Any:
+    """depthai's ``StereoDepth.PresetMode`` called ``name`` (any case); ValueError naming those this
+    depthai has when it lacks it."""
+    modes = dai.node.StereoDepth.PresetMode
+    mode = getattr(modes, name.upper(), None)
+    if mode is None:
+        have = ", ".join(n.lower() for n in modes.__members__)
+        raise ValueError(f"depthai {getattr(dai, '__version__', '?')} has no stereo preset {name!r} (it has: {have})")
+    return mode
+
+
+def stereo_config(dai: Any, config: Any, s: StereoSettings) -> Any:
+    """Write the settings ``s`` into a ``StereoDepthConfig`` (a node's ``initialConfig``, or one made
+    on the host); returns it. Decimation stays 1 and depth in millimetres, whatever a preset set."""
+    config.setLeftRightCheck(s.lr_check)
+    config.setExtendedDisparity(s.extended)
+    config.setSubpixel(s.subpixel > 0)
+    if s.subpixel:
+        config.setSubpixelFractionalBits(s.subpixel)
+    config.setConfidenceThreshold(s.confidence)
+    config.setMedianFilter(getattr(dai.StereoDepthConfig.MedianFilter, MEDIAN_KERNELS[s.median]))
+    config.setDepthUnit(dai.StereoDepthConfig.AlgorithmControl.DepthUnit.MILLIMETER)
+    post = config.postProcessing
+    post.spatialFilter.enable = s.spatial
+    post.temporalFilter.enable = s.temporal
+    post.speckleFilter.enable = s.speckle
+    post.decimationFilter.decimationFactor = 1  # depth keeps the colour's size (to_rgbd checks it)
+    return config
+
+
+def configure_stereo(dai: Any, stereo: Any, s: StereoSettings) -> None:
+    """Apply ``s`` to a StereoDepth node: the preset (which rewrites the initial config), then the
+    settings on top of it (:func:`stereo_config`); black, not replicated, pixels where rectification
+    leaves no data; the post-processing SHAVEs depthai's filtering presets reserve when a SHAVE filter
+    (spatial, temporal, speckle) is on."""
+    stereo.setDefaultProfilePreset(preset_mode(dai, s.preset))
+    stereo_config(dai, stereo.initialConfig, s)
+    stereo.setRectifyEdgeFillColor(0)
+    if s.spatial or s.temporal or s.speckle:
+        stereo.setPostProcessingHardwareResources(3, 3)
 
 
 def print_devices() -> int:
@@ -139,12 +191,14 @@ class DepthaiBackend(PipelineBackend):
     """Colour + aligned stereo depth from one OAK device (``device_id`` None: the first found)."""
 
     def __init__(self, device_id: str | None, width: int = 640, height: int = 400, fps: float = 30.0,
-                 tolerance_ms: float = 10.0, queue_size: int = 4) -> None:
+                 tolerance_ms: float = 10.0, queue_size: int = 4, stereo: StereoSettings | None = None) -> None:
         super().__init__()
         self.device_id = device_id or "first available"
         self._want = device_id
         self.width, self.height, self.fps, self.queue_size = width, height, fps, queue_size
         self.tolerance_ms = tolerance_ms
+        self.stereo = stereo or StereoSettings()
+        preset_mode(self.dai, self.stereo.preset)  # a preset this depthai lacks fails before any device is opened
 
     def _find(self) -> Any:
         dai = self.dai
@@ -169,15 +223,15 @@ class DepthaiBackend(PipelineBackend):
         left = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
         right = pipeline.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
         stereo = pipeline.create(dai.node.StereoDepth)
-        stereo.setLeftRightCheck(True)
-        stereo.setRectifyEdgeFillColor(0)
+        configure_stereo(dai, stereo, self.stereo)
         size = (self.width, self.height)
         rgb = cam.requestOutput(size, dai.ImgFrame.Type.BGR888i, fps=self.fps)
         left.requestOutput(size, fps=self.fps).link(stereo.left)
         right.requestOutput(size, fps=self.fps).link(stereo.right)
         rgb.link(stereo.inputAlignTo)  # depth resampled to the colour camera's view and size
         queue = synced_queue(dai, pipeline, rgb, stereo.depth, self.tolerance_ms, self.queue_size)
-        log.info("depthai %s: streaming %dx%d at %g fps", self.device_id, self.width, self.height, self.fps)
+        log.info("depthai %s: streaming %dx%d at %g fps; stereo %s", self.device_id, self.width, self.height,
+                 self.fps, self.stereo)
         return pipeline, queue
 
     def __repr__(self) -> str:
