@@ -1,7 +1,12 @@
 """The one scorer of ``quick-stream bench quality``: every method's output frames against the same
 input frames, through :class:`~quick_stream.quality.metrics.MetricsAccumulator` and the
 border-free cropping of :mod:`quick_stream.quality.metrics_border` (given the metrics'
-input-output homography of each frame, so dark scene content is not taken for a border)."""
+input-output homography of each frame, so dark scene content is not taken for a border).
+
+``jitter_px_border_free``: the jitter in pixels a method would show once made border-free by the one
+static crop that removes every border it left (its border-free scale s zooms the output by 1 / s, so its
+pixel jitter grows by 1 / s; a border-free method's is its jitter). The pixel jitter of methods that
+leave black borders is only comparable with a border-free one's through it."""
 from __future__ import annotations
 
 import time
@@ -31,6 +36,8 @@ class Scorer:
         m = self.metrics.result().as_dict()
         m.update(self.border.as_dict())
         m["border_free_cropping"] = border_free_cropping(m["cropping"], self.border.scale)
+        # the static crop that removes every border magnifies what is left of the shake by 1 / scale
+        m["jitter_px_border_free"] = m["jitter_px"] / self.border.scale if self.border.scale > 0 else float("inf")
         m["scorer_seconds"] = self.seconds
         return m
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..core.frame import RGBDFrame
 from ..core.lie import GROUPS
-from ..core.motion import ESTIMATORS, MotionParams, integrate_path
+from ..core.motion import ESTIMATORS, KINDS, MotionParams, integrate_path
 from ..core.motion_pipeline import MotionPipeline, run_motion, true_motion
 from ..core.sceneflow import DIS_PRESETS, SceneFlowParams
 from ..io.sources import SourceError, open_source
@@ -68,6 +68,31 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _fmt_stats(name: str, s: ErrorStats, ms: float) -> str:
     return (f"{name:<24} {s.n:>5} {s.rot_median:>8.4f} {s.rot_mean:>8.4f} {s.rot_rmse:>8.4f} "
             f"{s.trans_median:>8.2f} {s.trans_mean:>8.2f} {s.trans_rmse:>8.2f} {ms:>9.2f}")
+
+
+DISPLACEMENT_BINS = (0, 5, 10, 20, 30, 45, float("inf"))  # px a pair: fr1/rpy moves up to ~60
+
+
+def flow_consistency(pairs: list) -> list[dict]:
+    """The scene flow's consistency against the image motion (docs/method.md (1a)): per bin of a pair's
+    median displacement, the share of its candidates with valid depth that the forward-backward test and
+    the Lucas-Kanade refinement rejected, the share kept, and the median rotation error (ground truth)."""
+    out = []
+    for lo, hi in zip(DISPLACEMENT_BINS, DISPLACEMENT_BINS[1:]):
+        sel = [p for p in pairs if lo <= p.displacement_px < hi]
+        if not sel:
+            continue
+        share = {k: [] for k in ("fb_inconsistent", "lk_rejected", "kept")}
+        for p in sel:
+            c = p.counts
+            cand = max(c.get("sampled", 0) - c.get("invalid_depth", 0) - c.get("depth_edge", 0), 1)
+            for k in share:
+                share[k].append(c.get(k, 0) / cand)
+        errs = [relative_pose_error(p.motion.matrix, p.truth)[0] for p in sel if p.truth is not None and p.motion.valid]
+        out.append({"bin": f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">={lo:g}", "pairs": len(sel),
+                    "fb_rejected": float(np.mean(share["fb_inconsistent"])), "lk_rejected": float(np.mean(share["lk_rejected"])),
+                    "kept": float(np.mean(share["kept"])), "rot_median_deg": float(np.median(errs)) if errs else float("nan")})
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -128,6 +153,10 @@ def run(args: argparse.Namespace) -> int:
         {"seq": p.motion.seq, "seq_next": p.motion.seq_next, "reason": p.motion.reason}
         for p in result.pairs if not p.motion.valid
     ]
+    consistency = flow_consistency(result.pairs)
+    by_kind = {k: pair_error_stats(p for p in result.pairs if p.motion.kind == k)
+               for k in KINDS if k != "none" and any(p.motion.kind == k for p in result.pairs)}
+    kinds = {k: sum(p.motion.kind == k for p in result.pairs) for k in KINDS}
     report: dict = {
         "source": args.source,
         "group": args.group,
@@ -139,6 +168,11 @@ def run(args: argparse.Namespace) -> int:
         "wall_s": wall,
         "timing_ms": timing,
         "methods": {name: {"ms_per_pair": ours_ms, **stats.as_dict()}},
+        "motions_by_kind": kinds,
+        "flow_consistency": consistency,
+        "errors_by_kind": {k: s.as_dict() for k, s in by_kind.items()},
+        "fallbacks": [{"seq": p.motion.seq, "seq_next": p.motion.seq_next, "kind": p.motion.kind,
+                       "reason": p.motion.reason} for p in result.pairs if p.motion.kind in ("rotation", "bridge")],
         "bad_frames": result.failures,
         "invalid_motions": invalid,
     }
@@ -177,6 +211,21 @@ def run(args: argparse.Namespace) -> int:
     for mname, m in report["methods"].items():
         s = ErrorStats(**{k: m[k] for k in ErrorStats.__dataclass_fields__})
         say(_fmt_stats(mname, s, m["ms_per_pair"]))
+        if mname == name and len(by_kind) > 1:  # ours by how each motion was known (docs/method.md 2.4)
+            for k, ks in by_kind.items():
+                say(_fmt_stats(f"  by {k}", ks, float("nan")))
+    say("\nscene flow against the image motion (median px a pair): candidates with valid depth the "
+        "forward-backward test and Lucas-Kanade rejected, samples kept, rotation error:")
+    say(f"{'px':>9} {'pairs':>6} {'fb rej':>7} {'lk rej':>7} {'kept':>7} {'rot med':>8}")
+    for row in consistency:
+        say(f"{row['bin']:>9} {row['pairs']:>6} {row['fb_rejected']:>7.3f} {row['lk_rejected']:>7.3f} "
+            f"{row['kept']:>7.3f} {row['rot_median_deg']:>8.4f}")
+    say("\nmotions by how they were known (docs/method.md 2.4): "
+        + ", ".join(f"{k} {n}" for k, n in kinds.items()))
+    for rec in report["fallbacks"][:10]:
+        say(f"{rec['kind']} {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
+    if len(report["fallbacks"]) > 10:
+        say(f"... {len(report['fallbacks']) - 10} more fallbacks")
     for rec in invalid[:10]:
         say(f"invalid motion {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
     if len(invalid) > 10:

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from ..core.motion import integrate_path
+from ..core.path.planner import CORRECTION_MOTIONS
 from ..core.stabilizer import StabilizedFrame, Stabilizer
 from ..io.plot import path_components, plot_paths
 from ..io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink, check_video
@@ -135,6 +136,7 @@ def _run(args: argparse.Namespace) -> int:
             c = sf.correction
             records.append({"seq": sf.seq, "timestamp_ns": sf.timestamp_ns, "segment": c.segment,
                             "keyframe": c.keyframe, "valid": c.valid and sf.mesh.ok, "flags": sf.flags,
+                            "motion": c.motion, "uncorrected": not c.valid,
                             "zoom": sf.zoom, "correction": c.matrix.round(9).tolist()})
         out_ms.append((time.perf_counter() - t0) * 1e3)
         progress.update(len(batch))
@@ -177,6 +179,8 @@ def _run(args: argparse.Namespace) -> int:
         "segments": [s.__dict__ for s in stab.planner.segments],
         "bad_frames": stab.bad_frames,
         "flagged_frames": [{"seq": r["seq"], "flags": r["flags"]} for r in records if r["flags"]],
+        "uncorrected_frames": sum(r["uncorrected"] for r in records),
+        "frames_by_motion": {k: n for k in CORRECTION_MOTIONS if (n := sum(r["motion"] == k for r in records))},
         "frames": records,
     }
     seqs = [r["seq"] for r in records]
@@ -214,7 +218,9 @@ def _run(args: argparse.Namespace) -> int:
               f"(input {m['input_jitter_px']:.2f} px / {m['input_jitter_deg']:.3f} deg)"
               + (f"; FAILED: {m['failure_reason']}" if m["failed"] else ""))
     print(f"segments: {len(report['segments'])}, bad frames: {len(stab.bad_frames)}, "
-          f"flagged frames: {len(report['flagged_frames'])}")
+          f"flagged frames: {len(report['flagged_frames'])}, uncorrected frames: {report['uncorrected_frames']}")
+    print("frames by how their motion was known (docs/method.md 2.4): "
+          + ", ".join(f"{k} {n}" for k, n in report["frames_by_motion"].items()))
     if "shake" in report:
         a, b = report["shake"]["input"], report["shake"]["stabilized"]
         print(f"high-frequency shake (vs ground truth): rotation {a['rot_deg']:.3f} -> {b['rot_deg']:.4f} deg "

@@ -170,7 +170,8 @@ def status_lines(board: StatusBoard, sup: Supervisor, stream: str, t0: float) ->
         drops = sum(int(x) for k, x in v.items() if k.endswith("_dropped") or k == "dropped")
         notes = []
         for k in ("bad_frames", "decode_errors", "refused_frames", "invalid_frames", "missing_frames", "timestamp_jumps",
-                  "size_changes", "gaps", "invalid_motions", "orphans", "missing", "flagged", "internal_errors"):
+                  "size_changes", "gaps", "motions_rotation", "motions_bridge", "invalid_motions", "orphans",
+                  "missing", "flagged", "internal_errors"):
             if v.get(k):
                 notes.append(f"{k} {v[k]}")
         if "lat_proc_ms_p99" in v:

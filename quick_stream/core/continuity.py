@@ -45,6 +45,9 @@ COUNTERS = ("invalid_frames", "repaired_frames", "duplicate_frames", "out_of_ord
 # reason and the restart correction's ``reason``): how the render stage tells, from the correction
 # stream alone, where the new numbering's corrections begin (:func:`restarts_numbering`).
 RENUMBERED = "the stream's numbering restarts"
+# Ends every break's reason: the flow does not bridge it, so no motion across it may be guessed either
+# (the motion stage's constant-velocity bridge leaves it to the path's restart, docs/method.md 2.4).
+BREAK = "no scene flow across it, the path restarts"
 
 
 class FrameRefused(ValueError):
@@ -95,6 +98,18 @@ def restarts_numbering(reason: str) -> bool:
     """Whether a break's ``reason`` (a flow's ``problem``, a correction's ``reason``) is a confirmed
     renumbering (:data:`RENUMBERED`)."""
     return RENUMBERED in reason
+
+
+def breaks_stream(problem: str) -> bool:
+    """Whether a flow's ``problem`` is a discontinuity the flow does not bridge (:data:`BREAK`)."""
+    return BREAK in problem
+
+
+def starts_numbering(c) -> bool:
+    """Whether correction ``c`` is the restart correction of a renumbering's break: marked a restart
+    (``motion`` "restart", docs/method.md 4.4; before that, an invalid correction) with the reason naming
+    the renumbering."""
+    return (c.motion == "restart" or not c.valid) and restarts_numbering(c.reason)
 
 
 class JumpGuard:
@@ -228,5 +243,5 @@ class ContinuityCheck:
                            f"cy={k0.cy:.2f} to fx={k1.fx:.2f} fy={k1.fy:.2f} cx={k1.cx:.2f} cy={k1.cy:.2f}")
         if reasons:
             c["breaks"] += 1
-            v.brk = "; ".join(reasons) + ": no scene flow across it, the path restarts"
+            v.brk = "; ".join(reasons) + f": {BREAK}"
         return v

@@ -8,8 +8,10 @@ quality layer's (:func:`quick_stream.quality.evaluation.rpe.pair_error_stats`).
 
 Bad frames (a :class:`~quick_stream.core.frame.BadFrame` from the source) are
 reported and skipped: the next good frame is paired with the last good one, so
-the camera path stays continuous; a motion that cannot be measured is flagged
-invalid and the path holds still across it.
+the camera path stays continuous. A flow the group's fit does not hold for gets the
+rotation-only fit, a flow with nothing in it the motion stage's constant-velocity bridge
+(:class:`~quick_stream.core.motion.chain.MotionBridge`, docs/method.md 2.4), as in the
+services; only a motion that is not known at all is invalid (the path holds still across it).
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ import numpy as np
 
 from .frame import BadFrame, RGBDFrame
 from .motion import MotionEstimate, MotionEstimator, MotionParams
+from .motion.chain import MotionBridge
 from .sceneflow import SceneFlow, SceneFlowParams
 from .timing import StageTimer, timed_iter
 
@@ -35,6 +38,7 @@ class PairRecord:
     flow_ms: float
     motion_ms: float
     counts: dict[str, int] = field(default_factory=dict)
+    displacement_px: float = float("nan")  # median image motion of the pair's kept samples (fast motion: large)
 
 
 class MotionPipeline:
@@ -43,19 +47,24 @@ class MotionPipeline:
     def __init__(self, flow_params: SceneFlowParams | None = None, motion_params: MotionParams | None = None):
         self.flow = SceneFlow(flow_params)
         self.motion = MotionEstimator(motion_params)
+        self.bridge = MotionBridge(self.motion.params.bridge_frames)
         self._prev: RGBDFrame | None = None
 
-    def push(self, frame: RGBDFrame) -> tuple[MotionEstimate, float, float, dict[str, int]] | None:
-        """Add the next good frame; returns (motion, flow ms, motion ms, mask counts) from the previous one."""
+    def push(self, frame: RGBDFrame) -> tuple[MotionEstimate, float, float, dict[str, int], float] | None:
+        """Add the next good frame; returns (motion, flow ms, motion ms, mask counts, median image motion of the
+        kept samples in px) from the previous one."""
         prev, self._prev = self._prev, frame
         if prev is None:
             return None
         t0 = time.perf_counter()
         sf = self.flow.compute(prev, frame)
         t1 = time.perf_counter()
-        m = self.motion.estimate(sf)
+        m = self.motion.estimate(sf)  # (the pipeline pairs consecutive good frames: no discontinuity check)
+        m = self.bridge.take(m, sf.seq_next - sf.seq)
         t2 = time.perf_counter()
-        return m, (t1 - t0) * 1e3, (t2 - t1) * 1e3, sf.counts
+        d = sf.pixels_next - sf.pixels
+        moved = float(np.median(np.sqrt(np.einsum("ij,ij->i", d, d)))) if len(sf) else float("nan")
+        return m, (t1 - t0) * 1e3, (t2 - t1) * 1e3, sf.counts, moved
 
 
 @dataclass
@@ -104,10 +113,10 @@ def run_motion(
         stamps.append(fr.timestamp_ns)
         out = pipeline.push(fr)
         if out is not None and prev is not None:
-            m, fms, mms, counts = out
+            m, fms, mms, counts, moved = out
             timer.add("flow", fms)
             timer.add("motion", mms)
-            rec = PairRecord(m, fr.timestamp_ns, true_motion(prev, fr), fms, mms, counts)
+            rec = PairRecord(m, fr.timestamp_ns, true_motion(prev, fr), fms, mms, counts, moved)
             pairs.append(rec)
             if on_pair:
                 on_pair(rec)

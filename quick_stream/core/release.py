@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NamedTuple
 
-from .continuity import restarts_numbering
+from .continuity import starts_numbering
 from .frame import RGBDFrame
 from .path.planner import Correction
 from .render import FramingParams, WarpParams
@@ -69,7 +69,7 @@ class ReleaseGroups:
     of that number (other size, or an index already there) starts a new one.
 
     ``ready`` holds (release, batch, completed at, numbering, closed by), in seq order within a numbering:
-    the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.restarts_numbering`,
+    the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.starts_numbering`,
     going back) starts the next numbering, whose releases follow every release of the old one.
     """
 
@@ -89,7 +89,7 @@ class ReleaseGroups:
 
     def _numbering(self, c: Correction) -> int:
         """The numbering ``c`` belongs to (a restart correction going back starts the next one)."""
-        if not c.valid and restarts_numbering(c.reason) and self._newest is not None and c.seq <= self._newest:
+        if starts_numbering(c) and self._newest is not None and c.seq <= self._newest:
             self.numbering += 1
             self._newest = None
         self._newest = c.seq if self._newest is None else max(self._newest, c.seq)

@@ -20,7 +20,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .continuity import JumpGuard, published_after, restarts_numbering
+from .continuity import JumpGuard, published_after, starts_numbering
 from .frame import RGBDFrame
 from .path.planner import Correction
 from .render import FramingParams, MeshWarp, WarpParams, ZoomSmoother, render, segment_zooms, solve_warp
@@ -94,7 +94,7 @@ class RenderStage:
     numbering still waiting (``numbering`` counts the renumberings taken, ``renumberings``
     too): the old numbering's corrections still come first, each batch renders against the
     frames of its own numbering, and once the corrections reach the new numbering (the
-    restart correction the renumbering's break made, :func:`~quick_stream.core.continuity.restarts_numbering`)
+    restart correction the renumbering's break made, :func:`~quick_stream.core.continuity.starts_numbering`)
     what is left of the old one is rendered uncorrected and flagged (``orphans``) before it.
     """
 
@@ -182,7 +182,7 @@ class RenderStage:
     @staticmethod
     def _restarts(batch: list[Correction]) -> bool:
         """Whether a batch begins a new numbering: the restart correction of a renumbering's break."""
-        return not batch[0].valid and restarts_numbering(batch[0].reason)
+        return starts_numbering(batch[0])
 
     def numbering_of(self, batch: list[Correction]) -> int:
         """The numbering a correction batch belongs to. The batch that restarts the path in a new

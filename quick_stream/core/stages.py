@@ -36,10 +36,11 @@ import logging
 import time
 from typing import Any
 
-from .continuity import ContinuityCheck, ContinuityParams, published_after, restarts_numbering
+from .continuity import ContinuityCheck, ContinuityParams, breaks_stream, published_after, restarts_numbering
 from .frame import RGBDFrame
-from .motion import MotionEstimate, MotionEstimator, MotionParams, invalid_motion
-from .path.budget import FrameModel
+from .motion import KINDS, MotionEstimate, MotionEstimator, MotionParams, invalid_motion
+from .motion.chain import MotionBridge
+from .path.frame_model import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .release import ReleaseNumbering, Tag
 from .render import WarpParams
@@ -94,6 +95,7 @@ class MotionStage:
                  warp: WarpParams | None = None) -> None:
         """``warp``: the render stage's warp parameters (the path's crop budget fits the same mesh)."""
         self.estimator = MotionEstimator(motion)
+        self.bridge = MotionBridge(self.estimator.params.bridge_frames)
         self.planner = PathPlanner(planner, warp)
         if self.planner.params.group != self.estimator.params.group:
             raise ValueError(f"motion group {self.estimator.params.group!r} and path group "
@@ -134,15 +136,21 @@ class MotionStage:
         if renumbered:
             self.renumberings += 1
             self._break = (flow.seq, flow.seq_next)
+            self.bridge.reset()
         p = self.estimator.params
         if flow.seq != self._last:
             self.gaps += 1
             gap = invalid_motion(self._last, flow.seq, p.group, p.estimator,
                                  f"no scene flow from frame {self._last} to {flow.seq} (frames skipped upstream)")
+            gap = self.bridge.take(gap, flow.seq - self._last)
             motions.append(gap)
             batches.append(self.planner.push(gap))
         t0 = time.perf_counter()
         m = self.estimator.estimate(flow)
+        if breaks_stream(flow.problem):  # a discontinuity: nothing may be guessed across it (method.md 2.4)
+            self.bridge.reset()
+        else:
+            m = self.bridge.take(m, flow.seq_next - flow.seq)
         t1 = time.perf_counter()
         motions.append(m)
         batches += split_numberings(self.planner.push(m, self.frame_model(flow)))
@@ -239,6 +247,7 @@ class MotionDriver:
         self.releases = ReleaseNumbering()
         self.resume_after, self.log = resume_after, log
         self.refused = self.invalid = self.taken_over = 0
+        self.kinds = dict.fromkeys(KINDS, 0)  # motions by how they were known (docs/method.md 2.4)
         self._renumberings = 0  # of the streams already ended
 
     def _say(self, level: int, msg: str, *args: Any) -> None:
@@ -264,9 +273,13 @@ class MotionDriver:
         if flow.seq_next <= flow.seq:
             self.resume_after = None  # a new numbering: the predecessor's cursor says nothing of it
         for m in motions:
+            self.kinds[m.kind] = self.kinds.get(m.kind, 0) + 1
             if not m.valid:
                 self.invalid += 1
-                self._say(logging.WARNING, "motion %d->%d invalid: %s", m.seq, m.seq_next, m.reason)
+                self._say(logging.WARNING, "motion %d->%d not known, the path restarts: %s", m.seq, m.seq_next,
+                          m.reason)
+            elif m.kind != "fit":
+                self._say(logging.INFO, "motion %d->%d by %s: %s", m.seq, m.seq_next, m.kind, m.reason)
         return motions, self.releases.number(batches, closed_by=flow.seq_next)
 
     def finish(self) -> list[tuple[Correction, Tag]]:
@@ -285,5 +298,6 @@ class MotionDriver:
     def stats(self) -> dict[str, int]:
         st = self.stage
         return {"refused_flows": self.refused, "invalid_motions": self.invalid, "taken_over": self.taken_over,
+                **{f"motions_{k}": n for k, n in self.kinds.items() if k != "none"},
                 "gaps": st.gaps, "segments": len(st.planner.segments), "corrections": self.releases.sent,
                 "renumberings": self._renumberings + st.renumberings}

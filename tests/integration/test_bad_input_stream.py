@@ -192,7 +192,10 @@ def test_every_defect_is_counted_in_the_services_stats(run):
     assert f["intrinsics_changes"] == 2  # the zoom at 60 and the resolution change at 65
     assert f["empty_flows"] >= 5  # black (2 pairs), saturated (2), the jump, the size change
     assert f["internal_errors"] == r["internal_errors"] == m["internal_errors"] == 0
-    assert m["invalid_motions"] >= 6 and r["flagged"] >= 6
+    # black 39 and saturated 41 leave four flows in a row with nothing in them: three bridged at constant
+    # velocity, the fourth beyond the bridge; the jump and the size change restart the path too
+    # (docs/method.md 2.4); those frames are corrected, so only the orphan (35) is flagged
+    assert m["motions_bridge"] >= 3 and m["invalid_motions"] >= 3 and r["flagged"] >= 1
     assert r["resized_frames"] == N - 65  # the smaller frames letterboxed into the MP4's size
     # the recorder's account of what never reached it usable: frames 10, 14, 18, 22, 26, 30 (failed
     # the check), 52 and 53 (never sent), and every frame the chain could not stabilize; 47 came
@@ -226,7 +229,9 @@ def test_the_stream_goes_on_to_its_end_and_every_good_frame_comes_out(run):
     lost = {10, 14, 18, 22, 26, 30, 52, 53, 47}  # never decodable, never sent, or late (48 overtook it)
     assert out == [s for s in range(N) if s not in lost]  # in order, each once (35 as an orphan, flagged)
     flagged = {m.seq for m in by_type["stabilized"] if m.obj.flags}
-    assert {35, 39, 40, 41, 42, 55, 60, 65} <= flagged
+    assert 35 in flagged  # the orphan: no correction reaches it
+    how = {m.seq: m.obj.motion for m in by_type["correction"]}
+    assert {how[s] for s in (39, 40, 41, 42)} <= {"bridge", "restart"} and how[55] == how[65] == "restart", how
     assert len(by_type["end"]) >= 4  # frame, flow, correction and stabilized ends all went through
     assert len(list((tmp / "png").glob("*.png"))) == len(out)
     cap = cv2.VideoCapture(str(tmp / "out.mp4"))

@@ -28,3 +28,6 @@ no_work
 
 # tests/unit/test_oak_source.py: depthai calls a HostNode's process() for each message
 _.process
+
+# tests/unit/test_oak_source.py: mock reads side_effect when the stand-in node's method is called
+_.side_effect

@@ -71,6 +71,20 @@ def test_lk_moving_average_removes_known_shake():
     assert m.jitter_deg < 0.5 * m.input_jitter_deg
 
 
+def test_pixel_jitter_made_border_free_grows_by_the_crop():
+    """A method that leaves black borders must crop them away to be border-free: its pixel jitter then
+    grows by 1 / its border-free scale (quality_scoring); a border-free method's stays as it is."""
+    from quick_stream.bench.quality_scoring import score_frames
+
+    frames = shaken_clip(24, shake_px=3.0, shake_deg=0.6)
+    out = lk_average.stabilize(frames)  # black borders where it moved the frames
+    r = score_frames(frames, out, 30.0)
+    assert 0 < r["border_free_scale"] < 1
+    assert r["jitter_px_border_free"] == pytest.approx(r["jitter_px"] / r["border_free_scale"])
+    same = score_frames(frames, frames, 30.0)
+    assert same["border_free_scale"] == 1.0 and same["jitter_px_border_free"] == same["jitter_px"]
+
+
 def test_lk_moving_average_pieces():
     assert np.allclose(lk_average.moving_average(np.arange(10.0), 2)[2:-2], np.arange(10.0)[2:-2])
     assert np.allclose(lk_average.moving_average(np.ones(5), 15), 1.0)  # ends padded with the end values

@@ -8,7 +8,8 @@ import pytest
 from scipy.optimize import minimize
 
 import quick_stream.core.path.planner as planner_module
-from quick_stream.core.path.budget import BudgetParams, SegmentMeshes, rotation_directions, rotation_scales
+from quick_stream.core.path.budget import BudgetParams, rotation_directions, rotation_scales
+from quick_stream.core.path.frame_model import SegmentMeshes
 from quick_stream.core.path.planner import PlannerParams
 from quick_stream.core.render.framing import edge_extents
 from quick_stream.core.render.warp import WarpParams
@@ -228,7 +229,7 @@ def test_the_sqp_reports_its_rounds_and_the_gap_it_stopped_at(monkeypatch):
 def test_edge_pieces_have_the_edges_minimum():
     """The least vertex value and diagonal crossing on its edge is min_e t_e (docs/method.md (12)), for
     meshes convex or not, and 0 for a polygon that misses the centre."""
-    from quick_stream.core.path.budget import edge_pieces
+    from quick_stream.core.path.frame_model import edge_pieces
 
     rng = np.random.default_rng(7)
     gx, gy, W, H = 3, 2, 640, 480

@@ -82,12 +82,15 @@ def test_bad_frames_are_reported_and_the_run_goes_on(capsys, tmp_path):
     bad = {b["seq"]: b["error"] for b in r["bad_frames"]}
     assert set(bad) == {2, 4, 6, 8}
     assert names[2] in bad[2] and "depth" in bad[4] and "valid" in bad[6] and names[8] in bad[8]
-    invalid = {(m["seq"], m["seq_next"]): m["reason"] for m in r["invalid_motions"]}
-    assert set(invalid) == {(9, 10), (10, 11)}
-    assert all("contrast" in why for why in invalid.values())
-    # good pairs on either side of each gap are still measured against ground truth
-    assert r["pairs"] == 7 and r["valid_pairs"] == 5
-    assert r["methods"]["exact se3"]["rot_median"] < 0.1
+    # the black frame: two flows with nothing in them, bridged at the last velocity (docs/method.md 2.4)
+    assert r["invalid_motions"] == []
+    bridged = {(m["seq"], m["seq_next"]): m["reason"] for m in r["fallbacks"] if m["kind"] == "bridge"}
+    assert set(bridged) == {(9, 10), (10, 11)}
+    assert all("contrast" in why and "constant-velocity bridge" in why for why in bridged.values())
+    assert r["motions_by_kind"] == {"fit": 5, "rotation": 0, "bridge": 2, "none": 0}
+    # good pairs on either side of each gap are still measured against ground truth, by kind too
+    assert r["pairs"] == 7 and r["valid_pairs"] == 7
+    assert r["errors_by_kind"]["fit"]["rot_median"] < 0.1 and r["errors_by_kind"]["bridge"]["n"] == 2
 
 
 def test_timestamps_out_of_order_are_flagged(capsys, tmp_path):

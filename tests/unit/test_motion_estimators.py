@@ -172,11 +172,15 @@ def test_exact_is_deterministic_and_stops_when_converged():
     np.testing.assert_allclose(ref.M, M, atol=1e-9)
 
 
-def test_too_few_points_gives_invalid_motion():
+def test_too_few_points_give_the_rotation_only_fit_then_an_invalid_motion():
+    """Fewer pairs than a group fit needs (50) still fix the camera's rotation (docs/method.md 2.4);
+    fewer than the rotation-only fit needs (8) give an invalid motion."""
     rng = np.random.default_rng(6)
     x = scene_points(rng, 10)
     m = MotionEstimator().estimate(flow_from(x, np.eye(4)))
-    assert not m.valid and "usable scene-flow pairs" in m.reason
+    assert m.valid and m.kind == "rotation" and "usable scene-flow pairs" in m.reason
+    m = MotionEstimator().estimate(flow_from(x[:6], np.eye(4)))
+    assert not m.valid and m.kind == "none" and "usable scene-flow pairs" in m.reason
     np.testing.assert_array_equal(m.matrix, np.eye(4))
 
 

@@ -65,9 +65,9 @@ def noisy_flow(x, M, rng):
     return SceneFlowResult(0, 1, x_obs, y_obs - x_obs, np.ones(len(x)), p0, p1, K, K)
 
 
-def estimates(group, scene, seeds=range(10), **kw):
+def estimates(group, scene, seeds=range(10), rotation_fallback=True, **kw):
     """(estimate, true camera motion) for each seed."""
-    est = MotionEstimator(MotionParams(group=group))
+    est = MotionEstimator(MotionParams(group=group, rotation_fallback=rotation_fallback))
     out = []
     for s in seeds:
         rng = np.random.default_rng(1000 + s)
@@ -85,7 +85,7 @@ def off(m, truth):
 def bad_fits(results):
     """Motions marked valid as fits of the requested group (no fallback) but off by more than the bounds."""
     return [(relative_pose_error(m.matrix, t), m.reason) for m, t in results
-            if m.valid and not getattr(m, "fallback", "") and off(m, t)]
+            if m.valid and m.kind == "fit" and not m.fallback and off(m, t)]
 
 
 @pytest.mark.parametrize("relief", [0.002, 0.05], ids=["textured_plane", "5cm_relief"])
@@ -113,17 +113,36 @@ def test_affine_fit_is_kept_where_the_points_determine_it(group):
         assert not off(m, truth), relative_pose_error(m.matrix, truth)
 
 
+def rotation_error_deg(m, truth):
+    R = m.matrix[:3, :3].T @ truth[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
 @pytest.mark.parametrize("group", ["se3", "sim3", "sa3", "ga3"])
-def test_collinear_points_give_an_invalid_motion(group):
+def test_collinear_points_fall_back_to_the_rotation_only_fit(group):
+    """A line does not determine the rigid fit's rotation about it, but its pixels' flow still says how
+    the camera turned (docs/method.md 2.4): the rotation-only fit, named, with no translation, off
+    by no more than the parallax of the camera's translation (|t| / z, here ~1 cm at 2 m)."""
     res = estimates(group, line)
     assert not bad_fits(res)
-    for m, _ in res:
-        assert not m.valid and "rotation not determined" in m.reason, m.reason
+    for m, truth in res:
+        assert m.valid and m.kind == "rotation", m.reason
+        assert "rotation not determined" in m.reason and "rotation-only fit" in m.reason, m.reason
+        np.testing.assert_array_equal(m.matrix[:3, 3], 0.0)
+        parallax = np.degrees(np.linalg.norm(truth[:3, 3]) / 2.0)
+        assert rotation_error_deg(m, truth) < 1.5 * parallax + 0.05
+        assert 0 < m.rotation_sigma < np.inf
+
+
+def test_collinear_points_give_an_invalid_motion_without_the_rotation_fallback():
+    for m, _ in estimates("se3", line, rotation_fallback=False):
+        assert not m.valid and m.kind == "none" and "rotation not determined" in m.reason, m.reason
         np.testing.assert_array_equal(m.matrix, np.eye(4))
 
 
-def test_too_few_distinct_points_give_an_invalid_motion():
-    """Many pairs, but only two distinct points: nothing fixes the rotation about their line."""
+def test_too_few_distinct_points_leave_the_rotation_only():
+    """Many pairs, but only two distinct points: nothing fixes the rigid rotation about their line;
+    two bearings still fix the camera's rotation (docs/method.md (3j))."""
     rng = np.random.default_rng(3)
     x = np.repeat(box(rng, 2), 100, axis=0)
     M = camera_motion(rng)
@@ -131,12 +150,14 @@ def test_too_few_distinct_points_give_an_invalid_motion():
     flow = SceneFlowResult(0, 1, x, y - x, np.ones(len(x)), _pixels(x), _pixels(y), K, K)
     for group in ("se3", "ga3"):
         m = MotionEstimator(MotionParams(group=group)).estimate(flow)
+        assert m.valid and m.kind == "rotation" and "rotation not determined" in m.reason, m.reason
+        m = MotionEstimator(MotionParams(group=group, rotation_fallback=False)).estimate(flow)
         assert not m.valid and "rotation not determined" in m.reason, m.reason
 
 
 def test_spread_test_is_in_units_of_the_point_noise():
     """docs/method.md (3b): rho = eig(C) / s^2 and eps(r) = 1/r + 1/sqrt(n_eff r)."""
-    from quick_stream.core.motion.exact import RIGID_FALLBACK, observability
+    from quick_stream.core.motion.observability import RIGID_FALLBACK, observability
 
     assert RIGID_FALLBACK == FALLBACK
     p = ExactParams()

@@ -85,18 +85,32 @@ def test_stabilized_rotation_shake_is_much_smaller_than_input(end):
     assert all(s.converged and s.residual < 1e-9 for s in pl.segments)
 
 
-def test_invalid_motion_restarts_the_path_visibly():
+def _angle_deg(A: np.ndarray, B: np.ndarray) -> float:
+    R = A[:3, :3].T @ B[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+@pytest.mark.parametrize("mode", ["smooth", "ep"])
+def test_invalid_motion_restarts_the_path_visibly_without_a_jump(mode):
+    """docs/method.md 4.4: an invalid motion closes the segment before it and opens a new pose chain, but
+    the restart frame is corrected (named "restart"), and its correction continues the one before it:
+    no snap back to the uncorrected frame."""
     poses = SyntheticSource(frames=40, width=64, height=48).poses()
     motions = truth_motions(poses)
     motions[12] = invalid_motion(12, 13, "se3", "exact", "only 3 usable scene-flow pairs")
-    pl, released = run_planner(motions, PlannerParams())
+    pl, released = run_planner(motions, PlannerParams(mode=mode))
     corr = {c.seq: c for batch in released for c in batch}
     assert sorted(corr) == list(range(40))
-    assert not corr[13].valid and "invalid" in corr[13].reason and corr[13].keyframe
-    np.testing.assert_array_equal(corr[13].matrix, np.eye(4))
+    assert corr[13].valid and corr[13].motion == "restart" and "restarted" in corr[13].reason
+    assert corr[13].chain == corr[12].chain + 1
     assert corr[12].keyframe and corr[12].valid  # the segment before closed at frame 12
     assert any(s.closed_by == "invalid-motion" and s.end_seq == 12 for s in pl.segments)
-    assert all(c.valid for s, c in corr.items() if s != 13)
+    assert all(c.valid for c in corr.values())
+    assert all(c.motion in ("fit", "start") for s, c in corr.items() if s != 13)
+    steps = [_angle_deg(corr[s].matrix, corr[s + 1].matrix) for s in range(39)]
+    assert steps[12] < 0.5 + 2 * np.median(steps), steps  # 12 -> 13: no jump in the correction
+    if mode == "ep":
+        np.testing.assert_array_equal(corr[13].matrix, corr[12].matrix)  # the last correction held
 
 
 def test_solver_failure_falls_back_to_identity_and_is_flagged():
@@ -107,3 +121,44 @@ def test_solver_failure_falls_back_to_identity_and_is_flagged():
     assert all(not c.valid and "not stabilized" in c.reason for c in corr)
     assert all(np.array_equal(c.matrix, np.eye(4)) for c in corr)
     assert not pl.segments[0].converged
+
+
+def test_an_uncertain_motion_pulls_its_frame_less():
+    """docs/method.md (8a): a frame whose pose came from an uncertain motion (a bridge's guess, sigma
+    0.05 rad) pulls the smoothed path towards it far less than a fitted one. Here frame 21's pose is 2
+    degrees off (the motion into it wrong, the one out of it wrong back: the frames after are right),
+    as a blurred frame's would be: as a fit the virtual path bends towards it, as a bridge it hardly does."""
+    poses = SyntheticSource(frames=60, width=64, height=48, shake=0.0).poses()
+    good = truth_motions(poses)
+    err = SE3.exp(np.array([0, 0, 0, 0, np.radians(2.0), 0]))
+    into, out_of = good[20].matrix @ err, np.linalg.inv(err) @ good[21].matrix
+
+    def motion(i, g, **kw):
+        return MotionEstimate(i, i + 1, "se3", "truth", g, SE3.log(g), True, **kw)
+
+    def virtual(kind, sigma):
+        ms = good[:20] + [motion(20, into, kind=kind, covariance=np.eye(6) * sigma ** 2), motion(21, out_of)] + good[22:]
+        _, released = run_planner(ms, PlannerParams())
+        corr = {c.seq: c for b in released for c in b}
+        true_pose, out = np.eye(4), []
+        for i in range(60):  # the virtual camera: the true camera moved by the correction
+            out.append(true_pose @ corr[i].matrix)
+            if i < 59:
+                true_pose = true_pose @ good[i].matrix
+        return out, corr
+
+    _, released = run_planner(good, PlannerParams())
+    c0 = {c.seq: c for b in released for c in b}
+    base, tp = [], np.eye(4)
+    for i in range(60):
+        base.append(tp @ c0[i].matrix)
+        if i < 59:
+            tp = tp @ good[i].matrix
+    fit, _ = virtual("fit", 1e-4)
+    bridge, corr = virtual("bridge", 0.05)
+    assert corr[21].motion == "bridge" and corr[22].motion == "fit"
+
+    def bend(v):  # how far the virtual path bent, away from frame 21, against the path without the error (deg)
+        return max(np.degrees(np.linalg.norm(SE3.log(np.linalg.inv(b) @ x)[3:]))
+                   for k, (b, x) in enumerate(zip(base, v)) if k != 21)
+    assert bend(fit) > 0.05 and bend(bridge) < 0.2 * bend(fit), (bend(fit), bend(bridge))

@@ -5,7 +5,8 @@ import pytest
 from quick_stream.core.frame import Intrinsics
 from quick_stream.core.lie import get_group
 from quick_stream.core.motion import MotionEstimate
-from quick_stream.core.path.budget import BudgetParams, FrameModel, SegmentMeshes
+from quick_stream.core.path.budget import BudgetParams
+from quick_stream.core.path.frame_model import FrameModel, SegmentMeshes
 from quick_stream.core.path.keyframes import KeyframeParams
 from quick_stream.core.path.planner import PathPlanner, PlannerParams
 from quick_stream.core.path.smoother import cutoff_of_smoothness, segment_system, smoothness_for_cutoff

@@ -168,6 +168,29 @@ def test_shape_term_does_not_resist_a_camera_rotation():
         WarpParams(shape_reference="homography").validate()
 
 
+def test_the_mesh_never_shears_below_its_floor():
+    """docs/method.md (13c): a correction with centimetres of translation over a scene whose depth runs
+    from 0.5 m to 4 m shears the mesh at alpha = 0.1 (a cell's singular-value ratio well below 0.975);
+    the solve raises alpha until no cell is below the floor. A large rotation's own perspective is no
+    shear: it keeps alpha as it is. A clean small correction never meets the floor (bit for bit)."""
+    depth = np.tile(np.linspace(0.5, 4.0, W, dtype=np.float32), (H, 1))
+    f = make_frame(5, depth=depth)
+    T = rigid((0.0, np.deg2rad(3.0), 0.0), (0.06, 0.03, 0.0))
+    sheared = solve_warp(f, T, WarpParams(min_cell_ratio=0.0))
+    held = solve_warp(f, T)
+    assert sheared.cell_distortion().min() < 0.97
+    assert held.cell_distortion().min() >= 0.975 and held.alpha > 0.1
+    assert held.residual_px > sheared.residual_px  # it fits less rather than shear
+    turn = rigid((np.deg2rad(2.0), np.deg2rad(14.0), 0.0))
+    m = solve_warp(f, turn)
+    assert m.alpha == 0.1 and m.cell_distortion().min() < 0.975  # the rotation's perspective, allowed
+    small = rigid((0.001, 0.002, 0.0), (0.002, 0.0, 0.0))
+    a, b = solve_warp(f, small), solve_warp(f, small, WarpParams(min_cell_ratio=0.0))
+    assert a.alpha == 0.1 and np.array_equal(a.dst, b.dst)
+    with pytest.raises(ValueError, match="min_cell_ratio"):
+        WarpParams(min_cell_ratio=1.5).validate()
+
+
 def test_border_free_zoom_identity_is_one():
     f = make_frame(5)
     assert border_free_zoom(solve_warp(f, np.eye(4))) == 1.0

@@ -111,7 +111,10 @@ def test_motion_restarts_the_path_at_the_renumbering_and_still_refuses_stale_flo
     seqs = [c.seq for b in batches for c in b]
     assert seqs == list(range(OLD)) + list(range(FIRST, NEW))  # every frame corrected once, in order
     restart = next(b for i, b in enumerate(batches) if b[0].seq == FIRST and i and batches[i - 1][-1].seq == OLD - 1)
-    assert len(restart) == 1 and not restart[0].valid and RENUMBERED in restart[0].reason
+    # the path restarts at the break in a new pose chain, handed over without a jump (docs/method.md 4.4):
+    # the restart frame is placed with the new numbering's first window, corrected and named
+    assert restart[0].valid and restart[0].motion == "restart" and RENUMBERED in restart[0].reason
+    assert restart[0].chain == batches[0][0].chain + 1
     brk = flows[OLD - 1]
     for stale in (flows[5], brk):  # an old flow, and the renumbering's break again
         with pytest.raises(ValueError, match="stale or duplicate"):
@@ -123,9 +126,9 @@ def ident(seq: int) -> Correction:
 
 
 def restart(seq: int, after: int) -> Correction:
-    """The restart correction the planner makes at a renumbering's break (as the motion stage releases it)."""
-    return Correction(seq, np.eye(4), 1, True, False, f"motion {after}->{seq} invalid ({RENUMBERED}: ...): "
-                      "path restarted, frame not corrected")
+    """A restart correction released alone at a renumbering's break (as the ``ep`` planner releases it)."""
+    return Correction(seq, np.eye(4), 1, True, True, f"motion {after}->{seq} not known ({RENUMBERED}: ...): "
+                      "path restarted; the last correction held", motion="restart")
 
 
 def test_render_keeps_the_old_numbering_apart_and_renders_it_first(small):
@@ -151,8 +154,8 @@ def test_render_keeps_the_old_numbering_apart_and_renders_it_first(small):
     assert [(sf.seq, sf.numbering) for sf in out] == ([(s, 0) for s in range(OLD)]
                                                        + [(s, 1) for s in range(FIRST, 20)])
     flagged = {(sf.seq, sf.numbering): sf.flags[0] for sf in out if sf.flags}
-    assert flagged.keys() == {(38, 0), (39, 0), (FIRST, 1)}  # no correction reached 38, 39: orphans
-    assert flagged[(38, 0)] == STALE and RENUMBERED in flagged[(FIRST, 1)]
+    assert flagged.keys() == {(38, 0), (39, 0)}  # no correction reached 38, 39: orphans
+    assert flagged[(38, 0)] == STALE and out[OLD].correction.motion == "restart"
     assert (r.orphans, r.missing, r.buffered) == (2, 0, 0)
     for sf, f in zip(out[-5:], new[FIRST + 1:20]):  # the new frames, not the old ones of the same seq
         assert sf.timestamp_ns == f.timestamp_ns
@@ -223,9 +226,10 @@ def test_the_stabilizer_stabilizes_the_renumbered_stream_after_the_run(frames):
     out += st.finish()
     assert [(sf.seq, sf.numbering) for sf in out] == ([(s, 0) for s in range(OLD)]
                                                        + [(s, 1) for s in range(FIRST, NEW)])
-    flagged = [(sf.seq, sf.numbering) for sf in out if sf.flags]
-    assert flagged == [(FIRST, 1)] and RENUMBERED in out[OLD].flags[0]  # the break: the path restarts there
-    assert all(sf.correction.valid for sf in out[OLD + 1:])  # then stabilized
+    assert not any(sf.flags for sf in out)
+    # the break: the path restarts there, without a jump (docs/method.md 4.4), then goes on stabilized
+    assert out[OLD].correction.motion == "restart" and RENUMBERED in out[OLD].correction.reason
+    assert all(sf.correction.valid for sf in out)
     assert len(st.bad_frames) == FIRST and all("out of order" in b["error"] for b in st.bad_frames)
     assert st.flow.check.counts["renumberings"] == st.motion.renumberings == st.render.renumberings == 1
     assert st.render.orphans == st.render.missing == 0

@@ -151,3 +151,57 @@ def test_the_flow_reads_the_luma_a_decoder_gave(pair):
     own = SceneFlow(SceneFlowParams()).compute(a, b)
     assert np.array_equal(given.pixels_next, grey.pixels_next) and np.array_equal(given.points, grey.points)
     assert not np.array_equal(given.pixels_next, own.pixels_next)
+
+
+def test_noisy_stereo_depth_is_not_taken_for_depth_edges(pair):
+    """docs/method.md (1b): depth noise of a few percent (stereo, 0.012 z^2) would make most candidates
+    'edges' at the fixed 3 %; the threshold follows the frame's own noise, so the flow keeps its samples,
+    while a clean frame keeps 3 % (the same samples as before) and a real edge is still an edge."""
+    from quick_stream.core.sceneflow.lift import candidate_grid, edge_threshold
+
+    a, b = pair
+    rng = np.random.default_rng(5)
+    noisy = [f.with_(depth=(f.depth * (1 + 0.012 * f.depth * rng.standard_normal(f.depth.shape))).astype(np.float32))
+             for f in (a, b)]
+    fixed = SceneFlowParams(depth_edge_k=0.0)
+    clean, noise_fixed, noise_adapt = (SceneFlow(p).compute(*fs) for p, fs in
+                                       ((SceneFlowParams(), (a, b)), (fixed, noisy), (SceneFlowParams(), noisy)))
+    assert noise_fixed.counts["depth_edge"] > 5 * clean.counts["depth_edge"]
+    assert noise_adapt.counts["depth_edge"] < 0.4 * noise_fixed.counts["depth_edge"]
+    assert len(noise_adapt) > 1.3 * len(noise_fixed)
+    np.testing.assert_array_equal(SceneFlow(fixed).compute(a, b).points, clean.points)  # clean: 3 %
+    g = candidate_grid(*a.depth.shape, 4)
+    assert edge_threshold(a.depth, g.index, g.neighbours[0], SceneFlowParams()) == 0.03
+    step = np.where(np.arange(a.depth.shape[1]) < 320, 1.0, 2.0).astype(np.float32)
+    wall = np.broadcast_to(step, a.depth.shape) * (1 + 0.01 * rng.standard_normal(a.depth.shape))
+    t = edge_threshold(wall.astype(np.float32), g.index, g.neighbours[0], SceneFlowParams())
+    assert 0.03 < t < 0.5  # the noise raised it, the 100 % jump at the middle is still far above it
+
+
+def test_forward_backward_limit_grows_with_the_flow():
+    """docs/method.md (1a): a frame and its copy turned by a known rotation (the exact flow K R K^-1, about
+    55 px here) and motion-blurred: the half-resolution backward flow disagrees with the forward one by
+    more than the fixed 1.5 px on many good samples; the limit of 5 % of the flow keeps them, and what
+    it keeps is still accurate."""
+    import cv2
+
+    from quick_stream.core.lie import so3
+
+    a = SyntheticSource(frames=1, seed=4).frame(0)
+    K = a.intrinsics.K
+    H = K @ so3.exp(np.array([0.02, 0.1, 0.02])) @ np.linalg.inv(K)
+    h, w = a.depth.shape
+    ker = np.full((1, 21), 1 / 21, np.float32)  # horizontal blur over ~40 % of the motion
+    c1 = cv2.filter2D(cv2.warpPerspective(a.color, H, (w, h)), -1, ker)
+    d1 = cv2.warpPerspective(a.depth, H, (w, h), flags=cv2.INTER_NEAREST)
+    f0 = a.with_(color=cv2.filter2D(a.color, -1, ker))
+    f1 = a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000)
+    grown = SceneFlow().compute(f0, f1)
+    fixed = SceneFlow(SceneFlowParams(fb_rel=0.0)).compute(f0, f1)
+    q = np.c_[grown.pixels, np.ones(len(grown))] @ H.T
+    assert np.median(np.linalg.norm(grown.pixels_next - q[:, :2] / q[:, 2:], axis=1)) < 0.5
+    assert np.median(np.linalg.norm(grown.pixels_next - grown.pixels, axis=1)) > 40
+    assert grown.counts["fb_inconsistent"] < 0.8 * fixed.counts["fb_inconsistent"]
+    assert len(grown) > 1.1 * len(fixed)
+    with pytest.raises(ValueError, match="fb_rel"):
+        SceneFlowParams(fb_rel=1.5).validate()

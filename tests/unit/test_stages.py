@@ -53,10 +53,11 @@ def test_a_restart_gap_restarts_the_path_and_every_frame_comes_out_in_order_flag
     motion, render, out = run_with_gap(frames, range(12, 17), restart=True)
     assert [sf.seq for sf in out] == list(range(40))
     flagged = [sf.seq for sf in out if sf.flags]
-    # the gap (no correction) and the restarted flow's first frame, where the path restarts
-    assert flagged == list(range(12, 18))
+    # the gap: frames no flow ever saw, so no correction reaches them
+    assert flagged == list(range(12, 17))
     assert all("skipped upstream" in out[s].flags[0] for s in range(12, 17))
-    assert "invalid" in out[17].flags[0]
+    # the restarted flow's first frame: the path restarts there (5 frames: beyond the bridge), corrected
+    assert out[17].correction.motion == "restart" and "restarted" in out[17].correction.reason
     assert motion.gaps == 1 and render.orphans == 5 and render.missing == 0
 
 
@@ -70,8 +71,9 @@ def test_frames_dropped_before_flow_come_out_in_order_flagged(frames):
 def test_more_frames_dropped_than_flow_bridges_restart_the_path(frames):
     motion, render, out = run_with_gap(frames, range(12, 17), restart=False)  # 5 missing
     assert [sf.seq for sf in out] == list(range(40))
-    assert [sf.seq for sf in out if sf.flags] == list(range(12, 18))
-    assert "5 frames missing between frame 11 and 17" in out[17].flags[0]
+    assert [sf.seq for sf in out if sf.flags] == list(range(12, 17))
+    assert out[17].correction.motion == "restart"
+    assert "5 frames missing between frame 11 and 17" in out[17].correction.reason
     assert motion.gaps == 0 and render.orphans == 5
 
 
@@ -79,7 +81,8 @@ def test_more_frames_dropped_than_flow_bridges_restart_the_path(frames):
 def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, breaks):
     """A 120 fps camera whose capture sends every 8th frame (the pipeline takes 15 frames/s): 7
     frames missing between two sent ones span 67 ms, which flow bridges; the same gaps at 30 fps
-    (267 ms) break the path. Render only ever sees the frames sent: none is flagged at 120 fps."""
+    (267 ms) break the path, which restarts at each (corrected, no frame flagged). Render only ever
+    sees the frames sent."""
     sent = list(open_source(f"synthetic:frames=25,width=160,height=120,fps={fps}"))[::8]
     flow, motion, render = FlowStage(), MotionStage(), RenderStage()
     out, batches = [], [motion.start(sent[0].seq)]
@@ -93,7 +96,8 @@ def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, br
     out += render.flush()
     assert [sf.seq for sf in out] == [0, 8, 16, 24]
     assert flow.check.counts["missing_frames"] == 21 and flow.check.counts["breaks"] == breaks
-    assert sum(bool(sf.flags) for sf in out) == breaks and render.orphans == 0
+    assert not any(sf.flags for sf in out) and render.orphans == 0
+    assert sum(sf.correction.motion == "restart" for sf in out) == breaks
 
 
 def test_motion_stage_refuses_stale_flows(frames):

@@ -172,6 +172,39 @@ def test_motion_round_trip():
     assert decode(encode_motion(inv, "cam0")).obj.zeta_bar is None
 
 
+def test_motion_kind_and_covariance_round_trip_and_are_optional():
+    """docs/method.md 2.4 / (3k): each motion says how it was known and carries its covariance; a motion
+    from before (no such fields) decodes as a fit of unknown covariance; a wrong kind or size is refused."""
+    mo = make_motion()
+    mo.kind, mo.covariance = "rotation", np.diag(np.arange(1.0, 8.0)) * 1e-6
+    g = decode(encode_motion(mo, "cam0")).obj
+    assert g.kind == "rotation" and np.array_equal(g.covariance, mo.covariance)
+    d = raw(encode_motion(mo, "cam0"))
+    del d["kind"], d["covariance"]
+    old = decode(repack(d)).obj
+    assert old.kind == "fit" and old.covariance is None
+    d = raw(encode_motion(mo, "cam0"))
+    d["kind"] = "guess"
+    rejects(repack(d), "kind", "guess")
+    d = raw(encode_motion(mo, "cam0"))
+    d["covariance"] = [0.0] * 36
+    rejects(repack(d), "covariance", "49")
+    mo.kind = "hope"
+    with pytest.raises(WireError, match="kind"):
+        encode_motion(mo, "cam0")
+
+
+def test_correction_motion_round_trips_and_is_optional():
+    c = make_correction()
+    c.motion = "bridge"
+    assert decode(encode_correction(c, "cam0")).obj.motion == "bridge"
+    d = raw(encode_correction(c, "cam0"))
+    del d["motion"]
+    assert decode(repack(d)).obj.motion == "fit"
+    d["motion"] = "maybe"
+    rejects(repack(d), "motion", "maybe")
+
+
 def test_correction_round_trip():
     c = make_correction()
     m = decode(encode_correction(c, "cam0", zoom=1.25))

@@ -29,14 +29,18 @@ let 61 % moving pixels (jointvosf two_people_walking) pull the fit 0.5 deg off t
 background along the weakly determined rotation/translation direction, which
 two fixed iterations had hidden (docs/method.md section 2.2).
 
-Observability (docs/method.md section 2.3, equation (3b)): :func:`observability`
+Observability (docs/method.md section 2.3, equation (3b)): :func:`~.observability.observability`
 measures the weighted spread of the points against their expected error. GA(3)
 and SA(3) need spread in all three directions (on a plane the out-of-plane
 column of the linear part is not determined); SE(3) and SIM(3) need points that
 are not collinear (else the rotation about their line is not determined). The
 estimator (:class:`~quick_stream.core.motion.MotionEstimator`) falls back from GA(3)
 to SIM(3) and from SA(3) to SE(3) when the affine part is unobservable
-(:data:`RIGID_FALLBACK`), and marks the motion invalid when even the rigid part is.
+(:data:`~.observability.RIGID_FALLBACK`), and marks the motion invalid when even the rigid part is.
+
+SIM(3), SA(3) and GA(3) start from the SE(3) fit and keep to its consensus (:func:`refine_from_rigid`,
+docs/method.md (3l), (3m)); their observability is tested on weights that carry the SE(3) fit's, so an
+object moving in front of a wall cannot lend the affine fit the out-of-plane spread a wall lacks.
 """
 from __future__ import annotations
 
@@ -64,6 +68,7 @@ class ExactParams:
     tol: float = 0.1  # converged: an iteration moved no point by more than tol x its expected error (3a)
     max_spread_error: float = 3e-3  # observability (3b): largest predicted error of the linear part
     gn_max_scale: float = 1.25  # cap on the Gauss-Newton's robust scale (units of the expected noise), (3a)
+    max_noise_scale: float = 10.0  # the pair's own image and depth noise, measured (3i), at most this x sigma_px / depth_noise
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -155,66 +160,26 @@ def irls_closed_form(
     return M, w
 
 
-@dataclass
-class Observability:
-    """How well the weighted point spread determines a group's linear part (docs/method.md (3b)).
-
-    ``rho``: eigenvalues of the weighted covariance C of the points about their weighted mean,
-    in units of the mean squared expected point error (largest first); ``n_eff``: the effective
-    number of points (sum w)^2 / sum w^2. ``affine_error`` / ``rigid_error``: the predicted
-    relative error of the linear part along its worst-determined direction, eps(rho3) and
-    eps(rho2 + rho3), eps(r) = 1/r + 1/sqrt(n_eff r) (bias from the noise in the points plus
-    one standard error).
-    """
-
-    rho: np.ndarray
-    n_eff: float
-    affine_error: float
-    rigid_error: float
-
-    def error(self, group_name: str) -> float:
-        """The predicted linear-part error that decides whether ``group_name``'s fit is determined."""
-        return self.affine_error if group_name in ("ga3", "sa3") else self.rigid_error
+_QUANTILE = {(1, 0.25): 0.31863936396437515,  # lower quartile of |r| for r ~ N(0, 1) (half-normal)
+             (1, 0.5): 0.6744897501960817,  # its median
+             (2, 0.25): float(np.sqrt(-2.0 * np.log(0.75))),  # lower quartile of |r| for r ~ N(0, I_2) (Rayleigh)
+             (2, 0.5): float(np.sqrt(-2.0 * np.log(0.5)))}  # its median
 
 
-def _spread_error(r: float, n_eff: float) -> float:
-    """eps(r) = 1/r + 1/sqrt(n_eff r), docs/method.md (3b); inf when there is no spread."""
-    if not r > 0:
-        return float("inf")
-    return 1.0 / r + 1.0 / np.sqrt(n_eff * r)
-
-
-def observability(x: np.ndarray, w: np.ndarray, f: float, params: ExactParams) -> Observability:
-    """The spread test of docs/method.md (3b) for points ``x`` with weights ``w`` (focal length ``f`` px).
-
-    rho_k = lambda_k(C) / s^2 with C = sum w_n (x - m)(x - m)^T (w_n = w / sum w, m = sum w_n x)
-    and s^2 = sum w_n sigma^2 (:func:`point_sigma`): the spread along each principal axis in
-    units of the expected error of a point. GA(3)/SA(3) need rho_3 (the out-of-plane spread):
-    the noise in x biases the affine column along e_3 by about 1/rho_3 (errors in variables) and
-    its standard error is 1/sqrt(n_eff rho_3). SE(3)/SIM(3) rotate about e_1 with spread rho_2 + rho_3
-    around that axis (collinear points: 0).
-    """
-    w = np.asarray(w, float)
-    sw = float(w.sum())
-    if not (len(x) and sw > 0 and np.isfinite(sw)):
-        return Observability(np.zeros(3), 0.0, float("inf"), float("inf"))
-    wn = w / sw
-    xt = np.ascontiguousarray(x.T)
-    xc = xt - (xt @ wn)[:, None]
-    C = (xc * wn) @ xc.T
-    s2 = float(wn @ point_sigma(x, f, params) ** 2)
-    rho = np.clip(np.linalg.eigvalsh(C)[::-1] / s2, 0.0, None)
-    n_eff = 1.0 / float(wn @ wn)
-    return Observability(
-        rho, n_eff, _spread_error(float(rho[2]), n_eff), _spread_error(float(rho[1] + rho[2]), n_eff)
-    )
-
-
-RIGID_FALLBACK = {"ga3": "sim3", "sa3": "se3"}
-"""The group fitted instead when an affine group's linear part is unobservable (docs/method.md 2.3).
-
-SIM(3) is the largest of the four groups inside GA(3) whose fit a plane determines; SA(3) has
-det = 1, which a similarity only meets at scale 1, so SE(3)."""
+def noise_scale(r: np.ndarray, dims: int, cap: float, q: float = 0.25) -> float:
+    """A residual channel's noise in units of the expected (docs/method.md (3i)): the ``q`` quantile of
+    the magnitudes ``r`` (of ``dims``-dimensional residuals) over that of normal noise, at least 1
+    (never tighter than expected) and at most ``cap``. The image channel takes the lower quartile,
+    which stays within 1.55x the noise when half the pairs move with something else (bounded up to
+    three quarters);
+    the depth channel the median, which also sees an error spread over the whole frame (depth that
+    lags the colour or is offset from it)."""
+    n = len(r)
+    if n < 8 or not cap > 1.0:
+        return 1.0
+    k = int(q * n)
+    v = float(np.partition(r, k)[k])
+    return min(max(v / _QUANTILE[dims, q], 1.0), cap) if np.isfinite(v) else 1.0
 
 
 @dataclass
@@ -225,6 +190,8 @@ class RefineResult:
     inlier_ratio: float  # share of pairs with weight > 0.5
     iterations: int = 0  # Gauss-Newton steps taken
     converged: bool = True  # False: stopped at params.gn_iters before the step fell below params.tol
+    covariance: np.ndarray | None = None  # (n, n) of the left update delta at M, docs/method.md (3k)
+    spread_weights: np.ndarray | None = None  # what (3b) is tested on when not ``weights``: (3l), (3m)
 
 # (m, m') -> row of the per-point matrices Q in _normal_equations (5: Q[0, 1] = Q[1, 0] = 0)
 _Q_INDEX = np.array([[0, 5, 1], [5, 2, 3], [1, 3, 4]])
@@ -297,6 +264,7 @@ def refine_reprojection(
     isz = 1.0 / (params.depth_noise * z1 * z1)
     converged = False
     steps = 0
+    A = None
     while True:
         y = M[:3, :3] @ xt + M[:3, 3:]
         Z = y[2]
@@ -305,16 +273,18 @@ def refine_reprojection(
         ru = (fx * xn - u1) * isp
         rv = (fy * yn - v1) * isp
         rz = (Z - z1) * isz
+        s_img = noise_scale(np.sqrt(ru * ru + rv * rv), 2, params.max_noise_scale)
+        s_z = noise_scale(np.abs(rz), 1, params.max_noise_scale, 0.5)
+        ru, rv, rz = ru / s_img, rv / s_img, rz / s_z
         e = np.sqrt(ru * ru + rv * rv + rz * rz)
         rw = cauchy_weights(e, params.cauchy_c, params.gn_max_scale)[0] if params.robust else np.ones_like(e)
         w = w0 * rw
+        a = (fx * isp / s_img) * iz  # d ru / d X; d ru / d Z = -a xn
+        b = (fy * isp / s_img) * iz
         if converged or steps >= params.gn_iters:
             break
-        a = (fx * isp) * iz  # d ru / d X; d ru / d Z = -a xn
-        b = (fy * isp) * iz
-        A, g = _normal_equations(B, y, xn, yn, a, b, isz, w, ru, rv, rz)
-        A[np.diag_indices(n)] *= 1.0 + params.damping
-        delta = -np.linalg.solve(A, g)
+        A, g = _normal_equations(B, y, xn, yn, a, b, isz / s_z, w, ru, rv, rz)
+        delta = -np.linalg.solve(A + np.diag(np.diag(A) * params.damping), g)
         M = group.exp(delta) @ M
         steps += 1
         # (3a): the largest change of a pair's (unweighted, normalised) residual this step makes
@@ -322,9 +292,63 @@ def refine_reprojection(
         dyd = D[:3, :3] @ y + D[:3, 3:]  # dy/d delta . delta
         du = a * (dyd[0] - xn * dyd[2])
         dv = b * (dyd[1] - yn * dyd[2])
-        dz = dyd[2] * isz
+        dz = dyd[2] * isz / s_z
         converged = bool(np.max(du * du + dv * dv + dz * dz) < params.tol * params.tol)
-    img2 = (ru * ru + rv * rv) * params.sigma_px ** 2  # squared image residual, px^2
+    img2 = (ru * ru + rv * rv) * (params.sigma_px * s_img) ** 2  # squared image residual, px^2
     rms_px = float(np.sqrt(np.sum(w * img2) / max(np.sum(w), 1e-12)))
+    if A is None or steps:  # the normal matrix at the returned M (the loop's last one is the step's start)
+        A = _normal_equations(B, y, xn, yn, a, b, isz / s_z, w, ru, rv, rz)[0]
     return RefineResult(M=M, weights=w, rms_px=rms_px, inlier_ratio=float(np.mean(rw > 0.5)),
-                        iterations=steps, converged=converged)
+                        iterations=steps, converged=converged, covariance=fit_covariance(A, w, e))
+
+
+def consensus_cost_change(rigid: RefineResult, M: np.ndarray, x: np.ndarray, p1: np.ndarray, z1: np.ndarray,
+                          K1: np.ndarray, params: ExactParams) -> float:
+    """Delta C of docs/method.md (3l): sum_i w_i c_i (rho(e_i(M)) - rho(e_i(M_R))) over the SE(3) fit
+    ``rigid``'s final weights w_i c_i, rho the Cauchy loss at the Gauss-Newton's capped scale, e_i = |r_i|
+    of (3) over the noise (3i) measured at M_R. Positive: ``M`` explains that consensus worse than M_R."""
+    def residuals(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        y = x @ A[:3, :3].T + A[:3, 3]
+        ru = (K1[0, 0] * y[:, 0] / y[:, 2] + K1[0, 2] - p1[:, 0]) / params.sigma_px
+        rv = (K1[1, 1] * y[:, 1] / y[:, 2] + K1[1, 2] - p1[:, 1]) / params.sigma_px
+        return np.sqrt(ru * ru + rv * rv), np.abs(y[:, 2] - z1) / (params.depth_noise * z1 * z1)
+
+    (img_r, z_r), (img_g, z_g) = residuals(rigid.M), residuals(M)
+    s_img = noise_scale(img_r, 2, params.max_noise_scale)
+    s_z = noise_scale(z_r, 1, params.max_noise_scale, 0.5)
+    k2 = (params.cauchy_c * params.gn_max_scale) ** 2
+    rho_r = np.log1p(((img_r / s_img) ** 2 + (z_r / s_z) ** 2) / k2)
+    rho_g = np.log1p(((img_g / s_img) ** 2 + (z_g / s_z) ** 2) / k2)
+    return 0.5 * k2 * float(rigid.weights @ (rho_g - rho_r))
+
+
+def refine_from_rigid(group: LieGroup, rigid: RefineResult, x: np.ndarray, p1: np.ndarray, z1: np.ndarray,
+                      K1: np.ndarray, w0: np.ndarray, params: ExactParams) -> RefineResult:
+    """A group larger than SE(3), started at the SE(3) fit ``rigid`` of the same pairs (weights ``w0``)
+    and kept to its consensus, docs/method.md (3l), (3m): :func:`refine_reprojection` from ``rigid.M``
+    on ``w0``, taken when it explains the rigid fit's consensus no worse than ``rigid`` (3l); else its
+    extra freedom went to pairs that move with something else, and it is refitted on ``w0 c_R c_G``
+    (3m; inliers: ``c_R > 0.5`` and ``c_G > 0.5``). ``spread_weights``: ``w0 c_R c_G``, what (3b) is
+    tested on."""
+    c_r = np.divide(rigid.weights, w0, out=np.zeros_like(rigid.weights), where=w0 > 0)
+    ref = refine_reprojection(group, rigid.M, x, p1, z1, K1, w0, params)
+    if not consensus_cost_change(rigid, ref.M, x, p1, z1, K1, params) <= 0.0:  # NaN: refit
+        ref = refine_reprojection(group, rigid.M, x, p1, z1, K1, rigid.weights, params)
+        c_g = np.divide(ref.weights, rigid.weights, out=np.zeros_like(c_r), where=rigid.weights > 0)
+        ref.inlier_ratio = float(np.mean((c_r > 0.5) & (c_g > 0.5)))
+        ref.spread_weights = ref.weights
+    else:
+        ref.spread_weights = ref.weights * c_r
+    return ref
+
+
+def fit_covariance(A: np.ndarray, w: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Covariance of the Gauss-Newton's left update at its solution, docs/method.md (3k):
+    ``A^-1`` times the weighted residual variance per residual (normalised residuals: 1 when the
+    measured noise is right), at least 1. Infinite where ``A`` is singular."""
+    sw = float(np.sum(w))
+    var = max(float(np.sum(w * e * e)) / max(3.0 * sw - len(A), 1e-12), 1.0) if sw > 0 else np.inf
+    try:
+        return np.linalg.inv(A) * var
+    except np.linalg.LinAlgError:
+        return np.full(A.shape, np.inf)

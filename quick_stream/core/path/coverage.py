@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..render.framing import outline
-from .budget import SegmentMeshes, dual_qp
+from .frame_model import SegmentMeshes
+from .qp import dual_qp
 from .smoother import SegmentSystem
 
 

@@ -13,10 +13,11 @@ releases the corrections g_s of the segment's frames. Two modes (docs/method.md 
 The streaming ``motion`` service and the offline ``stabilize`` command both drive
 this same object.
 
-Fallbacks are visible, never silent: an invalid motion closes the segment at
-the frame before it, and the path restarts after it with no correction (those
-frames carry ``valid=False`` and the reason); an ``ep`` segment whose solver does
-not converge gets the solver's fallback path (docs/method.md 4.1), valid with the
+Fallbacks are visible, never silent: each correction says how the motion into its frame was known
+(``Correction.motion``, docs/method.md 2.4); a motion less certain pulls its frame's pose less (8a);
+an invalid motion closes the segment at the frame before it and opens a new pose chain, the path
+handed over without a jump (4.4: the restart frame corrected, named, with the reason); an ``ep``
+segment whose solver does not converge gets the solver's fallback path (4.1), valid with the
 reason, and identity corrections, flagged, only if that misses the end-constraint.
 """
 from __future__ import annotations
@@ -29,7 +30,8 @@ import numpy as np
 from ..lie import LieGroup, get_group
 from ..motion import MotionEstimate
 from ..render.warp import WarpParams
-from .budget import BudgetParams, BudgetReport, FrameModel, SegmentMeshes, constrain
+from .budget import BudgetParams, BudgetReport, constrain
+from .frame_model import FrameModel, SegmentMeshes
 from .constraints import EndConstraints
 from .coverage import bounded_zoom_track, fill_need
 from .keyframes import KeyframeDetector, KeyframeParams
@@ -38,6 +40,9 @@ from .smoother import SegmentSystem, chart_path, segment_system
 
 
 PATH_MODES = ("smooth", "ep")
+CORRECTION_MOTIONS = ("start", "fit", "rotation", "bridge", "restart")  # Correction.motion: the stream's first
+# frame, then how the motion into the frame was known (MotionEstimate.kind), or not at all (docs/method.md 2.4)
+MIN_TRUST = 1e-4  # the least closeness weight of a frame (its motion not known at all: a restart), (8a)
 
 
 @dataclass
@@ -47,6 +52,8 @@ class PlannerParams:
     smoothness: float = 1e4  # smooth: lam of docs/method.md (8); gain 0.5 at 0.47 Hz at 30 fps
     velocity_weight: float = 100.0  # smooth: weight of the low-passed camera velocity as the path's velocity target
     velocity_sigma: float = 20.0  # smooth: frames; Gaussian low-pass of that velocity (window ends at the keyframe)
+    motion_sigma: float = 0.005  # smooth: rad; a motion whose rotation is less certain pulls its frame's pose
+    # less: closeness weight (motion_sigma / sigma)^2 below 1 (docs/method.md (8a)); bridges and restarts
     lookahead: int = 15  # smooth: of each keyframe interval's frames, the last this many are planned but
     # released only with the next segment (re-planned with more frames after them); < the interval
     budget: BudgetParams = field(default_factory=BudgetParams)  # smooth: the crop budget
@@ -64,6 +71,8 @@ class PlannerParams:
             raise ValueError(f"path mode must be one of {PATH_MODES}, got {self.mode!r}")
         if not (np.isfinite(self.smoothness) and self.smoothness >= 0):
             raise ValueError(f"smoothness must be a finite number >= 0, got {self.smoothness!r}")
+        if not (np.isfinite(self.motion_sigma) and self.motion_sigma > 0):
+            raise ValueError(f"motion_sigma must be a finite number > 0, got {self.motion_sigma!r}")
         self.budget.validate()
         self.keyframes.validate()
         if self.mode == "smooth" and not 0 <= self.lookahead < self.keyframes.interval:
@@ -84,6 +93,7 @@ class Correction:
     zoom: float | None = None  # framing zoom planned with the path (smooth mode with a budget), else None
     camera: np.ndarray | None = None  # g_c: the real camera's pose in the planner's chain (renderer's border fill)
     chain: int = -1  # the chain ``camera`` is in: poses of one chain compose (a path restart opens a new one)
+    motion: str = "fit"  # how the motion into this frame was known (MotionEstimate.kind; "restart": not known)
 
     @property
     def point_transform(self) -> np.ndarray:
@@ -138,6 +148,11 @@ class PathPlanner:
         self._systems: dict[tuple[int, int], SegmentSystem] = {}
         self._zooms: list[float] = [1.0]  # smooth mode with a budget: last <= 3 planned zooms
         self._real: list[np.ndarray] = [np.eye(4)]  # smooth mode: real camera poses up to the open segment's start
+        self._real_c: list[float] = [1.0]  # ... and how much each is to be trusted (closeness weight, (8a))
+        self._kinds: list[str] = []  # how the motion into each frame of the open segment was known
+        self._closeness: list[float] = []  # smooth mode: each open frame's closeness weight (8a)
+        self._held: np.ndarray = np.eye(4)  # the newest correction released (a restart holds it)
+        self._notes: dict[int, str] = {}  # why a frame of the open segment is special (a fallback, a restart)
         if p.mode == "smooth" and p.budget.enabled:
             # The budget's QP solver (scipy.optimize, ~0.2 s to import) is loaded here, before the
             # stream, not inside the first segment's close, where it would delay the first release.
@@ -149,22 +164,15 @@ class PathPlanner:
         self._begin(seq, restart=True)
         self._zooms = []
         if self.params.mode == "smooth":
-            self._committed, self._real = [], []  # no past: the first window places its first frame too
-            self._seqs, self._path, self._models = [seq], [self._pose.copy()], [None]
-            self._zbar, self._motions = [np.zeros(self.group.dim)], [np.eye(4)]
+            self._committed, self._real, self._real_c = [], [], []  # no past: the first window places its first frame
+            self._open_with(seq, "start", 1.0)
             return []
         return [Correction(seq, np.eye(4), len(self.segments), True, camera=self._pose.copy(), chain=self._chain)]
-
-    def _held_zoom(self) -> float | None:
-        """The zoom of a frame the path does not correct: the track holds still (None without a planned track)."""
-        if not (self.params.mode == "smooth" and self.params.budget.enabled):
-            return None
-        self._zooms = (self._zooms + [self._zooms[-1] if self._zooms else 1.0])[-3:]
-        return self._zooms[-1]
 
     def _begin(self, seq: int, restart: bool) -> None:
         self._start = seq
         self._seqs, self._zbar, self._motions, self._path, self._models = [], [], [], [], []
+        self._kinds, self._closeness = [], []
         self.detector.reset()
         if restart:
             self._chain += 1
@@ -172,7 +180,38 @@ class PathPlanner:
             self.ends.reset(self._pose)
             self._history = []
             self._committed = [self._pose.copy()]  # the path restarts at the real camera, at rest
-            self._real = [self._pose.copy()]
+            self._real, self._real_c = [self._pose.copy()], [1.0]
+
+    def _open_with(self, seq: int, kind: str, closeness: float) -> None:
+        """Smooth mode: the open window's first frame is ``seq`` itself, placed with the window."""
+        self._seqs, self._path, self._models = [seq], [self._pose.copy()], [None]
+        self._zbar, self._motions = [np.zeros(self.group.dim)], [np.eye(4)]
+        self._kinds, self._closeness = [kind], [closeness]
+
+    def _restart(self, motion: MotionEstimate) -> list[Correction]:
+        """After an invalid motion into ``motion.seq_next``: a new pose chain (the motion is not known, so
+        no pose before it composes with one after it), and a handover with no jump (docs/method.md 4.4):
+        the stabilized path goes on from its committed past (smooth mode: the restart frame is placed with
+        the next window, its pose barely trusted; ``ep``: the frame keeps the last correction released
+        and the next segment starts from it)."""
+        held, committed, real, real_c, history = self._held, self._committed, self._real, self._real_c, self._history
+        self._begin(motion.seq_next, restart=True)
+        why = f"motion {motion.seq}->{motion.seq_next} not known ({motion.reason}): path restarted"
+        if self.params.mode == "smooth":
+            self._committed, self._real, self._real_c = committed, real, real_c
+            self._open_with(motion.seq_next, "restart", self._trust(float("inf")))
+            self._notes[motion.seq_next] = why
+            return []
+        self._C0, self._history = held.copy(), history
+        return [Correction(motion.seq_next, held.copy(), len(self.segments), True, True,
+                           f"{why}; the last correction held", camera=self._pose.copy(), chain=self._chain,
+                           motion="restart")]
+
+    def _trust(self, sigma: float) -> float:
+        """Closeness weight of a frame whose motion's rotation has standard deviation ``sigma`` (rad),
+        docs/method.md (8a): 1 up to ``motion_sigma``, then (motion_sigma / sigma)^2, at least MIN_TRUST."""
+        s = self.params.motion_sigma
+        return 1.0 if not sigma > s else max((s / sigma) ** 2, MIN_TRUST)
 
     def push(self, motion: MotionEstimate, model: FrameModel | None = None) -> list[Correction]:
         """Add the motion from frame ``motion.seq`` to ``motion.seq_next``; returns released corrections.
@@ -183,14 +222,14 @@ class PathPlanner:
             raise RuntimeError("PathPlanner.start() must be called with the first frame")
         if not motion.valid:
             out = self._close("invalid-motion") if self._seqs else []
-            self._begin(motion.seq_next, restart=True)
-            out.append(Correction(motion.seq_next, np.eye(4), len(self.segments), True, False,
-                                  f"motion {motion.seq}->{motion.seq_next} invalid ({motion.reason}): "
-                                  "path restarted, frame not corrected", zoom=self._held_zoom(),
-                                  camera=self._pose.copy(), chain=self._chain))
-            return out
+            return out + self._restart(motion)
         zb = motion.zeta_bar if motion.zeta_bar is not None else self.group.log(self.group.inverse(motion.matrix))
         self._seqs.append(motion.seq_next)
+        self._kinds.append(motion.kind)
+        if motion.kind in ("rotation", "bridge"):
+            self._notes[motion.seq_next] = f"motion {motion.seq}->{motion.seq_next}: {motion.reason}"
+        self._closeness.append(1.0 if motion.covariance is None and motion.kind == "fit"
+                               else self._trust(motion.rotation_sigma))
         self._zbar.append(zb)
         self._motions.append(motion.matrix)
         if self.params.lowpass_sigma > 0:
@@ -211,9 +250,9 @@ class PathPlanner:
         return self._close("end-of-stream") if self._seqs else []
 
     def _close(self, closed_by: str) -> list[Correction]:
-        if self.params.mode == "smooth":
-            return self._close_smooth(closed_by)
-        return self._close_ep(closed_by)
+        out = self._close_smooth(closed_by) if self.params.mode == "smooth" else self._close_ep(closed_by)
+        self._notes = {s: n for s, n in self._notes.items() if s in self._seqs}  # released frames' notes went out
+        return out
 
     def _close_smooth(self, closed_by: str) -> list[Correction]:
         """Smoothed path with the crop budget (docs/method.md 4.3), then the EP path through it."""
@@ -228,10 +267,14 @@ class PathPlanner:
         base = self._committed[-1] if self._committed else X[0]
         x = chart_path(g, base, X)
         committed = chart_path(g, base, np.asarray(self._committed)) if self._committed else np.zeros((0, g.dim))
+        trust = np.asarray(self._closeness)
         key = (N, len(committed))
-        if key not in self._systems:
-            self._systems[key] = segment_system(N, len(committed), p.smoothness, p.velocity_weight)
-        system = self._systems[key]
+        if not np.all(trust == 1.0):  # a frame whose motion is less certain pulls less (docs/method.md (8a))
+            system = segment_system(N, len(committed), p.smoothness, p.velocity_weight, closeness=trust)
+        else:
+            if key not in self._systems:
+                self._systems[key] = segment_system(N, len(committed), p.smoothness, p.velocity_weight)
+            system = self._systems[key]
         q = system.unconstrained(x, committed, self._velocity_targets(base) if p.velocity_weight > 0 else None)
         rep = BudgetReport()
         zooms: list[float | None] = [None] * N
@@ -264,13 +307,18 @@ class PathPlanner:
                                          rep.worst_margin_px, rep.rounds, rep.converged, rep.gap))
         if zooms[0] is not None:
             self._zooms = (self._zooms + zooms[:R])[-3:]
-        out = [Correction(s, corrections[i], seg, i == R - 1, zoom=zooms[i], camera=X[i], chain=self._chain)
+        out = [Correction(s, corrections[i], seg, i == R - 1, reason=self._notes.pop(s, ""), zoom=zooms[i],
+                          camera=X[i], chain=self._chain, motion=self._kinds[i])
                for i, s in enumerate(self._seqs[:R])]
+        self._held = corrections[R - 1]
         self._committed = (self._committed + list(path))[-3:]
-        self._real = (self._real + list(X[:R]))[-(int(3 * p.velocity_sigma) + 2):]
-        kept = (self._seqs[R:], self._zbar[R:], self._motions[R:], self._path[R:], self._models[R:])
+        keep = int(3 * p.velocity_sigma) + 2
+        self._real, self._real_c = (self._real + list(X[:R]))[-keep:], (self._real_c + list(trust[:R]))[-keep:]
+        kept = (self._seqs[R:], self._zbar[R:], self._motions[R:], self._path[R:], self._models[R:],
+                self._kinds[R:], self._closeness[R:])
         self._begin(self._seqs[R - 1], restart=False)
-        self._seqs, self._zbar, self._motions, self._path, self._models = (list(k) for k in kept)
+        (self._seqs, self._zbar, self._motions, self._path, self._models, self._kinds,
+         self._closeness) = (list(k) for k in kept)
         return out
 
     def _fill_zoom(self, meshes: SegmentMeshes, correction, X: np.ndarray, virtual: np.ndarray, q: np.ndarray,
@@ -297,16 +345,20 @@ class PathPlanner:
         return bounded_zoom_track(zoom_system, 1.0 / np.asarray(self._zooms), bound, 1.0 / b.max_zoom)
 
     def _velocity_targets(self, base: np.ndarray) -> np.ndarray:
-        """Low-passed velocity of the real path, in the segment's chart, for the steps into its frames."""
+        """Low-passed velocity of the real path, in the segment's chart, for the steps into its frames; each
+        step weighted by the trust in the less certain of its two frames (docs/method.md (8a))."""
         p, g = self.params, self.group
-        hist = self._real[-(len(self._path) + int(3 * p.velocity_sigma) + 1):] or self._path[:1]
+        k = len(self._path) + int(3 * p.velocity_sigma) + 1
+        hist, hist_c = (self._real[-k:], self._real_c[-k:]) if self._real else (self._path[:1], self._closeness[:1])
         xs = chart_path(g, base, np.asarray(hist + self._path))
         vel = np.diff(xs, axis=0)
+        c = np.asarray(hist_c + self._closeness)
+        trust = np.minimum(c[:-1], c[1:])  # a step is as certain as the less certain of its two frames
         n = len(self._path)
         idx = np.arange(len(vel))
         out = np.empty((n, vel.shape[1]))
         for i, t in enumerate(range(len(vel) - n, len(vel))):
-            w = np.exp(-0.5 * ((idx - t) / p.velocity_sigma) ** 2)
+            w = np.exp(-0.5 * ((idx - t) / p.velocity_sigma) ** 2) * trust
             out[i] = w @ vel / w.sum()
         return out
 
@@ -322,13 +374,14 @@ class PathPlanner:
         self.segments.append(info)
         last = len(self._seqs) - 1
         if sol.converged:
-            out = [Correction(s, sol.corrections[i + 1], seg, i == last, camera=X, chain=self._chain)
-                   for i, (s, X) in enumerate(zip(self._seqs, self._path))]
+            out = [Correction(s, sol.corrections[i + 1], seg, i == last, reason=self._notes.pop(s, ""), camera=X,
+                              chain=self._chain, motion=k)
+                   for i, (s, X, k) in enumerate(zip(self._seqs, self._path, self._kinds))]
             next_C0 = sol.corrections[-1]
         elif sol.fallback:  # not optimal, but smooth and on the end-constraints: used (docs/method.md 4.1)
             why = f"segment {seg} stabilized by the fallback path: {sol.reason}"
-            out = [Correction(s, sol.corrections[i + 1], seg, i == last, True, why, camera=X, chain=self._chain)
-                   for i, (s, X) in enumerate(zip(self._seqs, self._path))]
+            out = [Correction(s, sol.corrections[i + 1], seg, i == last, True, why, camera=X, chain=self._chain,
+                              motion=k) for i, (s, X, k) in enumerate(zip(self._seqs, self._path, self._kinds))]
             next_C0 = sol.corrections[-1]
         else:
             why = f"segment {seg} not stabilized: {sol.reason}"
@@ -337,7 +390,7 @@ class PathPlanner:
             self.ends.reset(self._pose)
         end_seq = self._seqs[-1]
         self._begin(end_seq, restart=False)
-        self._C0 = next_C0
+        self._C0 = self._held = next_C0
         return out
 
     def _targets(self) -> tuple[np.ndarray, np.ndarray | None]:

@@ -73,6 +73,10 @@ class WarpParams:
     min_depth: float = 0.0  # metres; control points need depth > min_depth (0 = invalid)
     min_target_z: float = 1e-3  # metres; points with virtual-camera z below this are dropped
     max_condition: float = 1e10  # normal matrix condition number above this: singular
+    # The mesh never shears to fit (docs/method.md (13c)): when a cell's sigma_min / sigma_max falls below
+    # this (or below the reference's own, a large rotation's perspective), alpha is raised until it does not.
+    min_cell_ratio: float = 0.975
+    max_alpha_steps: int = 12  # at most this many raises of alpha, each x2 (alpha up to 4096 x its value)
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -89,6 +93,9 @@ class WarpParams:
             raise ValueError(f"warp shape_reference must be 'rotation' or 'input', got {self.shape_reference!r}")
         if self.max_control_points < self.min_control_points or self.min_control_points < 1:
             raise ValueError("warp needs 1 <= min_control_points <= max_control_points")
+        if not 0 <= self.min_cell_ratio <= 1 or self.max_alpha_steps < 0:
+            raise ValueError(f"warp min_cell_ratio must be in [0, 1] and max_alpha_steps >= 0, got "
+                             f"{self.min_cell_ratio}, {self.max_alpha_steps}")
 
 
 @dataclass
@@ -109,6 +116,7 @@ class MeshWarp:
     reason: str = ""
     residual_px: float = 0.0
     n_controls: int = 0
+    alpha: float = float("nan")  # the shape weight the solve used (raised above WarpParams.alpha: shear held back)
 
     @property
     def grid(self) -> tuple[int, int]:
@@ -322,21 +330,30 @@ def _solve(B: np.ndarray, BtB: np.ndarray, targets: np.ndarray, width: int, heig
     N = len(B)
     if N < p.min_control_points:
         return MeshWarp.identity(width, height, (gx, gy), f"too few control points ({N} < {p.min_control_points})", N)
-    G = np.zeros((2 * n, 2 * n))
-    G[:n, :n] = BtB
-    G[n:, n:] = BtB
-    G += p.alpha * (geo.sim_normal if reference is None else similarity_normal(reference))
+    D = np.zeros((2 * n, 2 * n))
+    D[:n, :n] = BtB
+    D[n:, n:] = BtB
+    S = geo.sim_normal if reference is None else similarity_normal(reference)
     rhs = np.concatenate((B.T @ targets[:, 0], B.T @ targets[:, 1])) / N
-    if not np.all(np.isfinite(G)) or not np.all(np.isfinite(rhs)):
+    if not np.all(np.isfinite(D)) or not np.all(np.isfinite(rhs)) or not np.all(np.isfinite(S)):
         return MeshWarp.identity(width, height, (gx, gy), "non-finite control point targets", N)
-    cond = np.linalg.cond(G)
-    if not cond < p.max_condition:
-        return MeshWarp.identity(width, height, (gx, gy), f"singular warp system (condition {cond:.3g})", N)
-    X = np.linalg.solve(G, rhs)
-    dst = np.stack((X[:n], X[n:]), axis=-1).reshape(gy + 1, gx + 1, 2)
+    floor = p.min_cell_ratio if p.alpha > 0 else 0.0  # alpha = 0 asks for no shape term at all
+    if floor > 0 and reference is not None:  # a rotation's own perspective is no shear: the floor allows it
+        floor = min(floor, float(MeshWarp(width, height, geo.src, reference).cell_distortion().min()) - 1e-9)
+    alpha = p.alpha
+    for step in range(p.max_alpha_steps + 1):
+        G = D + alpha * S
+        cond = np.linalg.cond(G)
+        if not cond < p.max_condition:
+            return MeshWarp.identity(width, height, (gx, gy), f"singular warp system (condition {cond:.3g})", N)
+        X = np.linalg.solve(G, rhs)
+        dst = np.stack((X[:n], X[n:]), axis=-1).reshape(gy + 1, gx + 1, 2)
+        mesh = MeshWarp(width, height, geo.src, dst, ok=True, n_controls=N, alpha=alpha)
+        if floor <= 0 or step == p.max_alpha_steps or float(mesh.cell_distortion().min()) >= floor:
+            break
+        alpha *= 2.0
     r = np.column_stack((B @ X[:n], B @ X[n:])) - targets
-    rms = float(np.sqrt(np.mean(np.einsum("ij,ij->i", r, r))))
-    mesh = MeshWarp(width, height, geo.src, dst, ok=True, residual_px=rms, n_controls=N)
+    mesh.residual_px = float(np.sqrt(np.mean(np.einsum("ij,ij->i", r, r))))
     if not mesh.quads_convex():
         return MeshWarp.identity(width, height, (gx, gy), "warped mesh folds (a cell is not a convex quad)", N)
     return mesh

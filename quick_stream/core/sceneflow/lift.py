@@ -37,6 +37,20 @@ def depth_edge_at(depth: np.ndarray, index: np.ndarray, neighbours: np.ndarray, 
     return edge
 
 
+def edge_threshold(depth: np.ndarray, index: np.ndarray, right: np.ndarray, p: SceneFlowParams) -> float:
+    """The relative depth jump that marks a depth edge in this frame, docs/method.md (1b): ``depth_edge``, or
+    ``depth_edge_k`` times the frame's relative depth noise where that is more. The noise is read at the
+    candidate pixels (flat ``index``) against their right neighbours (``right``): 1.4826 x the median of
+    |z_right - z| / z over sqrt(2) (two noisy pixels), the few true edges among them being outliers."""
+    flat = depth.ravel()
+    d, n = flat[index], flat[right]
+    ok = (d > 0) & (n > 0)
+    if np.count_nonzero(ok) < 16 or p.depth_edge_k <= 0:
+        return p.depth_edge
+    noise = 1.4826 * median(np.abs(n[ok] - d[ok]) / d[ok]) / np.sqrt(2.0)
+    return max(p.depth_edge, p.depth_edge_k * float(noise))
+
+
 def sample_depth(depth: np.ndarray, u: np.ndarray, v: np.ndarray, rel: float) -> np.ndarray:
     """Bilinear depth at sub-pixel (u, v) where the 4 neighbours are valid and agree within ``rel``.
 
@@ -134,8 +148,9 @@ def lift_flow(f0: RGBDFrame, f1: RGBDFrame, fwd: np.ndarray, bwd: np.ndarray | N
     z0 = f0.depth.ravel()[grid.index]
     sel = np.flatnonzero((z0 >= p.min_depth) & (z0 <= p.max_depth))
     counts["invalid_depth"] = grid.u.size - sel.size
+    rel = edge_threshold(f0.depth, grid.index[sel], grid.neighbours[0, sel], p) if p.depth_edge > 0 else 0.05
     if p.depth_edge > 0:
-        edge = depth_edge_at(f0.depth, grid.index[sel], grid.neighbours[:, sel], p.depth_edge)
+        edge = depth_edge_at(f0.depth, grid.index[sel], grid.neighbours[:, sel], rel)
         counts["depth_edge"] = int(np.count_nonzero(edge))
         sel = sel[~edge]
     uu, vv, z0 = grid.u[sel], grid.v[sel], z0[sel].astype(np.float64)
@@ -148,7 +163,8 @@ def lift_flow(f0: RGBDFrame, f1: RGBDFrame, fwd: np.ndarray, bwd: np.ndarray | N
     if bwd is not None:
         bu, bv = sample_flow(bwd, u1[sel], v1[sel], w, h)
         ex, ey = du[sel] + bu, dv[sel] + bv
-        good = ex * ex + ey * ey <= p.fb_threshold_px ** 2
+        lim2 = np.maximum(p.fb_threshold_px ** 2, (p.fb_rel * p.fb_rel) * (du[sel] ** 2 + dv[sel] ** 2))  # (1a)
+        good = ex * ex + ey * ey <= lim2
         counts["fb_inconsistent"] = int(sel.size - np.count_nonzero(good))
         sel = sel[good]
     if refine is not None and p.lk_budget > 0:  # no more than the kept samples need (docs/method.md (1))
@@ -161,7 +177,7 @@ def lift_flow(f0: RGBDFrame, f1: RGBDFrame, fwd: np.ndarray, bwd: np.ndarray | N
         kept &= _inside(u1, v1, w, h, p.border_px)
         counts["lk_rejected"] = int(kept.size - np.count_nonzero(kept))
         uu, vv, z0, u1, v1 = uu[kept], vv[kept], z0[kept], u1[kept], v1[kept]
-    z1 = sample_depth(f1.depth, u1, v1, p.depth_edge if p.depth_edge > 0 else 0.05)
+    z1 = sample_depth(f1.depth, u1, v1, rel)
     sel = np.flatnonzero((z1 >= p.min_depth) & (z1 <= p.max_depth))
     counts["invalid_depth_next"] = int(z1.size - sel.size)
     K0, K1 = f0.intrinsics, f1.intrinsics

@@ -22,12 +22,15 @@ class SceneFlowParams:
     flow_scale: float = 1.0  # compute optical flow on images resized by this factor
     fb_check: bool = True  # forward-backward consistency test (occlusions)
     fb_scale: float = 0.5  # backward flow (used only for the test) at this image scale
-    fb_threshold_px: float = 1.5  # max |f_fwd(p) + f_bwd(p + f_fwd)| in full-resolution px
+    fb_threshold_px: float = 1.5  # max |f_fwd(p) + f_bwd(p + f_fwd)| in full-resolution px ...
+    fb_rel: float = 0.05  # ... or this share of |f_fwd(p)| where that is more: fast motion (docs/method.md (1a))
     grid_step: int = 4  # sample at most every grid_step-th pixel in x and y ...
     max_points: int = 3000  # ... coarser if needed for ~2x this many candidates; keep at most this many
     min_depth: float = 0.1  # metres; depth outside [min_depth, max_depth] is invalid
     max_depth: float = 8.0
-    depth_edge: float = 0.03  # relative depth jump to a 4-neighbour that marks a depth edge
+    depth_edge: float = 0.03  # relative depth jump to a 4-neighbour that marks a depth edge ...
+    depth_edge_k: float = 4.0  # ... or this many times the frame's own relative depth noise where that is
+    # more (noisy stereo depth would mark every pixel an edge; docs/method.md (1b))
     border_px: float = 2.0  # flow must land this far inside the image
     outlier_k: float = 6.0  # |v| outlier if | |v| - median| > outlier_k * 1.4826 * MAD
     outlier_floor_m: float = 0.01  # ... and more than this many metres from the median
@@ -47,6 +50,10 @@ class SceneFlowParams:
     def validate(self) -> None:
         if self.preset not in DIS_PRESETS:
             raise ValueError(f"sceneflow preset must be one of {sorted(DIS_PRESETS)}, got {self.preset!r}")
+        if not self.depth_edge_k >= 0:
+            raise ValueError(f"sceneflow depth_edge_k must be >= 0, got {self.depth_edge_k}")
+        if not 0 <= self.fb_rel < 1:
+            raise ValueError(f"sceneflow fb_rel must be in [0, 1), got {self.fb_rel}")
         for name in ("flow_scale", "fb_scale"):
             val = getattr(self, name)
             if not 0.1 <= val <= 1.0:

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from ...core.frame import FrameError, Intrinsics, RGBDFrame
-from ...core.motion import MotionEstimate
-from ...core.path.planner import Correction
+from ...core.motion import KINDS as MOTION_KINDS, MotionEstimate
+from ...core.path.planner import CORRECTION_MOTIONS, Correction
 from ...core.release import Tag
 from ...core.sceneflow import SceneFlowResult
 from .codec import (
@@ -235,8 +235,17 @@ def encode_motion(m: MotionEstimate, stream: str) -> bytes:
         "zeta_bar": None if m.zeta_bar is None else float_list("zeta_bar", m.zeta_bar, dim),
         "valid": bool(m.valid), "reason": _str("reason", m.reason), "n_points": int(m.n_points),
         "inlier_ratio": float(m.inlier_ratio), "rms_px": float(m.rms_px),
+        "kind": _kind("kind", m.kind, MOTION_KINDS, stream, m.seq),
+        "covariance": None if m.covariance is None else float_list("covariance", m.covariance, dim * dim),
     }
     return pack(f, "motion", stream, m.seq)
+
+
+def _kind(name: str, value: str, allowed: tuple[str, ...], stream: str, seq: int) -> str:
+    if value not in allowed:
+        raise WireError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", field=name, stream=stream,
+                        seq=seq)
+    return value
 
 
 def _decode_motion(r: Reader) -> Decoded:
@@ -245,10 +254,15 @@ def _decode_motion(r: Reader) -> Decoded:
     if dim is None:
         raise r.error("group", f"unknown group {group!r} (known: {', '.join(GROUP_DIMS)})")
     zeta = r.floats("zeta_bar", dim, optional=True)
+    kind = r.str("kind", optional=True) or "fit"  # optional (added within v1): a motion without it was a fit
+    if kind not in MOTION_KINDS:
+        raise r.error("kind", f"expected one of {', '.join(MOTION_KINDS)}, got {kind!r}")
+    cov = r.floats("covariance", dim * dim, optional=True)
     m = MotionEstimate(
         r.seq, r.int("seq_next", min=0), group, r.str("estimator"), r.floats("matrix", 16).reshape(4, 4),
         r.floats("twist", dim), r.bool("valid"), r.str("reason"), r.int("n_points", min=0),
         r.float("inlier_ratio"), r.float("rms_px", finite=False), zeta,
+        kind=kind, covariance=None if cov is None else cov.reshape(dim, dim),
     )
     return Decoded("motion", m, r.stream, r.seq)
 
@@ -272,16 +286,20 @@ def encode_correction(c: Correction, stream: str, zoom: float | None = None,
          "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom),
          "batch": None if batch is None else [int(x) for x in batch[:3]],
          "closed_by": None if closed_by is None else int(closed_by),
-         "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain)}
+         "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain),
+         "motion": _kind("motion", c.motion, CORRECTION_MOTIONS, stream, c.seq)}
     return pack(f, "correction", stream, c.seq)
 
 
 def _decode_correction(r: Reader) -> Decoded:
     camera = r.floats("camera", 16, optional=True)
     chain = r.int("chain", optional=True)
+    motion = r.str("motion", optional=True) or "fit"  # optional (added within v1)
+    if motion not in CORRECTION_MOTIONS:
+        raise r.error("motion", f"expected one of {', '.join(CORRECTION_MOTIONS)}, got {motion!r}")
     c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
                    r.bool("valid"), r.str("reason"), r.float("zoom", positive=True, optional=True),
-                   None if camera is None else camera.reshape(4, 4), -1 if chain is None else chain)
+                   None if camera is None else camera.reshape(4, 4), -1 if chain is None else chain, motion)
     batch, closed_by = r.get("batch", optional=True), r.int("closed_by", optional=True)
     if batch is not None:
         if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
