@@ -78,6 +78,7 @@ class Seen:
     seq: int
     digest: bytes
     flagged: bool = False
+    restart: bool = False  # a correction whose path restarted there (docs/method.md 4.4)
 
 
 @dataclass
@@ -96,10 +97,11 @@ class StreamMonitor:
         try:
             r = unpack(data)
             mtype, seq, flagged = r.type, r.seq, bool(r.d.get("flags"))
+            restart = mtype == "correction" and r.d.get("motion") == "restart"
         except WireError:
-            mtype, seq, flagged = "undecodable", -1, False
+            mtype, seq, flagged, restart = "undecodable", -1, False, False
         with self._lock:
-            self.seen.append(Seen(now, stage, mtype, seq, _digest(data), flagged))
+            self.seen.append(Seen(now, stage, mtype, seq, _digest(data), flagged, restart))
 
     def on_token(self, sample: zenoh.Sample) -> None:
         try:
@@ -425,6 +427,7 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
               "up_exit": code, "clean_stop": code == 0 and "exit codes" not in text,
               "frames_sent": len(sent), "stabilized": len(stab), "stabilized_unique": len(out_seqs),
               "flagged": sum(m.flagged for m in stab), "lost": len(set(sent) - out_seqs),
+              "path_restarts": len({m.seq for m in seen if m.restart}),
               "monitor_missed": len(monitor_missed), "monitor_missed_examples": monitor_missed[:5],
               "render": {k: render.get(k) for k in ("missing", "dropped", "orphans", "refused_frames")},
               # frames a live capture skipped (the pipeline behind: never published, a seq gap flow bridges)
