@@ -180,6 +180,7 @@ def _run(args: argparse.Namespace) -> int:
         "bad_frames": stab.bad_frames,
         "flagged_frames": [{"seq": r["seq"], "flags": r["flags"]} for r in records if r["flags"]],
         "uncorrected_frames": sum(r["uncorrected"] for r in records),
+        "bordered_frames": stab.render.bordered,  # output pixels no source reached (the renderer's own count)
         "frames_by_motion": {k: n for k in CORRECTION_MOTIONS if (n := sum(r["motion"] == k for r in records))},
         "frames": records,
     }
@@ -218,7 +219,8 @@ def _run(args: argparse.Namespace) -> int:
               f"(input {m['input_jitter_px']:.2f} px / {m['input_jitter_deg']:.3f} deg)"
               + (f"; FAILED: {m['failure_reason']}" if m["failed"] else ""))
     print(f"segments: {len(report['segments'])}, bad frames: {len(stab.bad_frames)}, "
-          f"flagged frames: {len(report['flagged_frames'])}, uncorrected frames: {report['uncorrected_frames']}")
+          f"flagged frames: {len(report['flagged_frames'])}, uncorrected frames: {report['uncorrected_frames']}, "
+          f"frames with a border: {report['bordered_frames']}")
     print("frames by how their motion was known (docs/method.md 2.4): "
           + ", ".join(f"{k} {n}" for k, n in report["frames_by_motion"].items()))
     if "shake" in report:

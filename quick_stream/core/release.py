@@ -145,7 +145,7 @@ class Rendered:
     ready_pub_ns: int | None
 
 
-CARRIED = ("dropped", "missing", "orphans", "bad_frames", "filled", "fill_raised", "renumberings")
+CARRIED = ("dropped", "missing", "orphans", "bad_frames", "filled", "fill_raised", "bordered", "renumberings")
 
 
 class RenderDriver:
@@ -297,7 +297,8 @@ class RenderDriver:
     def _per_stream(self) -> dict[str, int]:
         st = self.stage
         return {"dropped": st.dropped, "missing": st.missing, "orphans": st.orphans, "bad_frames": len(st.bad),
-                "filled": st.filled, "fill_raised": st.fill_raised, "renumberings": st.renumberings}
+                "filled": st.filled, "fill_raised": st.fill_raised, "bordered": st.bordered,
+                "renumberings": st.renumberings}
 
     def stats(self) -> dict[str, int]:
         """The counters of docs/reliability.md (the stream under way plus those ended)."""

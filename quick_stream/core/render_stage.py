@@ -123,6 +123,7 @@ class RenderStage:
         self._past: list[FillSource] = []  # the last fill_frames rendered frames the border fill can read
         self.filled = 0  # frames whose border was filled from neighbours
         self.fill_raised = 0  # frames zoomed in beyond their plan because fill left a border
+        self.bordered = 0  # frames rendered with output pixels no source reached (a black border): 0 expected
         self.jumps = JumpGuard()  # the flow stage's defaults: what it refuses gets no correction
 
     @property
@@ -332,6 +333,7 @@ class RenderStage:
             zoom = raised
         self.filled += filled
         self.fill_raised += zoom > p.zoom
+        self.bordered += depth is not None and bool(uncovered.any())
         if c.camera is not None:
             self._past = (self._past + [FillSource(c.seq, c.chain, c.camera, f.color, f.intrinsics.K)])[-reach:]
         return image, zoom
