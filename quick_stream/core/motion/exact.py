@@ -68,7 +68,9 @@ class ExactParams:
     tol: float = 0.1  # converged: an iteration moved no point by more than tol x its expected error (3a)
     max_spread_error: float = 3e-3  # observability (3b): largest predicted error of the linear part
     gn_max_scale: float = 1.25  # cap on the Gauss-Newton's robust scale (units of the expected noise), (3a)
-    max_noise_scale: float = 10.0  # the pair's own image and depth noise, measured (3i), at most this x sigma_px / depth_noise
+    max_noise_scale: float = 10.0  # the pair's own image noise, measured (3i), at most this x sigma_px ...
+    max_depth_scale: float = 1000.0  # ... and its depth noise at most this x depth_noise: depth that lags or is
+    # garbage is weighted down until it decides nothing (depth only ever adds information), docs/method.md (3i)
 
     @classmethod
     def describe(cls) -> dict[str, str]:
@@ -274,7 +276,7 @@ def refine_reprojection(
         rv = (fy * yn - v1) * isp
         rz = (Z - z1) * isz
         s_img = noise_scale(np.sqrt(ru * ru + rv * rv), 2, params.max_noise_scale)
-        s_z = noise_scale(np.abs(rz), 1, params.max_noise_scale, 0.5)
+        s_z = noise_scale(np.abs(rz), 1, params.max_depth_scale, 0.5)
         ru, rv, rz = ru / s_img, rv / s_img, rz / s_z
         e = np.sqrt(ru * ru + rv * rv + rz * rz)
         rw = cauchy_weights(e, params.cauchy_c, params.gn_max_scale)[0] if params.robust else np.ones_like(e)
@@ -315,7 +317,7 @@ def consensus_cost_change(rigid: RefineResult, M: np.ndarray, x: np.ndarray, p1:
 
     (img_r, z_r), (img_g, z_g) = residuals(rigid.M), residuals(M)
     s_img = noise_scale(img_r, 2, params.max_noise_scale)
-    s_z = noise_scale(z_r, 1, params.max_noise_scale, 0.5)
+    s_z = noise_scale(z_r, 1, params.max_depth_scale, 0.5)
     k2 = (params.cauchy_c * params.gn_max_scale) ** 2
     rho_r = np.log1p(((img_r / s_img) ** 2 + (z_r / s_z) ** 2) / k2)
     rho_g = np.log1p(((img_g / s_img) ** 2 + (z_g / s_z) ** 2) / k2)
