@@ -8,21 +8,27 @@ stream renumbered lower is followed once a run of frames confirms it (``renumber
 ``--max-frames`` bounds what is held (the oldest dropped, counted). Each stabilized frame is
 published as soon as it is rendered, with its latency stamps (docs/wire-format.md);
 ``--output``/``--png`` also write it to disk from a worker thread. On ``end`` (on ``correction``)
-everything left is rendered, the file closed, and ``end`` forwarded on ``stabilized``. The
-policy is :class:`quick_stream.core.release.RenderDriver`'s.
+everything left is rendered and ``end`` forwarded on ``stabilized``; the video is closed, and
+checked on disk, when the service stops. A write that fails (a full disk, a file-size limit, a
+video left incomplete) stops the service as the recorder's does: logged with the file and the
+frame, the stats' ``state`` ``error`` and ``error`` (the message), exit 2 (not restarted); the
+stats' ``frames_written`` counts the frames on disk. The policy is
+:class:`quick_stream.core.release.RenderDriver`'s.
 """
 from __future__ import annotations
 
 import argparse
 import logging
 import sys
+import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 
+import numpy as np
 import zenoh
 
 from quick_stream.core.release import RenderDriver, Rendered
-from quick_stream.core.settings import settings_digest
+from quick_stream.core.settings import StabilizerParams, settings_digest
 from quick_stream.io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink, check_video
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import Latency, RateMeter
@@ -54,58 +60,130 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class FileOutput:
+    """The render's files (``--output``, ``--png``), written from a worker thread: the first write
+    that fails is logged once and stops the service (``rt.stop``)."""
+
+    def __init__(self, sink: BackgroundSink, stop: threading.Event) -> None:
+        self.sink, self.stop, self.reported = sink, stop, False
+
+    def write(self, seq: int, image: np.ndarray, jpeg: bytes | None) -> None:
+        if self.sink.error is None:
+            try:
+                self.sink.write(seq, image, jpeg)
+            except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
+                pass
+        self.check()
+
+    def check(self) -> None:
+        if self.sink.error is not None and not self.reported:
+            self.reported = True
+            log.error("%s; render stops: the file is not what was rendered (%d frames on disk)",
+                      self.sink.error, self.sink.written)
+            self.stop.set()
+
+    def drain(self) -> None:
+        try:
+            self.sink.drain()
+        except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
+            pass
+        self.check()
+
+    def close(self) -> None:
+        """Close the video (checked on disk)."""
+        try:
+            self.sink.close()
+        except Exception:  # noqa: BLE001 - the sink's error, taken up by check()
+            pass
+        self.check()
+
+    @property
+    def frames(self) -> int:
+        return self.sink.written
+
+    @property
+    def error(self) -> BaseException | None:
+        return self.sink.error
+
+    def stats(self) -> dict[str, object]:
+        files = self.sink.sink.mp4 is not None or self.sink.sink.png_dir is not None
+        return {"resized_frames": self.sink.resized, **({"frames_written": self.sink.written} if files else {}),
+                **({"error": str(self.sink.error)} if self.sink.error is not None else {})}
+
+
 def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
-    with ServiceRuntime("render", args.stream, conf, settings=settings_digest(params)) as rt, \
-            BackgroundSink(VideoSink(args.output, args.png, args.fps, args.video_codec, args.quality)) as sink:
-        resume_after = rt.stream_cursor("stabilized")  # not None: a restarted render; take over after it
-        if resume_after is not None:
-            log.warning("stream %s under way (stabilized out up to frame %d): taking over from the frames' and "
-                        "corrections' history", args.stream, resume_after)
-        driver = RenderDriver(params.warp, params.framing, max_frames=args.max_frames, frame_wait=args.frame_wait,
-                              resume_after=resume_after, log=log)
-        frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, history=resume_after is not None, publisher="capture")
-        corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=resume_after is not None,
-                           publisher="motion")
-        pub = rt.publisher("stabilized")
-        rt.serve_cursor()
-        rt.ready()
-        meter, latency = RateMeter(), Latency()
+    with ServiceRuntime("render", args.stream, conf, settings=settings_digest(params)) as rt:
+        files = FileOutput(BackgroundSink(VideoSink(args.output, args.png, args.fps, args.video_codec, args.quality)),
+                           rt.stop)
+        try:
+            serve(args, params, rt, files)
+        finally:
+            files.close()
+    return 2 if files.error is not None else 0  # 2: not restarted (a full disk stops the run)
 
-        def publish(groups: Iterable[tuple[str, Iterator[Rendered]]]) -> None:
-            for label, frames in groups:
-                with rt.contained(label):
-                    for r in frames:
-                        t0, sf = time.perf_counter(), r.frame
-                        image = encode_image(sf.image, args.color, args.quality)  # published, and the video's JPEG
-                        pub.put(encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags),
-                                                  args.stream, src_pub_ns=r.src_pub_ns, ready_pub_ns=r.ready_pub_ns,
-                                                  image=image))
-                        latency.add(r.src_pub_ns, r.ready_pub_ns)
-                        sink.write(sf.seq, sf.image, image["data"] if image["enc"] == "jpeg" else None)
-                        meter.add((time.perf_counter() - t0) * 1e3)
-                        rt.maybe_stats()
 
-        def tick(stopping: bool = False) -> None:
-            publish((rel.label, driver.render(rel)) for rel in driver.due())
-            if driver.end_due(stopping):
-                publish(driver.finish())
-                sink.drain()  # the frames reported written below are on disk when the end is announced
-                pub.put(encode_end(driver.end_marker, args.stream))
-                log.info("end of stream: %d frames written, %d flagged, %d orphans, %d missing",
-                         sink.frames, driver.flagged, driver.stage.orphans, driver.stage.missing)
-                driver.restart()  # a new stream may follow
-                rt.publish_stats()
+def serve(args: argparse.Namespace, params: StabilizerParams, rt: ServiceRuntime, sink: FileOutput) -> None:
+    resume_after = rt.stream_cursor("stabilized")  # not None: a restarted render; take over after it
+    if resume_after is not None:
+        log.warning("stream %s under way (stabilized out up to frame %d): taking over from the frames' and "
+                    "corrections' history", args.stream, resume_after)
+    driver = RenderDriver(params.warp, params.framing, max_frames=args.max_frames, frame_wait=args.frame_wait,
+                          resume_after=resume_after, log=log)
+    frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, history=resume_after is not None, publisher="capture")
+    corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=resume_after is not None,
+                       publisher="motion")
+    pub = rt.publisher("stabilized")
+    rt.serve_cursor()
+    rt.ready()
+    meter, latency = RateMeter(), Latency()
 
-        # all pending corrections, then the frames pending by then (RenderDriver.takes_corrections)
-        rt.serve([Input(corr_in, {"correction": lambda m: driver.add_correction(m.obj, m.extra.get("batch")),
-                                  "end": lambda m: driver.end(m.obj)}, take="all",
-                        paused=lambda: not driver.takes_corrections),
-                  Input(frames_in, {"frame": lambda m: driver.add_frame(m.seq, m.obj, m.extra.get("pub_ns")),
-                                    "end": None}, take="pending")],
-                 lambda: {**driver.stats(), "resized_frames": sink.resized, **meter.take("render"), **latency.take()},
-                 tick=tick, idle_s=lambda: driver.idle_s, on_stop=lambda: driver.ending and tick(stopping=True))
-    return 0
+    def publish(groups: Iterable[tuple[str, Iterator[Rendered]]]) -> None:
+        for label, frames in groups:
+            with rt.contained(label):
+                for r in frames:
+                    t0, sf = time.perf_counter(), r.frame
+                    image = encode_image(sf.image, args.color, args.quality)  # published, and the video's JPEG
+                    pub.put(encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags),
+                                              args.stream, src_pub_ns=r.src_pub_ns, ready_pub_ns=r.ready_pub_ns,
+                                              image=image))
+                    latency.add(r.src_pub_ns, r.ready_pub_ns)
+                    sink.write(sf.seq, sf.image, image["data"] if image["enc"] == "jpeg" else None)
+                    meter.add((time.perf_counter() - t0) * 1e3)
+                    rt.maybe_stats()
+
+    def tick(stopping: bool = False) -> None:
+        publish((rel.label, driver.render(rel)) for rel in driver.due())
+        if driver.end_due(stopping):
+            publish(driver.finish())
+            sink.drain()  # the frames reported written below are on disk when the end is announced
+            pub.put(encode_end(driver.end_marker, args.stream))
+            log.log(logging.ERROR if sink.error else logging.INFO,
+                    "end of stream: %d frames written%s, %d flagged, %d orphans, %d missing", sink.frames,
+                    " (the file FAILED, see above)" if sink.error else "", driver.flagged,
+                    driver.stage.orphans, driver.stage.missing)
+            driver.restart()  # a new stream may follow
+            rt.publish_stats()
+
+    # all pending corrections, then the frames pending by then (RenderDriver.takes_corrections)
+    rt.serve([Input(corr_in, {"correction": lambda m: driver.add_correction(m.obj, m.extra.get("batch")),
+                              "end": lambda m: driver.end(m.obj)}, take="all",
+                    paused=lambda: not driver.takes_corrections),
+              Input(frames_in, {"frame": lambda m: driver.add_frame(m.seq, m.obj, m.extra.get("pub_ns")),
+                                "end": None}, take="pending")],
+             lambda: {**driver.stats(), **sink.stats(), **meter.take("render"), **latency.take()},
+             tick=tick, idle_s=lambda: driver.idle_s, on_stop=lambda: stopping(driver, tick, sink),
+             final_state=lambda: "error" if sink.error is not None else "stopped")
+
+
+def stopping(driver: RenderDriver, tick: Callable[..., None], sink: FileOutput) -> None:
+    """Stopped: what an ending stream still holds rendered, then the video closed and checked on disk
+    (before the last stats, which carry its error)."""
+    try:
+        if driver.ending:
+            tick(stopping=True)
+    finally:
+        sink.close()
 
 
 def main(argv: list[str] | None = None) -> int:

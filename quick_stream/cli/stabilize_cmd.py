@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+from collections import Counter
 import json
 import os
 import sys
@@ -25,6 +26,7 @@ from ..core.motion import integrate_path
 from ..core.path.planner import CORRECTION_MOTIONS
 from ..core.stabilizer import StabilizedFrame, Stabilizer
 from ..io.plot import path_components, plot_paths
+from ..io.files import write_file
 from ..io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink, check_video
 from ..core.settings import settings_dict, settings_digest
 from ..io.sources import SourceError, open_source, source_settings
@@ -203,7 +205,7 @@ def _run(args: argparse.Namespace) -> int:
                                "reference": "intended (shake-free) path"}
     if args.report:
         Path(args.report).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.report).write_text(json.dumps(report, indent=1, default=float))
+        write_file(args.report, json.dumps(report, indent=1, default=float).encode())
 
     print(f"stabilized {len(records)} of {total} frames from {args.source} "
           f"({params.motion.group}, {path_label(params.planner)}, {params.framing.mode} framing) in {wall:.1f} s")
@@ -229,6 +231,27 @@ def _run(args: argparse.Namespace) -> int:
               f"({a['rot_deg'] / max(b['rot_deg'], 1e-12):.1f}x), roll {a['roll_deg']:.3f} -> {b['roll_deg']:.4f} deg, "
               f"translation {a['trans_mm']:.2f} -> {b['trans_mm']:.3f} mm "
               f"({a['trans_mm'] / max(b['trans_mm'], 1e-12):.1f}x)")
-    outputs = [x for x in (args.output, args.png, args.report, args.plot) if x]
-    print("wrote " + ", ".join(outputs))
+    # only what is on disk and complete: the sink checked the video when it closed it
+    outputs = [x for x, done in ((args.output, sink.written), (args.png, sink.written), (args.report, True),
+                                 (args.plot, "plot" in report)) if x and done]
+    if outputs:
+        print("wrote " + ", ".join(outputs))
+    if not records:
+        print(f"quick-stream stabilize: {nothing_stabilized(total, stab.bad_frames)}", file=sys.stderr)
+        return 1
     return 0
+
+
+def nothing_stabilized(total: int, bad_frames: list[dict]) -> str:
+    """One line saying why no frame of ``total`` came out: the frames' errors, most frequent first,
+    each without its file (``<file>: depth image not found`` -> ``depth image not found``), and the
+    first bad frame's whole error."""
+    if total == 0:
+        return "0 frames stabilized: the source has no frames"
+    if not bad_frames:
+        return f"0 of {total} frames stabilized"
+    why = Counter(str(b["error"]).rsplit(": ", 1)[-1] for b in bad_frames).most_common()
+    first = bad_frames[0]
+    text = (f"{why[0][0]} for every frame" if len(why) == 1 and len(bad_frames) == total
+            else ", ".join(f"{k} ({n} frames)" for k, n in why[:3]) + (", ..." if len(why) > 3 else ""))
+    return f"0 of {total} frames stabilized: {text} (first: frame {first['seq']}: {first['error']})"

@@ -1,11 +1,14 @@
 """Line plots drawn with OpenCV (no plotting dependency): the camera path before and after."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..core.lie import so3
+from .files import write_file
 
 COLORS = {"before": (60, 60, 220), "after": (60, 170, 40)}  # BGR: red, green
 
@@ -51,5 +54,7 @@ def plot_paths(series: dict[str, np.ndarray], fps: float, path: str, width: int 
             cv2.polylines(img, [pts], False, COLORS.get(name, (120, 120, 120)), 1, cv2.LINE_AA)
     cv2.putText(img, f"frames (0..{n - 1}, {fps:g} fps)", (margin_l, H - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
                 (0, 0, 0), 1, cv2.LINE_AA)
-    if not cv2.imwrite(path, img):
-        raise OSError(f"cannot write plot {path}")
+    ok, png = cv2.imencode(Path(path).suffix or ".png", img)
+    if not ok:
+        raise OSError(f"cannot encode plot {path}")
+    write_file(path, png.tobytes())

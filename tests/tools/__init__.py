@@ -6,6 +6,7 @@ need the ``test`` extra). Each runs from the repo root as ``python -m tests.tool
   malformed wire messages and damaged recordings against the decoders and readers;
 * ``slow_viewer``: a slow foreign subscriber beside a live pipeline;
 * ``slow_render``: the render service with every frame slowed (backpressure tests);
+* ``fsize_render``: the render service under a file-size limit (a full disk, reproducibly);
 * ``netns_probe``: a zenoh session inside a network namespace (tests/integration/test_netns.py).
 """
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """The render's file sinks: the background writer keeps every frame and reports what is on disk."""
 from __future__ import annotations
 
+import re
 import threading
 from pathlib import Path
 
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from quick_stream.io.sinks import BackgroundSink, VideoSink
+from quick_stream.io.video_check import video_frames
 
 
 class GatedSink(VideoSink):
@@ -105,3 +107,68 @@ def test_a_frame_of_another_size_is_letterboxed_into_the_video_whatever_its_code
 def test_an_unknown_video_codec_is_refused():
     with pytest.raises(ValueError, match="video codec must be one of"):
         VideoSink("x.mp4", None, 30.0, "h264")
+
+
+# ---------------------------------------------------------------- a write that fails is an error
+
+CHILD = r"""
+import json, resource, sys
+from pathlib import Path
+import cv2, numpy as np
+from quick_stream.io import sinks
+limit, path, codec, n, blind = int(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), sys.argv[5] == "1"
+if blind:  # a failure the free space does not show (a quota, an I/O error): only the file can tell
+    sinks.room_left = lambda p, size: (1 << 40, "blind")
+resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))  # Python ignores SIGXFSZ: writes fail with EFBIG
+rng = np.random.default_rng(3)
+error = None
+bg = sinks.BackgroundSink(sinks.VideoSink(path, None, 30.0, codec))
+try:
+    for seq in range(n):
+        bg.write(seq, cv2.GaussianBlur(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), (3, 3), 0))
+    bg.close()
+except OSError as e:
+    error = str(e)
+print(json.dumps({"error": error, "written": getattr(bg, "written", None)}))
+"""
+
+
+def write_under_limit(tmp_path: Path, limit: int, codec: str, n: int, blind: bool = False) -> tuple[Path, dict]:
+    """``n`` noisy 320x240 frames (~25 KB each in mp4v, ~40 KB in Motion JPEG) to a video in a child
+    process whose files may not grow past ``limit`` bytes; ``blind``: the sink cannot see the limit
+    (only the file tells)."""
+    import json
+    import subprocess
+    import sys
+
+    video = tmp_path / f"v-{codec}.mp4"
+    done = subprocess.run([sys.executable, "-c", CHILD, str(limit), str(video), codec, str(n), str(int(blind))],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return video, json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("codec", ["mp4v", "mjpeg"])
+def test_a_video_that_reaches_the_file_size_limit_stops_with_a_complete_file(codec, tmp_path):
+    video, got = write_under_limit(tmp_path, 1_000_000, codec, 80)
+    assert got["error"] is not None, "80 frames of 25-40 KB cannot fit in 1 MB: the sink must say so"
+    assert got["error"].startswith(f"{video}: writing stopped at frame ")
+    assert "bytes left under the file-size limit of 1000000 bytes" in got["error"]
+    # stopped with room for what the encoder held and the index: the frames before are kept, playable
+    assert 0 < got["written"] < 80 and f"closed complete with its first {got['written']} frames" in got["error"]
+    assert video_frames(video) == got["written"]
+
+
+def test_a_failure_the_free_space_does_not_show_is_found_in_the_file(tmp_path):
+    # mp4v: the encoder's output size is not known, so the file is checked when it is closed
+    video, got = write_under_limit(tmp_path, 1_000_000, "mp4v", 80, blind=True)
+    assert got["error"] is not None and got["written"] == 0
+    assert got["error"].startswith(f"{video}: incomplete video file (1000000 bytes): no 'moov' box")
+    # Motion JPEG: the sink knows each frame's bytes and sees the file stop growing while it writes
+    video, got = write_under_limit(tmp_path, 1_000_000, "mjpeg", 80, blind=True)
+    assert got["error"] is not None
+    stopped = re.match(rf"{re.escape(str(video))}: writing stopped at frame (\d+): the file stopped growing",
+                       got["error"])
+    assert stopped and int(stopped[1]) < 79, got["error"]  # while writing, not only when closed
+    assert "incomplete video file" in got["error"]
+    assert got["written"] == 0
