@@ -20,16 +20,14 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 
-import numpy as np
 import zenoh
 
 from quick_stream.core.release import RenderDriver, Rendered
 from quick_stream.core.settings import StabilizerParams, settings_digest
-from quick_stream.io.sinks import VIDEO_CODECS, BackgroundSink, VideoSink, check_video
+from quick_stream.io.sinks import VIDEO_CODECS, BackgroundSink, FileOutput, VideoSink, check_video
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.meters import Latency, RateMeter
 from quick_stream.stream.process import service_main, service_parser
@@ -60,62 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-class FileOutput:
-    """The render's files (``--output``, ``--png``), written from a worker thread: the first write
-    that fails is logged once and stops the service (``rt.stop``)."""
-
-    def __init__(self, sink: BackgroundSink, stop: threading.Event) -> None:
-        self.sink, self.stop, self.reported = sink, stop, False
-
-    def write(self, seq: int, image: np.ndarray, jpeg: bytes | None) -> None:
-        if self.sink.error is None:
-            try:
-                self.sink.write(seq, image, jpeg)
-            except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
-                pass
-        self.check()
-
-    def check(self) -> None:
-        if self.sink.error is not None and not self.reported:
-            self.reported = True
-            log.error("%s; render stops: the file is not what was rendered (%d frames on disk)",
-                      self.sink.error, self.sink.written)
-            self.stop.set()
-
-    def drain(self) -> None:
-        try:
-            self.sink.drain()
-        except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
-            pass
-        self.check()
-
-    def close(self) -> None:
-        """Close the video (checked on disk)."""
-        try:
-            self.sink.close()
-        except Exception:  # noqa: BLE001 - the sink's error, taken up by check()
-            pass
-        self.check()
-
-    @property
-    def frames(self) -> int:
-        return self.sink.written
-
-    @property
-    def error(self) -> BaseException | None:
-        return self.sink.error
-
-    def stats(self) -> dict[str, object]:
-        files = self.sink.sink.mp4 is not None or self.sink.sink.png_dir is not None
-        return {"resized_frames": self.sink.resized, **({"frames_written": self.sink.written} if files else {}),
-                **({"error": str(self.sink.error)} if self.sink.error is not None else {})}
-
-
 def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     with ServiceRuntime("render", args.stream, conf, settings=settings_digest(params)) as rt:
         files = FileOutput(BackgroundSink(VideoSink(args.output, args.png, args.fps, args.video_codec, args.quality)),
-                           rt.stop)
+                           rt.stop, log)
         try:
             serve(args, params, rt, files)
         finally:

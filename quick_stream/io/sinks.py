@@ -20,8 +20,10 @@ complete, or holds fewer frames than were given, is an error. PNGs are encoded h
 by Python (:func:`.files.write_file`), whose write raises on a short write."""
 from __future__ import annotations
 
+import logging
 import os
 import resource
+import threading
 from pathlib import Path
 
 import cv2
@@ -224,7 +226,6 @@ class BackgroundSink:
 
     def __init__(self, sink: VideoSink, max_queued: int = 64) -> None:
         import queue
-        import threading
 
         self.sink = sink
         self._q: "queue.Queue[tuple[int, np.ndarray, bytes | None] | None]" = queue.Queue(max_queued)
@@ -294,3 +295,54 @@ class BackgroundSink:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class FileOutput:
+    """A service's files (``--output``, ``--png``) written from a :class:`BackgroundSink`: the first
+    write that fails is logged once on ``log`` and sets ``stop`` (the service's stop event)."""
+
+    def __init__(self, sink: BackgroundSink, stop: threading.Event, log: logging.Logger) -> None:
+        self.sink, self.stop, self.log, self.reported = sink, stop, log, False
+
+    def write(self, seq: int, image: np.ndarray, jpeg: bytes | None) -> None:
+        if self.sink.error is None:
+            try:
+                self.sink.write(seq, image, jpeg)
+            except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
+                pass
+        self.check()
+
+    def check(self) -> None:
+        if self.sink.error is not None and not self.reported:
+            self.reported = True
+            self.log.error("%s; the service stops: the file is not what was rendered (%d frames on disk)",
+                      self.sink.error, self.sink.written)
+            self.stop.set()
+
+    def drain(self) -> None:
+        try:
+            self.sink.drain()
+        except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
+            pass
+        self.check()
+
+    def close(self) -> None:
+        """Close the video (checked on disk)."""
+        try:
+            self.sink.close()
+        except Exception:  # noqa: BLE001 - the sink's error, taken up by check()
+            pass
+        self.check()
+
+    @property
+    def frames(self) -> int:
+        return self.sink.written
+
+    @property
+    def error(self) -> BaseException | None:
+        return self.sink.error
+
+    def stats(self) -> dict[str, object]:
+        files = self.sink.sink.mp4 is not None or self.sink.sink.png_dir is not None
+        return {"resized_frames": self.sink.resized, **({"frames_written": self.sink.written} if files else {}),
+                **({"error": str(self.sink.error)} if self.sink.error is not None else {})}

@@ -31,7 +31,7 @@ def test_a_video_that_cannot_be_written_stops_the_render_and_says_so(tmp_path):
     text = log.read_text()
     assert render.exits and render.exits[-1][1] == 2, (codes, text[-2000:])
     assert render.restarts == 0
-    assert f"{video}: writing stopped at frame " in text and "render stops" in text
+    assert f"{video}: writing stopped at frame " in text and "the service stops" in text
     stats, _ = recorded(tmp_path / "rec.mcap")
     r = stats["render"]
     assert r["state"] == "error" and r["error"].startswith(f"{video}: writing stopped at frame ")
