@@ -7,8 +7,9 @@ msgpack only). Every file starts with the stabilizer settings record (``--settin
 file). A message is in the file's open chunk as it arrives and on disk within ``--flush`` seconds;
 a killed recorder's file is repaired by ``quick-stream recover`` and its successor writes the next
 ``<name>-N.mcap``; long runs split at ``--split-mb``/``--split-minutes`` with nothing lost or doubled;
-seqs that never arrived are logged and counted (``unreceived_<stage>``); a full disk stops it (exit 2,
-docs/reliability.md). All of it is :class:`quick_stream.io.stream_recording.StreamRecording`.
+seqs that never arrived are logged and counted (``unreceived_<stage>``); a message that arrives
+again byte for byte (a restarted publisher's) is stored once (``replays``), one with the same seq and
+other bytes is kept and logged (``seq_conflicts``); a full disk stops it (exit 2, docs/reliability.md). All of it is :class:`quick_stream.io.stream_recording.StreamRecording`.
 """
 from __future__ import annotations
 
@@ -61,7 +62,9 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
                          settings=settings_record(params), on_failure=lambda: rt.stop.set()) as rec, \
             ServiceRuntime("recorder", args.stream, conf, settings=settings_digest(params)) as rt:
         sub_key = f"{keys.PREFIX}/*/*" if args.all_streams else keys.stream_keys(args.stream)
-        inbox = rt.inbox(sub_key, args.queue, on_arrival=rec.accept, on_gap=rec.gap_seen)  # the queue feeds the views
+        # the queue feeds the views; a message received before, byte for byte (a restarted motion sends
+        # its predecessor's last motions again), is dropped on arrival: stored once, not a renumbering
+        inbox = rt.inbox(sub_key, args.queue, on_arrival=rec.accept, on_gap=rec.gap_seen, replays=rec.replays)
         rec.attach(inbox.arrivals)
         rt.serve_cursor(args.all_streams)  # the newest seq of every stage: how far a restarted service's predecessor got
         threading.Thread(target=rec.flusher, args=(rt.stop,), name="recorder-flush", daemon=True).start()

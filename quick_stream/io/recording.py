@@ -130,10 +130,15 @@ def describe_damage(e: BaseException) -> str:
 
 
 class Recorder(_ClosedOnExit):
-    """One MCAP file; not thread-safe (one recorder per process)."""
+    """One MCAP file; not thread-safe (one recorder per process).
+
+    ``flush_on_write``: :meth:`write` flushes when ``flush_s`` has passed (default). Off, only
+    :meth:`maybe_flush` and :meth:`flush` do, so a caller that writes one message as several
+    records (an image, then the message referring to it) knows which of them a flush took: the
+    recorder service keeps its account of what is on disk that way (docs/reliability.md)."""
 
     def __init__(self, path: str | os.PathLike, flush_s: float = 1.0, chunk_size: int = 1 << 20,
-                 compression: str = "none") -> None:
+                 compression: str = "none", flush_on_write: bool = True) -> None:
         comp = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}
         if compression not in comp:
             raise ValueError(f"recording compression must be one of {sorted(comp)}, got {compression!r}")
@@ -145,9 +150,8 @@ class Recorder(_ClosedOnExit):
         self._channels: dict[str, int] = {}
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._seq: dict[str, int] = {}
-        self.flush_s = flush_s
+        self.flush_s, self.flush_on_write = flush_s, flush_on_write
         self._last_flush = time.monotonic()
-        self.flushes = 0  # how many times the open chunk went to disk (write() flushes too, when due)
         self.messages = 0
         self.closed = False
 
@@ -173,7 +177,8 @@ class Recorder(_ClosedOnExit):
 
     def write(self, topic: str, data: bytes, log_time_ns: int | None = None,
               publish_time_ns: int | None = None, sequence: int | None = None) -> int:
-        """Log ``data`` on ``topic`` (registered as msgpack if new); flush if ``flush_s`` has passed.
+        """Log ``data`` on ``topic`` (registered as msgpack if new); flush if ``flush_s`` has passed
+        (unless ``flush_on_write`` is off).
 
         Returns the message's sequence number on its channel: 0, 1, 2, ... per channel and file
         unless ``sequence`` gives it (:func:`recover` keeps the source's, which stored-apart
@@ -190,7 +195,7 @@ class Recorder(_ClosedOnExit):
                                  seq)
         self._seq[topic] = seq + 1
         self.messages += 1
-        if time.monotonic() - self._last_flush >= self.flush_s:
+        if self.flush_on_write and time.monotonic() - self._last_flush >= self.flush_s:
             self.flush()
         return seq
 
@@ -205,7 +210,6 @@ class Recorder(_ClosedOnExit):
         """Write the open chunk and flush the file (what a kill can lose is what came after)."""
         self._writer.flush()
         self._last_flush = time.monotonic()
-        self.flushes += 1
 
     def close(self) -> None:
         if not self.closed:

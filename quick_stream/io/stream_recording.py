@@ -8,29 +8,34 @@
   open chunk at once, so what arrived is on disk within ``flush_s`` however far the views lag;
 * :meth:`~StreamRecording.view` (the service loop, from a drop-oldest queue): the other Foxglove
   channels derived from it (:class:`~quick_stream.io.foxglove_view.FoxgloveView`);
-* :meth:`~StreamRecording.flusher` (a thread): the open chunk written out every ``flush_s``, the
-  side file a restarted recorder continues its account from, a time split when due;
+* :meth:`~StreamRecording.flusher` (a thread; ``accept`` too, when one is due): the open chunk
+  written out every ``flush_s``, then the side file a restarted recorder continues its account
+  from, which says what that flush put on disk, not what had arrived
+  (:mod:`quick_stream.io.recorded_account`); a time split when due;
 * :meth:`~StreamRecording.gap_seen`: the seqs of a stage that never arrived, logged (a restarted
-  recorder's hole, what was published while none ran, said once and counted apart);
+  recorder's hole, what was published while none ran or not yet flushed by its predecessor, said
+  once and counted apart);
+* :attr:`~StreamRecording.replays`: for the inbox, so a message received before, byte for byte (a
+  restarted publisher sending again what its predecessor had sent), is stored once
+  (:mod:`quick_stream.stream.replays`; docs/recording.md);
 * the first failed write (a full disk) stops the recording, said once, and the service (exit 2).
 """
 from __future__ import annotations
 
-import json
 import logging
-import os
 import threading
 import time
-from pathlib import Path
 from typing import Any, Callable
 
 from ..stream import keys
 from ..stream.arrivals import ArrivalLedger, Gap
 from ..stream.meters import RateMeter
+from ..stream.replays import ReplayFilter
 from ..stream.wire import WireError
 from ..stream.wire.codec import peek
 from . import foxglove
 from .foxglove_view import FoxgloveView
+from .recorded_account import OnDisk, load_recorded, recorded_path, save_recorded
 from .recording import Recorder, SplitRecorder, fresh_path
 from .recording_images import write_message
 from .settings_file import RECORD_NAME
@@ -58,14 +63,20 @@ class StreamRecording:
         # a chunk every flush_s
         self.files = SplitRecorder(output, out, split_bytes=int(split_mb * 2**20), split_s=split_minutes * 60,
                                    on_open=lambda rec: self._opened(rec, settings),
-                                   flush_s=flush_s, compression=compression, chunk_size=4 << 20)
+                                   flush_s=flush_s, compression=compression, chunk_size=4 << 20,
+                                   flush_on_write=False)  # flushed here, after whole messages (accept)
         self.meter = RateMeter()
         self.counts = {"bad_keys": 0, "view_errors": 0, "unrecorded": 0}
         self.bytes = 0
         self.failure: list[str] = []  # why the file cannot be written (a full disk, a file size limit)
         # A restarted recorder continues its predecessor's account: what that one flushed (its side
-        # file, docs/reliability.md) up to what arrives now was published while no recorder ran.
-        self.before = load_recorded(output)
+        # file, docs/reliability.md) up to what arrives now is in no recording.
+        before = load_recorded(output)
+        self.restarted = before is not None  # a killed predecessor's side file was found
+        self.before: dict[tuple[str, str], int] = before or {}
+        self._unnamed: set[tuple[str, str]] = set()  # stages its side file did not name, seen since
+        self.on_disk = OnDisk(self.before)  # what is on disk, for a successor (this one's flushes move it)
+        self.replays = ReplayFilter()  # the inbox's: a message received before, byte for byte, is stored once
         self.hole_messages = 0
         self.ledger = ArrivalLedger()  # replaced by the inbox's (attach)
         self._last_gap_log: dict[str, float] = {}
@@ -78,16 +89,24 @@ class StreamRecording:
             foxglove.register_channels(rec, s)
 
     def attach(self, ledger: ArrivalLedger) -> None:
-        """The inbox's arrival ledger (what arrived and what never did), seeded with the predecessor's account."""
+        """The inbox's arrival ledger (what arrived and what never did), seeded with the predecessor's
+        account; the side file written at once (killed before its first flush, this recorder's
+        successor still knows there was one, and its predecessor's account)."""
         self.ledger = ledger
         for (stream, stage), seq in self.before.items():
             if (gap := ledger.seed(stream, stage, seq)) is not None:
                 self._hole(gap)
+        with self.lock:
+            try:
+                save_recorded(self.output, self.on_disk.flushed)
+            except OSError as e:
+                self._write_failed(e)
 
     def _hole(self, gap: Gap) -> None:
         self.hole_messages += gap.count
-        log.warning("recorder restart: %s/%s seq %d-%d (%d) were published while no recorder ran and are in "
-                    "no recording", gap.stream, gap.stage, gap.first, gap.last, gap.count)
+        log.warning("recorder restart: %s/%s seq %d-%d (%d) are in no recording: published while no recorder "
+                    "ran, or received by the killed one after its last flush", gap.stream, gap.stage, gap.first,
+                    gap.last, gap.count)
 
     def gap_seen(self, gap: Gap) -> None:
         """Zenoh's thread: seqs of a stage skipped; one line per stage and second at most."""
@@ -113,14 +132,36 @@ class StreamRecording:
     def _wrote(self, n: int) -> None:  # under the lock
         finished = self.files.wrote(n)
         if finished is not None:
+            self._on_disk()  # the finished file holds everything written so far
             log.info("split: finished %s (%d messages), recording to %s", finished, self.files.done[-1][1],
                      self.files.rec.path)
+
+    def _flush_due(self) -> None:  # under the lock
+        """Flush the open chunk if ``flush_s`` has passed, and say so in the side file."""
+        if self.files.rec.maybe_flush():
+            self._on_disk()
+
+    def _on_disk(self) -> None:  # under the lock, right after a flush
+        """Everything written so far is on disk: the side file says so (for a successor)."""
+        self.on_disk.flushed_now()
+        save_recorded(self.output, self.on_disk.flushed)
+
+    def _account(self, stream: str, stage: str, env: tuple[str, int]) -> None:  # under the lock
+        """A wire message is written: what the next flush puts on disk; and, after a restart, the hole
+        of a stage the predecessor had nothing of on disk (its side file does not name it)."""
+        where = (stream, stage)
+        newest = self.ledger.newest().get(where)
+        self.on_disk.wrote(where, env[0], env[1], newest)
+        if self.restarted and newest == env[1] and where not in self.before and where not in self._unnamed:
+            self._unnamed.add(where)
+            if env[1] > 0:
+                self._hole(Gap(stream, stage, 0, env[1] - 1))
 
     def accept(self, key_expr: str, payload: bytes, t_ns: int) -> None:
         """Zenoh's thread, on arrival: the message (its JPEG in its Foxglove image record) into the
         file's open chunk at once."""
         try:
-            stream, _ = keys.parse(key_expr)
+            stream, stage = keys.parse(key_expr)
         except ValueError as e:
             self.counts["bad_keys"] += 1
             log.error("%s", e)
@@ -137,14 +178,17 @@ class StreamRecording:
                     foxglove.register_channels(rec, stream)
                 n = write_message(lambda topic, data: rec.write(topic, data, log_time_ns=t_ns),
                                   key_expr, payload, t_ns, images=self.views_on)
+                if env := peek(payload):  # all of its records written: the next flush puts it on disk
+                    self._account(stream, stage, env)
                 self.bytes += n
                 self._wrote(n)
+                self._flush_due()
             except OSError as e:
                 self.counts["unrecorded"] += 1
                 self._write_failed(e)
                 return
             self.meter.add((time.perf_counter() - t0) * 1e3)
-        if (env := peek(payload)) is not None and env[0] == "end":
+        if env is not None and env[0] == "end":
             log.info("recorded the end of %s", key_expr)  # what a stage's last message was, for operators
 
     def view(self, key_expr: str, payload: bytes, t_ns: int) -> None:
@@ -176,20 +220,15 @@ class StreamRecording:
                 self._write_failed(e)
 
     def flusher(self, stop: threading.Event) -> None:
-        """A thread until ``stop``: the open chunk out every ``flush_s`` (write() flushes too when one is
-        due), each new flush described in the side file (what is on disk now, for a successor), a
-        time split when due even when nothing arrives."""
-        saved: tuple[Any, int] = (None, -1)  # the file and flush the side file last described
+        """A thread until ``stop``: the open chunk out every ``flush_s`` (accept flushes too when one is
+        due), each flush described in the side file (what is on disk now, for a successor), a time
+        split when due even when nothing arrives."""
         while not stop.wait(min(0.1, self.flush_s / 4)):
             with self.lock:
-                rec = self.files.rec
-                if rec.closed:
+                if self.files.rec.closed:
                     continue
                 try:
-                    rec.maybe_flush()
-                    if (rec, rec.flushes) != saved and rec.flushes:
-                        save_recorded(self.output, self.ledger.newest())
-                        saved = (rec, rec.flushes)
+                    self._flush_due()
                     self._wrote(0)
                 except OSError as e:
                     self._write_failed(e)
@@ -202,7 +241,8 @@ class StreamRecording:
                     "messages": self.files.messages, "bytes": self.bytes, "files": len(self.files.done) + 1,
                     **self.counts, "restart_hole": self.hole_messages, "unreceived": sum(unreceived.values()),
                     **{f"unreceived_{k}": v for k, v in unreceived.items()}, "late": ledger.late,
-                    "duplicates": ledger.duplicates, "renumberings": ledger.renumberings, **self.meter.take("log")}
+                    "duplicates": ledger.duplicates, "renumberings": ledger.renumberings,
+                    "replays": self.replays.replays, "seq_conflicts": self.replays.conflicts, **self.meter.take("log")}
 
     def __enter__(self) -> "StreamRecording":
         return self
@@ -217,31 +257,3 @@ class StreamRecording:
             log.warning("never arrived, per stage: %s", unreceived)
         if exc[0] is None:
             recorded_path(self.output).unlink(missing_ok=True)  # a clean stop: no successor continues this account
-
-
-# --- what a recorder has on disk, for its successor ------------------------------------------------
-
-def recorded_path(output: str | os.PathLike) -> Path:
-    """The side file where a recorder keeps, per stream and stage, the newest seq it has flushed."""
-    return Path(f"{output}.recorded.json")
-
-
-def save_recorded(output: str | os.PathLike, newest: dict[tuple[str, str], int]) -> None:
-    """Write the side file atomically (a kill leaves the previous one, never half of one)."""
-    p = recorded_path(output)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps({"time": time.time(), "newest": [[s, g, n] for (s, g), n in newest.items()]}))
-    tmp.replace(p)
-
-
-def load_recorded(output: str | os.PathLike, max_age_s: float = 60.0) -> dict[tuple[str, str], int]:
-    """What a killed predecessor had flushed, if it wrote the side file within ``max_age_s`` (an
-    older one belongs to another run); empty otherwise. A damaged file counts as none."""
-    p = recorded_path(output)
-    try:
-        doc = json.loads(p.read_text())
-        if time.time() - float(doc["time"]) > max_age_s:
-            return {}
-        return {(str(s), str(g)): int(n) for s, g, n in doc["newest"]}
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}

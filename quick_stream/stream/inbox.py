@@ -24,6 +24,7 @@ from typing import Any, Callable
 import zenoh
 
 from .arrivals import ArrivalLedger, Gap
+from .replays import ReplayFilter
 
 log = logging.getLogger(__name__)
 
@@ -34,15 +35,19 @@ class Inbox:
     It also keeps ``arrivals``: per (stream, stage) of the key the highest seq of the data
     messages that arrived since that stage's last ``end`` and the seqs skipped on the way
     (read from the envelope on arrival, so a busy service still answers cursor queries
-    exactly; :class:`~quick_stream.stream.arrivals.ArrivalLedger`). ``on_gap`` hears each gap."""
+    exactly; :class:`~quick_stream.stream.arrivals.ArrivalLedger`). ``on_gap`` hears each gap.
+    ``replays``: a message received before, byte for byte (a restarted publisher sending again what
+    its predecessor had sent), is dropped there, before anything accounts for it
+    (:class:`~quick_stream.stream.replays.ReplayFilter`, which counts it)."""
 
     def __init__(self, capacity: int, cond: threading.Condition,
                  on_arrival: Callable[[str, bytes, int], None] | None = None,
-                 on_gap: Callable[[Gap], None] | None = None) -> None:
+                 on_gap: Callable[[Gap], None] | None = None, replays: ReplayFilter | None = None) -> None:
         self.capacity = self.base_capacity = self.catch_up = capacity
         self.catch_up_until = 0.0  # monotonic time before which a drained queue keeps the catch-up bound
         self.on_arrival = on_arrival
         self.on_gap = on_gap
+        self.replays = replays
         self._q: deque[tuple[str, bytes, int]] = deque()  # (key, payload, arrival time ns)
         self._cond = cond
         self.dropped = 0
@@ -59,6 +64,8 @@ class Inbox:
         # Checked before any bookkeeping reads it (a malformed message's seq must not move the
         # ledger, the cursor or the skips); queued all the same: its consumer logs why it is refused.
         env = self.arrivals.checked(key, data)
+        if env is not None and self.replays is not None and self.replays.replayed(key, env[0], env[1], data):
+            return  # had already: neither accounted (no false renumbering), handed on nor queued
         if env is not None and (gap := self.arrivals.account(key, *env)) is not None and self.on_gap is not None:
             self.on_gap(gap)
         if self.on_arrival is not None:

@@ -44,6 +44,7 @@ from .inbox import HEARTBEAT_S, LOSSLESS_STAGES, RECOVERY_CACHE, Inbox, TimedPub
 from .loop import Input, Loop
 from .heap import trim_heap
 from .process import TRIM_EVERY
+from .replays import ReplayFilter
 from .wire import Decoded, Stats, WireError, decode, encode_stats
 
 __all__ = ["ServiceRuntime", "Input", "Inbox", "TimedPublisher"]
@@ -129,7 +130,7 @@ class ServiceRuntime(Cursors, Loop):
               on_arrival: Callable[[str, bytes, int], None] | None = None,
               on_gap: Callable[[Gap], None] | None = None, skip_through: int | None = None,
               catch_up: int = 0, publisher: str | None = None, publisher_wait_s: float = 5.0,
-              catch_up_s: float = 5.0) -> Inbox:
+              catch_up_s: float = 5.0, replays: ReplayFilter | None = None) -> Inbox:
         """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages. ``history``: first
         receive what the publishers' caches hold (a service restarted mid-stream takes over);
         ``skip_through``: data messages with a seq up to this one are counted (``skipped``) but not
@@ -144,8 +145,9 @@ class ServiceRuntime(Cursors, Loop):
         frames of its restart: 45 orphans).
         ``on_arrival(key, payload, arrival_ns)`` runs in zenoh's thread as each message arrives, before it is
         queued (keep it short; it must not raise); ``on_gap(gap)`` before it, when the message skips seqs
-        of its stage (:mod:`quick_stream.stream.arrivals`)."""
-        box = Inbox(capacity, self._cond, on_arrival, on_gap)
+        of its stage (:mod:`quick_stream.stream.arrivals`). ``replays``: messages received before, byte
+        for byte, are dropped on arrival (:mod:`quick_stream.stream.replays`; the recorder's)."""
+        box = Inbox(capacity, self._cond, on_arrival, on_gap, replays)
         box.skip_through = skip_through
         box.capacity = box.catch_up = max(capacity, catch_up)
         box.catch_up_until = time.monotonic() + catch_up_s if catch_up > capacity else 0.0

@@ -53,6 +53,9 @@ def check_case(r: dict, case: str, out) -> None:
         # that one flushed), logs the hole per stage and counts it
         assert r["recorder_restart_hole"] > 0, r
         assert "recorder restart:" in (out / "logs" / "recorder.log").read_text()
+        # and that account is of what was on disk, not of what had arrived: every message published
+        # before the kill is in a file or inside the hole the successor logged
+        assert r["outside_hole_before_kill"] == 0, r["outside_hole_examples"]
     else:
         assert len(r["recordings"]) == 1, r
         # a message in flight when its publisher is killed can reach some peers (the monitor) and

@@ -28,7 +28,11 @@ which publishes nothing, the longest pause of the stabilized output after the ki
 frames sent, stabilized, flagged and lost (sent, never stabilized), render's counters, every
 process's restarts and exit, and the recordings: readable as written or after
 ``quick-stream recover``, and every message the monitor saw that no recording holds: all of
-them, and those seen more than ``accept_s`` (1 s) before a kill of the recorder.
+them, and those seen more than ``accept_s`` (1 s) before a kill of the recorder. A restarted
+recorder logs the hole its predecessor left ("recorder restart: cam0/frame seq 85-145 ..."): every
+message the monitor saw is either recorded (a copy of its stage's seq) or inside such a logged hole;
+the rest are counted ``not_recorded_outside_hole`` (docs/reliability.md, "Faults").
+``--runs N`` repeats each case N times and sums those counts.
 """
 from __future__ import annotations
 
@@ -36,6 +40,7 @@ import argparse
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -348,9 +353,13 @@ def _recordings(out: Path, skip: set[bytes] = frozenset()) -> tuple[set[bytes], 
         note["messages"] = len(msgs)
         note["first_log_time"] = min((t for _, t, _ in msgs), default=0) / 1e9
         span: dict[str, list[int]] = {}  # stage -> [first, last] seq this file recorded
+        mine: set[tuple[str, bytes]] = set()
+        note["stored_twice"] = 0  # wire messages (not stats) this file holds more than once on their key, byte for byte
         for topic, _, d in msgs:
             if topic.startswith("quick/"):
                 digests.add(digest := _digest(d))
+                note["stored_twice"] += (topic, digest) in mine and not topic.endswith("/stats")
+                mine.add((topic, digest))
                 if digest not in skip and (env := peek(d)) is not None:  # the envelope is enough: (type, seq)
                     stage = topic.rsplit("/", 1)[-1]
                     ids.add((stage, *env))
@@ -360,6 +369,21 @@ def _recordings(out: Path, skip: set[bytes] = frozenset()) -> tuple[set[bytes], 
         note["seq_span"] = span
         files.append(note)
     return digests, ids, files
+
+
+HOLE_LINE = re.compile(r"recorder restart: ([^/\s]+)/(\w+) seq (\d+)-(\d+)")
+GAP_LINE = re.compile(r"WARNING: ([^/\s]+)/(\w+): seq (\d+)-(\d+) never arrived")
+
+
+def logged_holes(log_text: str, line: re.Pattern = HOLE_LINE) -> list[tuple[str, int, int]]:
+    """(stage, first, last) of every hole a restarted recorder logged (its predecessor's account);
+    ``line=GAP_LINE``: of every gap a recorder logged as never arrived (at most one line per stage
+    and second: its stats count them all)."""
+    return [(m[2], int(m[3]), int(m[4])) for m in line.finditer(log_text)]
+
+
+def _inside(stage: str, seq: int, ranges: list[tuple[str, int, int]]) -> bool:
+    return any(s == stage and a <= seq <= b for s, a, b in ranges)
 
 
 def _longest_gap(times: list[float]) -> float | None:
@@ -412,6 +436,13 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
     # message whose publisher died while sending it can reach some peers and not others, and its
     # successor publishes that seq again, with other bytes)
     no_copy = [m for m in missing if (m.stage, m.type, m.seq) not in ids]
+    log_path = out / "logs" / "recorder.log"
+    rec_log = log_path.read_text(errors="replace") if log_path.is_file() else ""
+    holes, gaps = logged_holes(rec_log), logged_holes(rec_log, GAP_LINE)
+    # of those, the ones outside every hole a restarted recorder logged and every gap a recorder logged
+    # as never arrived: in no file and in no account
+    unaccounted = [m for m in no_copy if not _inside(m.stage, m.seq, holes + gaps)]
+    published = {(m.stage, m.type, m.seq) for m in seen if m.type != "stats"}
     rec_kills = [k for k in kills if "recorder" in victims]
     early = [m for m in missing if any(m.t < k - accept_s for k in rec_kills)]
     # and the ones inside the seq range a recording holds of their stage: published while a
@@ -435,6 +466,10 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
               "recorder_unreceived": {k: v for k, v in services.get("recorder", {}).get("stats", {}).items()
                                       if k.startswith("unreceived_")},
               "recorder_restart_hole": services.get("recorder", {}).get("stats", {}).get("restart_hole"),
+              # a restarted publisher's replay (the same bytes again): stored once, not a renumbering
+              "recorded_twice": sum(f["stored_twice"] for f in files),
+              "recorder_replays": services.get("recorder", {}).get("stats", {}).get("replays"),
+              "recorder_renumberings": services.get("recorder", {}).get("stats", {}).get("renumberings"),
               "recordings": files, "not_recorded": len(missing),
               "not_recorded_by_stage": {s: sum(m.stage == s for m in missing) for s in sorted({m.stage for m in missing})},
               "not_recorded_no_copy": len(no_copy),
@@ -442,6 +477,16 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
                                          "s_from_kill": round(min((m.t - k for k in kills), key=abs, default=0.0), 3),
                                          "copy_recorded": (m.stage, m.type, m.seq) in ids} for m in missing[:5]],
               "lost_accepted_before_kill": len(early), "lost_while_recording": len(late),
+              # every message published (the monitor saw it) is recorded or in a hole a successor logged
+              "published": len(published), "recorded_of_published": len(published & ids),
+              "recorder_holes": holes, "in_logged_hole": sum(_inside(st, q, holes) for st, _, q in published - ids),
+              "in_logged_gap": sum(_inside(st, q, gaps) and not _inside(st, q, holes) for st, _, q in published - ids),
+              "not_recorded_outside_hole": len(unaccounted),
+              # received by the killed recorder, or on their way to it (published before its kill)
+              "outside_hole_before_kill": sum(any(m.t < k for k in rec_kills) for m in unaccounted),
+              "outside_hole_examples": [{"stage": m.stage, "type": m.type, "seq": m.seq,
+                                         "s_from_kill": round(min((m.t - k for k in kills), key=abs, default=0.0), 3)}
+                                        for m in unaccounted[:5]],
               "loss_window_s": round(window, 3)}
     if bad:
         seen_d = mon.digests()
@@ -470,7 +515,13 @@ def format_report(r: dict) -> str:
              f"{'':<12} recordings: {rec}; messages not recorded {r['not_recorded']} {r['not_recorded_by_stage']} "
              f"(no copy of that stage's seq recorded: {r['not_recorded_no_copy']}), "
              f"of them seen > 1 s before a recorder kill: {r['lost_accepted_before_kill']} (oldest lost: seen "
-             f"{r['loss_window_s']} s before the kill)"]
+             f"{r['loss_window_s']} s before the kill)",
+             f"{'':<12} recorder: byte-identical messages stored twice in a file {r['recorded_twice']}, replays "
+             f"dropped {r['recorder_replays']}, renumberings {r['recorder_renumberings']}",
+             f"{'':<12} published {r['published']}: recorded {r['recorded_of_published']}, in a hole a restarted "
+             f"recorder logged {r['in_logged_hole']}, in a gap logged as never arrived {r['in_logged_gap']}, in "
+             f"neither {r['not_recorded_outside_hole']} (published before a recorder kill: "
+             f"{r['outside_hole_before_kill']}) {r['outside_hole_examples']}"]
     if "injected" in r:
         i = r["injected"]
         lines.append(f"{'':<12} injected {i['messages']} bad messages{' (capture certificate)' if r['tls'] else ''}: "
@@ -480,17 +531,37 @@ def format_report(r: dict) -> str:
     return "\n".join(lines)
 
 
-def run_cases(cases: list[str], out: str, json_path: str | None, tls: bool = False, **kw) -> int:
-    """Every case in turn, each report printed as it ends (and all of them as JSON in ``json_path``)."""
+def summarize_runs(reports: list[dict]) -> str:
+    """One line for the repeated runs of a case: messages published, recorded, in a logged hole, in neither."""
+    n = len(reports)
+    tot = {k: sum(r[k] for r in reports) for k in ("published", "recorded_of_published", "in_logged_hole",
+                                                   "in_logged_gap", "not_recorded_outside_hole",
+                                                   "outside_hole_before_kill")}
+    bad = sum(r["not_recorded_outside_hole"] > 0 for r in reports)
+    return (f"{reports[0]['case']} x {n} runs: published {tot['published']}, recorded {tot['recorded_of_published']}, "
+            f"in a logged recorder-restart hole {tot['in_logged_hole']}, in a gap logged as never arrived "
+            f"{tot['in_logged_gap']}, in neither {tot['not_recorded_outside_hole']} (of them published before a "
+            f"recorder kill: {tot['outside_hole_before_kill']}; runs with any: {bad} of {n})")
+
+
+def run_cases(cases: list[str], out: str, json_path: str | None, tls: bool = False, runs: int = 1, **kw) -> int:
+    """Every case in turn (``runs`` times each), each report printed as it ends (and all of them as JSON
+    in ``json_path``); with ``runs`` > 1 a summary line per case."""
     reports = []
     certs = make_certs(Path(out) / "certs") if tls else None  # once per run, in the run's folder
     how = (f"mutual TLS and access control ({ROUTER_TLS.relative_to(DEPLOY.parent)}), every process a TLS client "
            f"with its own certificate ({certs})" if tls else "plain TCP, the services are peers")
     print(f"faults: {how}", flush=True)
     for case in cases:
-        r = run_case(Path(out) / case.replace("*", "x").replace("+", "-"), case, tls=certs, **kw)
-        reports.append(r)
-        print(format_report(r), flush=True)
+        mine = []
+        for i in range(runs):
+            folder = case.replace("*", "x").replace("+", "-") + (f"-run{i + 1}" if runs > 1 else "")
+            r = run_case(Path(out) / folder, case, tls=certs, **kw)
+            mine.append(r)
+            print(format_report(r), flush=True)
+        reports += mine
+        if runs > 1:
+            print(summarize_runs(mine), flush=True)
     if json_path:
         Path(json_path).write_text(json.dumps(reports, indent=1))
     return 0
@@ -511,6 +582,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "out/bench-faults, with --tls out/bench-faults-tls)")
     p.add_argument("--tls", action="store_true", help="the router on deploy/zenoh/router-tls.json5 (mutual TLS, "
                    "access control), every process a TLS client with its own certificate (made in OUT/certs)")
+    p.add_argument("--runs", type=at.positive_int, default=1, help="run each case this many times; prints a "
+                   "summary per case (messages published, recorded, in a logged recorder-restart hole, in neither)")
     p.add_argument("--json", default=None, metavar="FILE", help="also write the reports as JSON here")
     return p
 
@@ -519,8 +592,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cases = list(CASES) if args.cases == "all" else args.cases.split(",")
     out = args.out or ("out/bench-faults-tls" if args.tls else "out/bench-faults")
-    return run_cases(cases, out, args.json, tls=args.tls, frames=args.frames, fps=args.fps, size=args.size,
-                     kill_after=args.kill_after)
+    return run_cases(cases, out, args.json, tls=args.tls, runs=args.runs, frames=args.frames, fps=args.fps,
+                     size=args.size, kill_after=args.kill_after)
 
 
 if __name__ == "__main__":
