@@ -18,7 +18,7 @@ from typing import Any, Callable
 import zenoh
 
 from .heap import keep_freed_buffers
-from .wire.pixels import set_max_image_side
+from .wire.pixels import MAX_IMAGE_PIXELS, MAX_PIXELS_ENV, set_max_image_pixels, set_max_image_side
 
 MAX_SIDE_ENV = "QUICK_STREAM_MAX_FRAME_SIDE"  # the default of every service's --max-frame-side
 
@@ -49,6 +49,10 @@ def service_parser(service: str, description: str | None) -> argparse.ArgumentPa
     p.add_argument("--max-frame-side", type=int, default=int(os.environ.get(MAX_SIDE_ENV, 4096)), metavar="PX",
                    help=f"largest image width or height accepted, checked from the header before decoding "
                    f"(default 4096, or ${MAX_SIDE_ENV})")
+    p.add_argument("--max-frame-pixels", type=int, default=MAX_IMAGE_PIXELS,
+                   metavar="N", help=f"most pixels (width x height) an image may have, checked from the header before "
+                   f"decoding; bounds what one frame costs in memory (default 1920x1200 = 2304000, or ${MAX_PIXELS_ENV}; "
+                   f"it applies to every process that decodes frames, quick-stream stabilize too)")
     add_zenoh_args(p)
     return p
 
@@ -101,6 +105,8 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
     try:
         if hasattr(args, "max_frame_side"):
             set_max_image_side(args.max_frame_side)
+        if hasattr(args, "max_frame_pixels"):
+            set_max_image_pixels(args.max_frame_pixels)
         conf = config_from_args(args)
         check_outputs(args)
         if check is not None:

@@ -469,12 +469,45 @@ def test_a_frame_larger_than_the_maximum_is_refused_from_its_header(monkeypatch)
     d["intrinsics"]["width"] = d["intrinsics"]["height"] = 8192
     rejects(repack(d), "'color.shape'", "8192x8192 outside 1..4096")
     monkeypatch.setattr(pixels, "MAX_IMAGE_SIDE", 4096)  # restored after the test
+    monkeypatch.setattr(pixels, "MAX_IMAGE_PIXELS", pixels.MAX_IMAGE_PIXELS)
     pixels.set_max_image_side(16384)
+    pixels.set_max_image_pixels(8192 * 8192)
     with pytest.raises(WireError) as e:  # allowed now: the JPEG's own header (32x24) disagrees, still not decoded
         decode(repack(d))
     assert "JPEG is 32x24 but shape says 8192x8192" in str(e.value)
     with pytest.raises(ValueError, match="16..16384"):
         pixels.set_max_image_side(100_000)
+
+
+def test_a_frame_within_the_side_limit_but_with_too_many_pixels_is_refused_from_its_header(monkeypatch):
+    """A 4096x4096 frame is within the side limit, yet one such frame took flow and render ~340 MB each:
+    the pixel limit (default 1920x1200, --max-frame-pixels) refuses it from the declared shape, colour
+    and depth alike, before decoding; raised, the same message gets as far as its JPEG header."""
+    from quick_stream.stream.wire import pixels
+
+    d = raw(encode_frame(make_frame(), "cam0"))
+    d["color"]["shape"] = [4096, 4096, 3]
+    d["intrinsics"]["width"] = d["intrinsics"]["height"] = 4096
+    rejects(repack(d), "'color.shape'", "4096x4096 has 16777216 pixels, above the limit of 2304000")
+    d = raw(encode_frame(make_frame(), "cam0"))
+    d["depth"]["shape"] = [2000, 2000]
+    rejects(repack(d), "'depth.shape'", "4000000 elements exceed the limit 2304000")
+    d = raw(encode_frame(make_frame(), "cam0"))
+    d["color"]["shape"] = [1200, 1920, 3]  # exactly at the limit: on to the JPEG's own header
+    d["intrinsics"]["width"], d["intrinsics"]["height"] = 1920, 1200
+    with pytest.raises(WireError) as e:
+        decode(repack(d))
+    assert "JPEG is 32x24 but shape says 1920x1200" in str(e.value)
+    monkeypatch.setattr(pixels, "MAX_IMAGE_PIXELS", pixels.MAX_IMAGE_PIXELS)  # restored after the test
+    pixels.set_max_image_pixels(4096 * 4096)
+    d = raw(encode_frame(make_frame(), "cam0"))
+    d["color"]["shape"] = [4096, 4096, 3]
+    d["intrinsics"]["width"] = d["intrinsics"]["height"] = 4096
+    with pytest.raises(WireError) as e:
+        decode(repack(d))
+    assert "JPEG is 32x24 but shape says 4096x4096" in str(e.value)
+    with pytest.raises(ValueError, match="256.."):
+        pixels.set_max_image_pixels(10)
 
 
 # --- flow, version 2: the compact layout (wire/flowpack.py) ---------------------------------------

@@ -1,9 +1,10 @@
 """Image and depth codecs of the wire format: colour as JPEG or raw, depth as raw or zstd-compressed
 quantized ``uint16`` (docs/wire-format.md). Sizes are checked from headers before anything is decoded
-(``MAX_IMAGE_SIDE``, a service's ``--max-frame-side``)."""
+(``MAX_IMAGE_SIDE`` and ``MAX_IMAGE_PIXELS``, a service's ``--max-frame-side`` and ``--max-frame-pixels``)."""
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import cv2
@@ -15,6 +16,22 @@ from .codec import (MAX_DEPTH_SCALE, MIN_DEPTH_SCALE, Reader, WireError, byte_pl
                     read_shape)
 
 MAX_IMAGE_SIDE = 4096  # images larger in either dimension are refused from their header, before decoding
+# Images with more pixels are refused from their header too: what a process holds for one frame grows with its
+# pixels (measured in docs/wire-format.md), so this bounds a frame's memory.
+MAX_PIXELS_ENV = "QUICK_STREAM_MAX_FRAME_PIXELS"  # also the default of every service's --max-frame-pixels
+
+
+def _env_pixels(default: int) -> int:
+    value = os.environ.get(MAX_PIXELS_ENV, "").strip()
+    if not value:
+        return default
+    if not value.isdigit() or not 256 <= int(value) <= 16384**2:
+        raise ValueError(f"${MAX_PIXELS_ENV} must be a pixel count in 256..{16384**2}, got {value!r}")
+    return int(value)
+
+
+MAX_IMAGE_PIXELS = _env_pixels(1920 * 1200)
+
 _ZSTD_LEVEL = 1
 _ZSTD_MAX_WINDOW = 1 << 27
 
@@ -26,6 +43,15 @@ def set_max_image_side(side: int) -> None:
     if not 16 <= int(side) <= 16384:
         raise ValueError(f"max frame side must be in 16..16384, got {side}")
     MAX_IMAGE_SIDE = int(side)
+
+
+def set_max_image_pixels(pixels: int) -> None:
+    """Change the most pixels an image may have in this process (a service's ``--max-frame-pixels``):
+    the bound on what one frame costs in memory, whatever its shape within ``MAX_IMAGE_SIDE``."""
+    global MAX_IMAGE_PIXELS
+    if not 256 <= int(pixels) <= 16384**2:
+        raise ValueError(f"max frame pixels must be in 256..{16384**2}, got {pixels}")
+    MAX_IMAGE_PIXELS = int(pixels)
 
 
 # --- images -----------------------------------------------------------------------------------
@@ -54,7 +80,7 @@ def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str, np.ndarray | No
     m = r.map(name)
     enc = m.str("enc")
     if enc == "raw":
-        img = r.array(name, "|u1", 3, (3,), max_elems=3 * MAX_IMAGE_SIDE**2)
+        img = r.array(name, "|u1", 3, (3,), max_elems=3 * min(MAX_IMAGE_SIDE**2, MAX_IMAGE_PIXELS))
         _check_side(m, img.shape)
         return img, enc, None
     if enc != "jpeg":
@@ -91,6 +117,9 @@ def decode_image(r: Reader, name: str) -> tuple[np.ndarray, str, np.ndarray | No
 def _check_side(r: Reader, shape: tuple[int, ...]) -> None:
     if not (0 < shape[0] <= MAX_IMAGE_SIDE and 0 < shape[1] <= MAX_IMAGE_SIDE):
         raise r.error("shape", f"image size {shape[1]}x{shape[0]} outside 1..{MAX_IMAGE_SIDE}")
+    if shape[0] * shape[1] > MAX_IMAGE_PIXELS:
+        raise r.error("shape", f"image size {shape[1]}x{shape[0]} has {shape[0] * shape[1]} pixels, above the "
+                               f"limit of {MAX_IMAGE_PIXELS} (--max-frame-pixels, ${MAX_PIXELS_ENV})")
 
 
 def jpeg_size(data: bytes) -> tuple[int, int] | None:
@@ -149,7 +178,7 @@ def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
     if not MIN_DEPTH_SCALE <= scale <= MAX_DEPTH_SCALE:
         raise m.error("scale", f"depth scale {scale:g} units/m is outside [{MIN_DEPTH_SCALE:g}, {MAX_DEPTH_SCALE:g}]")
     if enc == "raw":
-        q = r.array(name, "<u2", 2, max_elems=MAX_IMAGE_SIDE**2)
+        q = r.array(name, "<u2", 2, max_elems=min(MAX_IMAGE_SIDE**2, MAX_IMAGE_PIXELS))
         _check_side(m, q.shape)
         if not r.pixels:
             return np.broadcast_to(np.float32(0), q.shape), enc, scale
