@@ -16,10 +16,11 @@ and the stabilized MP4, never overwriting an earlier run's (``recording-1.mcap``
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 import time
+import traceback
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
@@ -29,12 +30,11 @@ from ..io.sinks import VIDEO_CODECS
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at
-from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, free_port, open_when_up, router_spec
+from ..stream.launcher import (ServiceSpec, StatusBoard, Supervisor, close_within, free_port, open_when_up,
+                               router_spec)
+from .up_report import SERVICES, child_failure, frame_account, log_tail, outputs, status_lines, write_status
 from ..io.settings_file import settings_toml
 from ..io.stabilizer_flags import add_stabilizer_args, stabilizer_params
-
-SERVICES = ("recorder", "flow", "motion", "render", "capture")
-
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("up", help="run router + all services locally, with live status",
@@ -146,50 +146,28 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
     return specs
 
 
-COLUMNS = (("fps", ("send_fps", "flow_fps", "motion_fps", "render_fps", "log_fps")),
-           ("ms p50", ("send_ms_p50", "flow_ms_p50", "motion_ms_p50", "render_ms_p50", "log_ms_p50")),
-           ("ms p99", ("send_ms_p99", "flow_ms_p99", "motion_ms_p99", "render_ms_p99", "log_ms_p99")))
+ENDED = "source exhausted, last frame rendered"
 
 
-def _first(v: dict, names: tuple[str, ...]) -> str:
-    for n in names:
-        if n in v:
-            return f"{v[n]:.1f}" if isinstance(v[n], float) else str(v[n])
-    return "-"
+class Abort(Exception):
+    """Why ``up`` gives up while starting (a signal, the router exited before it answered)."""
 
 
-def status_lines(board: StatusBoard, sup: Supervisor, stream: str, t0: float) -> list[str]:
-    lines = [f"quick-stream up: {time.monotonic() - t0:6.1f} s   stream {stream}",
-             f"{'service':<9} {'state':<8} {'fps':>6} {'ms p50':>7} {'ms p99':>7} {'drops':>6} {'restarts':>8}  notes"]
-    for name in SERVICES:
-        if name not in sup.children:
-            continue
-        v = board.get(stream, name)
-        c = sup.children[name]
-        state = "up" if sup.running(name) else ("done" if c.finished else "down")
-        drops = sum(int(x) for k, x in v.items() if k.endswith("_dropped") or k == "dropped")
-        notes = []
-        for k in ("bad_frames", "decode_errors", "refused_frames", "invalid_frames", "missing_frames", "timestamp_jumps",
-                  "size_changes", "gaps", "motions_rotation", "motions_bridge", "invalid_motions", "orphans",
-                  "missing", "flagged", "internal_errors"):
-            if v.get(k):
-                notes.append(f"{k} {v[k]}")
-        if "lat_proc_ms_p99" in v:
-            notes.append(f"latency processing p50/p99 {v.get('lat_proc_ms_p50', 0):.0f}/{v['lat_proc_ms_p99']:.0f} ms")
-        lines.append(f"{name:<9} {state:<8} {_first(v, COLUMNS[0][1]):>6} {_first(v, COLUMNS[1][1]):>7} "
-                     f"{_first(v, COLUMNS[2][1]):>7} {drops:>6} {c.restarts:>8}  {', '.join(notes)}")
-    return lines
+@dataclass
+class Outcome:
+    """How the run went: why it stopped, what failed (a write of ``up``'s own, a service)."""
+
+    reason: str = "?"
+    error: str | None = None  # what failed, in words (None: nothing)
+    failed: list[str] = field(default_factory=list)  # services that failed and were not restarted
 
 
-def write_status(path: Path, board: StatusBoard, sup: Supervisor, stream: str, reason: str | None) -> None:
-    """Machine-readable live status (``<out>/logs/status.json``): pids, states, restarts, latest stats."""
-    doc = {"time": time.time(), "stream": stream, "stopped": reason, "events": sup.events,
-           "bad_stats_messages": board.errors, "services": {
-        n: {"pid": sup.pid(n), "running": sup.running(n), "restarts": c.restarts, "finished": c.finished,
-            "stats": board.get(stream, n)} for n, c in sup.children.items()}}
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(doc, indent=1))
-    tmp.replace(path)
+def say(text: str, err: bool = False) -> None:
+    """Print, on stderr when ``err``; a closed stdout (``up | head``) loses the line, not the run."""
+    try:
+        print(text, file=sys.stderr if err else sys.stdout, flush=True)
+    except OSError:
+        pass
 
 
 def run(args: argparse.Namespace) -> int:
@@ -209,85 +187,167 @@ def run(args: argparse.Namespace) -> int:
         stop.append("Ctrl-C" if signum == signal.SIGINT else f"signal {signal.Signals(signum).name}")
 
     # explicit handlers: also when started with SIGINT ignored (a background job) and for SIGTERM
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    out = Path(args.out)
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run(args, params, stop)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _prepare(args: argparse.Namespace, params, out: Path) -> None:
+    """The output folder, this run's fresh file names, the settings file (and the router's TLS config)."""
     out.mkdir(parents=True, exist_ok=True)
     # never overwrite a recording or a video: an earlier run's stays, this one gets recording-1.mcap,
     # stabilized-1.mp4, ...
     args.recording = fresh_path(out / "recording.mcap")
     args.video = fresh_path(out / "stabilized.mp4")
-    before = set(out.glob("recording*.mcap"))
     # one settings file for every service (and the recording's settings record)
     (out / "logs").mkdir(exist_ok=True)
     args.settings_file = fresh_path(out / "logs" / "settings.toml")
     args.settings_file.write_text(settings_toml(params, f"settings of {args.recording.name} (quick-stream up)"))
-    endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
     if args.tls_dir and not args.router_config:
         from ..stream.acl import router_config_text
 
         args.router_config = str(out / "logs" / "router-tls.json5")
         Path(args.router_config).write_text(router_config_text([args.stream]))
-    sup = Supervisor(service_specs(args, endpoint, out), out / "logs")
-    sup.start("router")
+
+
+def cannot_write(e: OSError) -> str:
+    return f"cannot write {e.filename or 'a file'}: {e.strerror or e}"
+
+
+def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
+    out = Path(args.out)
     try:
-        session = open_when_up(endpoint, timeout_s=20.0, tls=tls_party(args, "monitor") if args.tls_dir else None)
-    except zenoh.ZError as e:
-        sup.stop()
-        print(f"quick-stream up: router did not come up on {endpoint}: {e} (see {out / 'logs' / 'router.log'})",
-              file=sys.stderr)
-        return 1
-    for name in sup.children:
-        if name != "router":
-            sup.start(name)
-    board = StatusBoard(session)
-    t0 = time.monotonic()
+        _prepare(args, params, out)
+    except OSError as e:
+        print(f"quick-stream up: {cannot_write(e)}", file=sys.stderr)
+        return 2
+    before = set(out.glob("recording*.mcap"))
+    endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
+    sup = Supervisor(service_specs(args, endpoint, out), out / "logs")
     status_path = out / "logs" / "status.json"
+    o = Outcome()
+    session = board = None
+    t0 = time.monotonic()
+
+    def starting() -> None:  # between tries to reach the router
+        if stop:
+            raise Abort(f"{stop[0]} while the router was starting")
+        if (rc := sup.exited("router")) is not None:
+            why = log_tail(sup.log_dir / "router.log") or "its log is empty"
+            raise Abort(f"router exited {rc} before it answered: {why}")
+
+    try:
+        sup.start("router")
+        session = open_when_up(endpoint, timeout_s=20.0, tls=tls_party(args, "monitor") if args.tls_dir else None,
+                               waiting=starting)
+        for name in sup.children:
+            if name != "router":
+                sup.start(name)
+        board = StatusBoard(session)
+        _loop(args, sup, board, stop, status_path, t0, o)
+    except Abort as e:
+        o.reason = o.error = str(e)
+    except zenoh.ZError as e:
+        o.reason = o.error = f"router did not come up on {endpoint}: {e} (see {out / 'logs' / 'router.log'})"
+    except OSError as e:  # a write of up's own: the status file, a service's log
+        o.reason = o.error = cannot_write(e)
+    except Exception as e:  # noqa: BLE001 - a bug of up's own: said, and the run still stopped and closed
+        traceback.print_exc()
+        o.reason = o.error = f"internal error: {type(e).__name__}: {e}"
+    finally:
+        # the board as the run ended (the rates of the services still running), then everything stopped
+        try:
+            final = status_lines(board, sup, args.stream, t0) if board is not None else []
+        except Exception:  # noqa: BLE001 - the children are stopped whatever happens
+            final = []
+        order = [n for n in ("capture", "flow", "motion", "render", "recorder", "router") if n in sup.children]
+        try:
+            codes = sup.stop(order)
+            if board is not None:
+                board.drain()  # the services' last stats (the router stops last)
+        finally:  # the session closed whatever happened, within a bounded time
+            closers = [c.close for c in (board, session) if c is not None]
+            closing = close_within(closers, timeout_s=5.0) if closers else None
+    return _finish(args, out, sup, board, o, codes, before, status_path, final, closing)
+
+
+def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: list[str], status_path: Path,
+          t0: float, o: Outcome) -> None:
+    """Until the stream is done, a signal, ``--duration``, or a failure (``o`` says which); OSError when
+    the status file cannot be written."""
     tty = sys.stdout.isatty() and not args.quiet
     shown = 0
-    reason = "?"
-    failed: list[str] = []
-    try:
-        while True:
-            time.sleep(0.25)
-            sup.poll()
-            write_status(status_path, board, sup, args.stream, None)
-            render = board.get(args.stream, "render")
-            if render.get("ended", 0) >= 1 and sup.children["capture"].finished:
-                reason = "source exhausted, last frame rendered"
-                break
-            if stop:
-                reason = stop[0]
-                break
-            if args.duration is not None and time.monotonic() - t0 >= args.duration:
-                reason = f"--duration {args.duration:g} s"
-                break
-            failed = [n for n, c in sup.children.items() if c.finished and c.exits and c.exits[-1][1] != 0]
-            if failed:  # not restarted: cannot go on (exit 2: no camera, a bad flag, a full disk) or too many crashes
-                reason = f"{failed[0]} failed (see logs/{failed[0]}.log)"
-                break
-            if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
-                lines = status_lines(board, sup, args.stream, t0)
+    while True:
+        time.sleep(0.25)
+        sup.poll()
+        write_status(status_path, board, sup, args.stream, None)
+        render = board.get(args.stream, "render")
+        if render.get("ended", 0) >= 1 and sup.children["capture"].finished:
+            o.reason = ENDED
+            return
+        if stop:
+            o.reason = stop[0]
+            return
+        if args.duration is not None and time.monotonic() - t0 >= args.duration:
+            o.reason = f"--duration {args.duration:g} s"
+            return
+        o.failed = [n for n, c in sup.children.items() if c.finished and c.exit_code not in (0, None)]
+        if o.failed:  # not restarted: cannot go on (exit 2: no camera, a bad flag, a full disk) or crashes
+            o.reason = f"{o.failed[0]} failed (see logs/{o.failed[0]}.log)"
+            o.error = "; ".join(child_failure(sup, n, Path(args.out)) for n in o.failed)
+            return
+        if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
+            lines = status_lines(board, sup, args.stream, t0)
+            try:
                 if tty and shown:
                     sys.stdout.write(f"\x1b[{shown}F")
                 sys.stdout.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
                 sys.stdout.flush()
-                shown = len(lines)
-    finally:
-        final = status_lines(board, sup, args.stream, t0)
-        order = [n for n in ("capture", "flow", "motion", "render", "recorder", "router") if n in sup.children]
-        codes = sup.stop(order)
-        write_status(status_path, board, sup, args.stream, reason)
-        board.close()
-        session.close()
-    print(f"stopped: {reason}")
-    print("\n".join(final))
+            except OSError:  # stdout closed (a pipe's reader went away): the run goes on, status.json has it
+                args.quiet = True
+            shown = len(lines)
+
+
+def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusBoard | None, o: Outcome,
+            codes: dict[str, int | None], before: set[Path], status_path: Path, final: list[str],
+            closing: str | None) -> int:
+    """After the children stopped and the session closed (``closing``: what went wrong closing it):
+    the account, the outputs, status.json and the last lines; the exit code."""
+    account = frame_account((lambda n: board.totals(args.stream, n)) if board is not None else (lambda n: {}))
+    files = [(args.video, account.rendered > 0)]
+    files += [(f, False) for f in ([] if args.no_record else sorted(set(out.glob("recording*.mcap")) - before))]
+    whole, broken = outputs(files)
+    nothing = account.rendered == 0
+    code = 1 if (o.error or o.failed or nothing) else 0
+    summary = None  # no account without the services' stats (the run never got that far)
+    if board is not None:
+        summary = account.line(args.pace, o.reason == ENDED) + (": nothing was produced" if nothing else "")
+    end = {"error": o.error, "exit_code": code, "frames": account.as_dict() if board is not None else None,
+           "summary": summary,
+           "outputs": {"whole": [str(f) for f in whole], "incomplete": {str(f): why for f, why in broken}}}
+    try:
+        write_status(status_path, board, sup, args.stream, o.reason, end)
+    except OSError as e:
+        say(f"quick-stream up: {cannot_write(e)} (the run's end is not in it)", err=True)
+    if closing is not None:
+        say(f"quick-stream up: closing its zenoh session: {closing}; exiting anyway", err=True)
+    say(f"stopped: {o.reason}")
+    if final:
+        say("\n".join(final))
+    if o.error:
+        say(f"quick-stream up: {o.error}", err=True)
     # -SIGTERM: a service stopped before it had installed its handler (while starting: nothing to clean up)
     bad = {n: c for n, c in codes.items() if c not in (0, None, -signal.SIGTERM)}
     if bad:
-        print("exit codes: " + ", ".join(f"{n} {c}" for n, c in bad.items()), file=sys.stderr)
+        say("exit codes: " + ", ".join(f"{n} {c}" for n, c in bad.items()), err=True)
     for e in sup.events:
-        print(f"event: {e['service']} {e['event']}")
-    files = [args.video] + ([] if args.no_record else sorted(set(out.glob("recording*.mcap")) - before))
-    print("wrote " + ", ".join(str(f) for f in files if f.exists()) + f" (logs in {out / 'logs'})")
-    return 1 if failed else 0
+        say(f"event: {e['service']} {e['event']}")
+    if summary is not None:
+        say(summary, err=nothing)
+    for f, why in broken:
+        say(f"quick-stream up: {f} is incomplete: {why}", err=True)
+    say(("wrote " + ", ".join(str(f) for f in whole) if whole else "wrote nothing") + f" (logs in {out / 'logs'})")
+    return code

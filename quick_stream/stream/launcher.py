@@ -3,15 +3,19 @@
 * :class:`Supervisor` runs each service as a child process (``python -m
   quick_stream.services.<name>``; never a fork of a process holding a zenoh
   session: zenoh's runtime does not survive a fork), writes its output to ``<log_dir>/<name>.log``, restarts
-  it when it dies (any exit but a clean one of a service allowed to finish),
-  and stops everything in order: SIGTERM, then SIGKILL after a grace period. Each child runs in
+  it when it dies (any exit but a clean one of a service allowed to finish; not an exit 2, "cannot go
+  on", nor a crash loop: ``crash_loop`` error exits in a row, each within ``min_uptime_s`` of its
+  start), and stops everything in order: SIGTERM, then SIGKILL after a grace period. Each child runs in
   its own session (a Ctrl-C at the terminal reaches the supervisor only, which stops the children
   in order) and dies with the supervisor: it gets SIGTERM when the supervisor dies, however it
   dies (:data:`PARENT_DEATH`; a SIGKILLed ``up`` leaves no service running).
-* :class:`StatusBoard` listens to every service's ``stats`` messages and keeps
-  the latest per service, for the live status and the final summary.
-* :func:`free_port`, :func:`open_when_up`: a loopback port for a router, and a
-  client session to it once it answers (``up``, the benchmarks, the tests).
+* :class:`StatusBoard` reads every service's ``stats`` messages (pulled from a ring buffer by the
+  caller's thread: zenoh starts no thread of ours, so an open session never holds up the
+  interpreter's exit) and keeps the latest per service, and the counts of a restarted service's
+  predecessors, for the live status and the final summary.
+* :func:`free_port`, :func:`open_when_up`, :func:`close_within`: a loopback port for a router, a client
+  session to it once it answers (``up``, the benchmarks, the tests; giving up at once when the
+  caller says so: the router died, a signal came), and a close that cannot hang its caller.
 """
 from __future__ import annotations
 
@@ -25,7 +29,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import zenoh
 
@@ -86,18 +90,30 @@ class Child:
     restarts: int = 0
     finished: bool = False
     exits: list[tuple[float, int]] = field(default_factory=list)  # (time, returncode) of each death
+    quick_exits: int = 0  # error exits in a row, each soon after its start (a crash loop)
+    reaped: bool = False  # the current process's exit is in ``exits``
+
+    @property
+    def exit_code(self) -> int | None:
+        """The last exit code (None: never exited)."""
+        return self.exits[-1][1] if self.exits else None
 
 
 class Supervisor:
     """Runs and restarts a set of service processes."""
 
     def __init__(self, specs: list[ServiceSpec], log_dir: str | Path, restart_delay_s: float = 0.1,
-                 max_restarts: int = 20, env: dict[str, str] | None = None) -> None:
+                 max_restarts: int = 20, env: dict[str, str] | None = None, min_uptime_s: float = 10.0,
+                 crash_loop: int = 3) -> None:
+        """``min_uptime_s``, ``crash_loop``: a service that exits with an error (a code > 0, not a signal:
+        a killed service is restarted) ``crash_loop`` times in a row, each time within ``min_uptime_s``
+        of its start, is not restarted again (it cannot start: a restart will not mend it)."""
         self.children = {s.name: Child(s) for s in specs}
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.restart_delay_s = restart_delay_s
         self.max_restarts = max_restarts
+        self.min_uptime_s, self.crash_loop = min_uptime_s, crash_loop
         self.env = {**os.environ, **(env or {})}
         self.events: list[dict[str, Any]] = []
         self._lock = threading.Lock()
@@ -113,6 +129,7 @@ class Supervisor:
                                   stdin=subprocess.DEVNULL, env=env, start_new_session=True)
         logf.close()
         c.started = time.monotonic()
+        c.reaped = False
 
     def start(self, name: str | None = None) -> None:
         """Start one service (or all, in the order given)."""
@@ -129,7 +146,11 @@ class Supervisor:
                 rc = c.proc.poll()
                 if rc is None:
                     continue
-                c.exits.append((time.monotonic(), rc))
+                now = time.monotonic()
+                if not c.reaped:  # (unless :meth:`exited` recorded it)
+                    c.exits.append((now, rc))
+                    c.reaped = True
+                c.quick_exits = c.quick_exits + 1 if rc > 0 and now - c.started < self.min_uptime_s else 0
                 if rc == 0 and c.spec.may_finish:
                     c.finished = True
                     self.events.append({"t": time.time(), "service": c.spec.name, "event": "finished"})
@@ -139,6 +160,13 @@ class Supervisor:
                     self.events.append({"t": time.time(), "service": c.spec.name,
                                         "event": "exited 2 (cannot go on, see its log), not restarted"})
                     log.error("%s exited with 2 (cannot go on, see its log); not restarting", c.spec.name)
+                    continue
+                if c.quick_exits >= self.crash_loop:
+                    c.finished = True
+                    why = (f"exited {rc} {c.quick_exits} times in a row, each within {self.min_uptime_s:g} s of its "
+                           "start: not restarted (see its log)")
+                    self.events.append({"t": time.time(), "service": c.spec.name, "event": why})
+                    log.error("%s %s", c.spec.name, why)
                     continue
                 if not c.spec.restart or c.restarts >= self.max_restarts:
                     c.finished = True
@@ -161,6 +189,15 @@ class Supervisor:
         c = self.children[name]
         return c.proc is not None and c.proc.poll() is None
 
+    def exited(self, name: str) -> int | None:
+        """The exit code of ``name``'s current process if it has exited (recorded), else None; no restart."""
+        c = self.children[name]
+        rc = None if c.proc is None else c.proc.poll()
+        if rc is not None and not c.reaped:
+            c.exits.append((time.monotonic(), rc))
+            c.reaped = True
+        return rc
+
     def stop(self, order: list[str] | None = None, grace_s: float = 5.0) -> dict[str, int | None]:
         """SIGTERM the services in ``order`` (default: reverse start order), each waited for up to
         ``grace_s`` before SIGKILL; returns their exit codes."""
@@ -182,18 +219,40 @@ class Supervisor:
                         p.kill()
                         p.wait()
                 codes[n] = p.returncode
+                if not self.children[n].reaped:
+                    self.children[n].exits.append((time.monotonic(), p.returncode))
+                    self.children[n].reaped = True
         return codes
 
 
 class StatusBoard:
-    """Latest ``stats`` of every service of every stream, from a zenoh subscription."""
+    """Latest ``stats`` of every service of every stream, from a zenoh subscription read by
+    :meth:`drain` (called by :meth:`get`, :meth:`totals` and :meth:`snapshot`): samples wait in a
+    ring of ``capacity`` (the oldest dropped), no thread of zenoh's runs our code.
 
-    def __init__(self, session: zenoh.Session) -> None:
+    A service's counters start again from 0 when it is restarted (its stats numbering starts again
+    too): :meth:`totals` adds the last values its predecessors published, so a restart hides no
+    count (the predecessor's last second, after its last stats message, is not known)."""
+
+    def __init__(self, session: zenoh.Session, capacity: int = 4096) -> None:
         self.latest: dict[tuple[str, str], dict[str, Any]] = {}
         self.updated: dict[tuple[str, str], float] = {}
-        self.errors = 0
+        self.carried: dict[tuple[str, str], dict[str, int]] = {}  # predecessors' counts (int values summed)
+        self._errors = 0
+        self._seq: dict[tuple[str, str], int] = {}
         self._lock = threading.Lock()
-        self._sub = session.declare_subscriber(keys.all_streams("stats"), self._on_sample)
+        self._sub = session.declare_subscriber(keys.all_streams("stats"), zenoh.handlers.RingChannel(capacity))
+
+    def drain(self) -> None:
+        """Take in every stats message that has arrived."""
+        while True:
+            try:
+                sample = self._sub.try_recv()
+            except zenoh.ZError:  # closed
+                return
+            if sample is None:
+                return
+            self._on_sample(sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -201,19 +260,45 @@ class StatusBoard:
             stream, stage = keys.parse(key)
             m = check(sample.payload.to_bytes(), stream, stage)  # a stats message of the key's stream
         except (ValueError, WireError) as e:  # WireError is a ValueError too
-            self.errors += 1
-            if self.errors <= 10 or self.errors % 1000 == 0:  # one line per bad message, not a flood
-                log.warning("bad message on %s (%d so far): %s", key, self.errors, e)
+            self._errors += 1
+            if self._errors <= 10 or self._errors % 1000 == 0:  # one line per bad message, not a flood
+                log.warning("bad message on %s (%d so far): %s", key, self._errors, e)
             return
+        k = (m.stream, m.obj.service)
         with self._lock:
-            self.latest[(m.stream, m.obj.service)] = dict(m.obj.values)
-            self.updated[(m.stream, m.obj.service)] = time.monotonic()
+            if k in self.latest and m.seq <= self._seq.get(k, -1):  # numbered from 0 again: a restarted service
+                carried = self.carried.setdefault(k, {})
+                for name, v in self.latest[k].items():
+                    if isinstance(v, int) and not isinstance(v, bool):
+                        carried[name] = carried.get(name, 0) + v
+            self._seq[k] = m.seq
+            self.latest[k] = dict(m.obj.values)
+            self.updated[k] = time.monotonic()
+
+    @property
+    def errors(self) -> int:
+        """Stats messages that were not (undecodable, of another stream than their key's, not stats)."""
+        self.drain()
+        return self._errors
 
     def get(self, stream: str, service: str) -> dict[str, Any]:
+        """The latest stats of ``service`` (its current process's)."""
+        self.drain()
         with self._lock:
             return dict(self.latest.get((stream, service), {}))
 
+    def totals(self, stream: str, service: str) -> dict[str, Any]:
+        """The latest stats of ``service`` with its predecessors' counts added (every int value: meaningful
+        for counters, such as ``sent`` or ``missing_frames``, not for gauges, such as ``buffered``)."""
+        self.drain()
+        with self._lock:
+            out = dict(self.latest.get((stream, service), {}))
+            for name, v in self.carried.get((stream, service), {}).items():
+                out[name] = out.get(name, 0) + v if isinstance(out.get(name, 0), int) else out[name]
+            return out
+
     def snapshot(self) -> dict[tuple[str, str], dict[str, Any]]:
+        self.drain()
         with self._lock:
             return {k: dict(v) for k, v in self.latest.items()}
 
@@ -228,17 +313,47 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def open_when_up(endpoint: str, timeout_s: float, tls: tuple[str, str] | None = None) -> zenoh.Session:
-    """A client session to the router at ``endpoint``, retried until it answers or ``timeout_s``;
-    ``tls``: (folder, name) of its certificate."""
+def open_when_up(endpoint: str, timeout_s: float, tls: tuple[str, str] | None = None,
+                 waiting: Callable[[], None] | None = None) -> zenoh.Session:
+    """A client session to the router at ``endpoint``, retried until it answers or ``timeout_s``
+    (zenoh.ZError); ``tls``: (folder, name) of its certificate. ``waiting`` is called before each
+    try and may raise to give up (the router died, a signal came): each try waits at most a few
+    seconds for the router (1 s, then 2 s, then 4 s), not the client's usual 30 s."""
     from .transport import session_config
 
-    conf = session_config(endpoint, "client", *(tls or (None, None)))
     deadline = time.monotonic() + timeout_s
+    attempt_s = 1.0
     while True:
+        if waiting is not None:
+            waiting()
+        conf = session_config(endpoint, "client", *(tls or (None, None)))
+        left = max(deadline - time.monotonic(), 0.1)
+        conf.insert_json5("connect/timeout_ms", str(int(min(attempt_s, left) * 1000)))
         try:
             return zenoh.open(conf)
         except zenoh.ZError:
             if time.monotonic() > deadline:
                 raise
+            attempt_s = min(attempt_s * 2, 4.0)
             time.sleep(0.2)
+
+
+def close_within(closers: list[Callable[[], None]], timeout_s: float) -> str | None:
+    """Run ``closers`` in order (e.g. a subscription's undeclare, then its session's close) in a daemon
+    thread, waiting at most ``timeout_s``: a close that hangs (a router that stopped answering) does
+    not hang the caller. None when all ran, else what went wrong (the first error, or the timeout)."""
+    errors: list[str] = []
+
+    def close_all() -> None:
+        for close in closers:
+            try:
+                close()
+            except Exception as e:  # noqa: BLE001 - a close that fails leaves nothing more to do
+                errors.append(f"{type(e).__name__}: {e}")
+
+    t = threading.Thread(target=close_all, name="close", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        return f"did not finish within {timeout_s:g} s"
+    return errors[0] if errors else None

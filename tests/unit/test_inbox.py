@@ -98,11 +98,12 @@ def test_the_status_board_counts_bad_stats_messages_and_keeps_only_good_ones():
     from quick_stream.stream.launcher import StatusBoard
     from quick_stream.stream.wire import Stats, encode_stats
 
-    subs = []
-    board = StatusBoard(SimpleNamespace(declare_subscriber=lambda key, cb: subs.append(cb) or SimpleNamespace()))
+    ring: list = []  # what zenoh's ring channel holds until the board drains it
+    board = StatusBoard(SimpleNamespace(declare_subscriber=lambda key, handler: SimpleNamespace(
+        try_recv=lambda: ring.pop(0) if ring else None)))
 
     def put(key: str, data: bytes) -> None:
-        subs[0](SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: data)))
+        ring.append(SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: data)))
 
     put("quick/@v1/cam0/stats", encode_stats(Stats("flow", {"frames": 7}), "cam0", 0))
     put("quick/@v1/cam0/stats", b"\xc1 garbage")

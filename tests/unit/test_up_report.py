@@ -1,0 +1,196 @@
+"""What ``quick-stream up`` tells: every frame not stabilized counted where the user looks (the drops
+column, the final account), outputs called written only when whole, and the supervisor/status-board
+pieces that keep ``up`` from hanging (quick_stream/cli/up_report.py, quick_stream/stream/launcher.py,
+quick_stream/io/file_checks.py). The processes themselves: tests/integration/test_up_failures.py."""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Callable
+
+import cv2
+import numpy as np
+import pytest
+
+from quick_stream.cli.up_report import frame_account, frame_drops, write_status
+from quick_stream.io.file_checks import incomplete
+from quick_stream.stream.launcher import ServiceSpec, StatusBoard, Supervisor, close_within, open_when_up
+from quick_stream.stream.wire import Stats, encode_stats
+
+# row 10 of issue 30, as the services' stats said it (a loaded machine, real-time pacing)
+ROW10 = {"capture": {"sent": 203, "shed": 47, "bad_frames": 0},
+         "flow": {"missing_frames": 47, "inbox0_dropped": 0},
+         "motion": {"invalid_motions": 6, "inbox0_dropped": 0},
+         "render": {"render_total": 203, "flagged": 0, "dropped": 0, "orphans": 0, "inbox0_dropped": 0},
+         "recorder": {"inbox0_dropped": 0}}
+
+
+def totals(stats: dict) -> Callable[[str], dict]:
+    return lambda name: stats.get(name, {})
+
+
+def test_frames_shed_at_the_capture_are_in_its_drops_and_in_the_account():
+    t = totals(ROW10)
+    assert frame_drops("capture", t) == 47  # was 0: the drops column summed queue drops only
+    assert frame_drops("flow", t) == 0  # missing at flow, but the capture's (shed), counted there
+    acc = frame_account(t)
+    assert (acc.offered, acc.stabilized, acc.shed, acc.lost, acc.uncorrected) == (250, 203, 47, 0, 0)
+    line = acc.line("realtime")
+    assert line.startswith("stabilized 203 of 250 frames: 47 shed at the capture (because the pipeline took frames "
+                           "more slowly than the capture offered them")
+    assert "--pace fast" in line
+
+
+def test_frames_lost_on_the_way_to_flow_dropped_or_flagged_at_render_are_counted_once_each():
+    stats = {"capture": {"sent": 300, "shed": 20, "bad_frames": 2},
+             "flow": {"missing_frames": 20 + 2 + 12, "inbox0_dropped": 3},  # 12 lost on the way (3 of them its queue's)
+             "render": {"render_total": 285, "flagged": 9, "dropped": 4, "refused_frames": 1, "inbox1_dropped": 0}}
+    t = totals(stats)
+    assert frame_drops("flow", t) == 12
+    assert frame_drops("render", t) == 9 + 4 + 1
+    acc = frame_account(t)
+    assert acc.offered == 322 and acc.stabilized == 276 and acc.missing_at_flow == 12
+    assert acc.dropped_render == 5 and acc.lost == 300 - 285 - 5
+    parts = acc.stabilized + acc.shed + acc.bad_source + acc.lost + acc.uncorrected + acc.dropped_render
+    assert parts == acc.offered  # each frame once
+    line = acc.line("realtime")
+    assert ("stabilized 276 of 322 frames: 20 shed at the capture" in line and "10 lost in transit" in line
+            and "9 rendered uncorrected (flagged)" in line and "5 dropped at render" in line
+            and "2 the source could not deliver" in line and "flow missed 12 of the frames sent" in line)
+    assert "in flight when the run stopped" in acc.line("realtime", whole_stream=False)
+
+
+def test_no_stats_from_render_is_said_not_taken_for_zero():
+    acc = frame_account(totals({"capture": {"sent": 10}}))
+    assert not acc.render_known and acc.rendered == 0
+    assert acc.line("fast").startswith("stabilized frames not known (render published no stats) of 10 frames")
+
+
+def _ring_board() -> tuple[StatusBoard, list]:
+    ring: list = []
+    board = StatusBoard(SimpleNamespace(declare_subscriber=lambda key, handler: SimpleNamespace(
+        try_recv=lambda: ring.pop(0) if ring else None, undeclare=lambda: None)))
+    return board, ring
+
+
+def _stats(ring: list, service: str, seq: int, **values) -> None:
+    data = encode_stats(Stats(service, values), "cam0", seq)
+    ring.append(SimpleNamespace(key_expr="quick/@v1/cam0/stats", payload=SimpleNamespace(to_bytes=lambda: data)))
+
+
+def test_a_restarted_service_counts_its_predecessors_frames():
+    board, ring = _ring_board()
+    for seq, sent in enumerate((30, 60, 90)):
+        _stats(ring, "capture", seq, sent=sent, shed=5, send_fps=30.0)
+    _stats(ring, "capture", 0, sent=12, shed=1, send_fps=30.0)  # its successor numbers its stats from 0 again
+    assert board.get("cam0", "capture")["sent"] == 12  # the current process's
+    t = board.totals("cam0", "capture")
+    assert t["sent"] == 102 and t["shed"] == 6 and t["send_fps"] == 30.0
+
+
+def test_status_json_that_cannot_be_written_raises_naming_it_and_leaves_no_part(tmp_path):
+    sup = Supervisor([], tmp_path / "logs")
+    board, _ = _ring_board()
+    path = tmp_path / "status.json"
+    path.with_suffix(".tmp").mkdir()  # the part file cannot be made
+    with pytest.raises(OSError) as e:
+        write_status(path, board, sup, "cam0", None)
+    assert e.value.filename == str(path)
+    # the run's end still gets in, shortened, written in place
+    write_status(path, board, sup, "cam0", "stopped", {"error": "x failed", "exit_code": 1, "summary": "s"})
+    assert '"error": "x failed"' in path.read_text()
+
+
+def test_a_service_that_keeps_failing_at_start_is_not_restarted_again(tmp_path):
+    sup = Supervisor([ServiceSpec("bad", ["-c", "import sys; sys.exit(1)"])], tmp_path, restart_delay_s=0.0)
+    sup.start()
+    deadline = time.monotonic() + 120  # a failure guard only
+    while not sup.children["bad"].finished and time.monotonic() < deadline:
+        sup.poll()
+        time.sleep(0.02)
+    c = sup.children["bad"]
+    assert c.finished and c.restarts == 2 and c.exit_code == 1  # was restarted 20 times
+    assert "3 times in a row" in sup.events[-1]["event"]
+
+
+def test_a_killed_service_is_restarted_however_soon(tmp_path):
+    sup = Supervisor([ServiceSpec("s", ["-c", "import os, signal; os.kill(os.getpid(), signal.SIGKILL)"])], tmp_path,
+                     restart_delay_s=0.0, max_restarts=5)
+    sup.start()
+    deadline = time.monotonic() + 120
+    while not sup.children["s"].finished and time.monotonic() < deadline:
+        sup.poll()
+        time.sleep(0.02)
+    assert sup.children["s"].restarts == 5  # the restart budget, not the crash-loop guard
+
+
+def test_waiting_for_the_router_gives_up_when_told():
+    class Gone(Exception):
+        pass
+
+    calls = []
+
+    def waiting() -> None:
+        calls.append(1)
+        if len(calls) == 2:
+            raise Gone
+
+    with pytest.raises(Gone):  # nothing listens there: each try ends within its own short timeout
+        open_when_up(f"tcp/127.0.0.1:{_closed_port()}", timeout_s=600, waiting=waiting)
+
+
+def _closed_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_close_that_hangs_does_not_hang_its_caller():
+    release = threading.Event()
+    done = []
+    assert close_within([lambda: done.append(1), lambda: release.wait(600)], timeout_s=0.2).startswith("did not finish")
+    assert done == [1]
+    release.set()
+    assert close_within([lambda: 1 / 0], timeout_s=60).startswith("ZeroDivisionError")
+    assert close_within([lambda: None], timeout_s=60) is None
+
+
+def _video(path: Path, n: int = 5) -> None:
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30, (64, 48))
+    assert w.isOpened()
+    for i in range(n):
+        w.write(np.full((48, 64, 3), i * 40, np.uint8))
+    w.release()
+
+
+def test_a_video_is_whole_only_with_its_index_and_every_box_there(tmp_path):
+    good = tmp_path / "v.mp4"
+    _video(good)
+    assert incomplete(good) is None
+    data = good.read_bytes()
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(data[:-100])  # the last box runs past the end
+    assert "cut off" in incomplete(cut)
+    moov = data.find(b"moov") - 4
+    unindexed = tmp_path / "unindexed.mp4"
+    unindexed.write_bytes(data[:moov])  # a writer that never closed the file
+    assert "no 'moov' box" in incomplete(unindexed)
+    assert incomplete(tmp_path / "none.mp4") == "not there"
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    assert incomplete(tmp_path / "empty.mp4") == "empty"
+
+
+def test_a_recording_is_whole_only_with_its_footer(tmp_path):
+    from quick_stream.io.recording import Recorder
+
+    path = tmp_path / "r.mcap"
+    with Recorder(path) as rec:
+        rec.write("quick/@v1/cam0/stats", encode_stats(Stats("x", {"i": 1}), "cam0", 0), 1)
+    assert incomplete(path) is None
+    (tmp_path / "torn.mcap").write_bytes(path.read_bytes()[:-40])
+    assert "quick-stream recover" in incomplete(tmp_path / "torn.mcap")
+
