@@ -25,9 +25,11 @@ import numpy as np
 from ..stream.wire import decode
 from ..stream.wire.codec import unpack
 from ..stream.wire.messages import read_intrinsics
+from ..stream.wire.ranges import MAX_ENTRY
 from . import foxglove
 
 _KEEP = 512  # frames of timestamps/poses kept for matching motions and corrections
+MAX_POSE_ENTRY = MAX_ENTRY  # an integrated pose with an entry beyond this is not kept (the chain restarts)
 
 
 def wall_stamp(value: object, log_time_ns: int | None, fallback: int) -> int:
@@ -43,6 +45,12 @@ class FoxgloveView:
     Messages of different stages reach a recorder by different routes, so a pose is
     emitted as soon as everything it needs (the frame's timestamp, the integrated
     camera pose, for the stabilized pose the correction) has arrived, in any order.
+
+    What one message leaves behind never spoils the next: the wire's ranges are checked at decode
+    (a motion of 1e308 is refused there), a pair's motion is integrated once (a replay or a copy
+    arriving later rewrites nothing) and a pose that leaves the range is not kept, so the chain
+    restarts at the next motion as at a hole. A message whose view fails raises; the caller skips
+    its view and goes on (the recorder counts it, ``view_errors``).
     """
 
     def __init__(self, stream: str) -> None:
@@ -53,6 +61,8 @@ class FoxgloveView:
         self._pose: OrderedDict[int, np.ndarray] = OrderedDict()
         self._corr: OrderedDict[int, np.ndarray] = OrderedDict()
         self._sent: OrderedDict[int, set] = OrderedDict()
+        self._integrated: OrderedDict[tuple[int, int], bool] = OrderedDict()  # motions (seq, seq_next) taken
+        self.chain_restarts = 0  # poses not kept because the chain left MAX_POSE_ENTRY
         self._calib: tuple | None = None
         self._calib_t = -(1 << 62)
 
@@ -128,7 +138,13 @@ class FoxgloveView:
             if prev is None:  # the path has a hole: restart it here
                 prev = np.eye(4)
                 self._remember(self._pose, mo.seq, prev)
-            self._remember(self._pose, mo.seq_next, prev @ mo.matrix)
+            if (mo.seq, mo.seq_next) not in self._integrated:  # a pair's first motion: a replay or a late
+                self._remember(self._integrated, (mo.seq, mo.seq_next), True)  # copy rewrites no pose
+                pose = prev @ mo.matrix
+                if np.all(np.isfinite(pose)) and np.max(np.abs(pose)) <= MAX_POSE_ENTRY:
+                    self._remember(self._pose, mo.seq_next, pose)
+                else:  # out of range (a chain that grew too far): not kept, the next motion restarts the chain
+                    self.chain_restarts += 1
             return self._poses(mo.seq) + self._poses(mo.seq_next)
         if stage == "correction":
             c = decode(payload)

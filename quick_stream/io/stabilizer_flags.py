@@ -84,7 +84,7 @@ def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
                    help="smooth path: weight of the path's acceleration against its distance from the camera, "
                         "lambda of docs/method.md (8) (default from --latency)")
     g.add_argument("--max-zoom", type=float,
-                   help="smooth path: every frame border-free at a zoom <= this (0 = no budget; "
+                   help="smooth path: every frame border-free at a zoom <= this, at most 100 (0 = no budget; "
                         f"default {d['max_zoom']:g})")
     g.add_argument("--fill-frames", type=int,
                    help="border fill: output pixels a frame leaves uncovered are taken from up to this many "
@@ -96,7 +96,7 @@ def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
                    help="border fill: share of half the short side the smooth path may leave uncovered for the "
                         f"fill (0 = the crop alone removes every border; default {d['fill_band']:g})")
     g.add_argument("--crop-zoom", type=float,
-                   help=f"zoom for --framing crop, >= 1 (default {d['crop_zoom']:g})")
+                   help=f"zoom for --framing crop, 1-100 (default {d['crop_zoom']:g})")
 
 
 def given_flags(args: argparse.Namespace) -> dict[str, object]:

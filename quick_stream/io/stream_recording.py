@@ -67,6 +67,7 @@ class StreamRecording:
                                    flush_on_write=False)  # flushed here, after whole messages (accept)
         self.meter = RateMeter()
         self.counts = {"bad_keys": 0, "view_errors": 0, "unrecorded": 0}
+        self._view_kinds: dict[tuple[str, str], int] = {}  # view errors per (stage, kind): each kind logged once
         self.bytes = 0
         self.failure: list[str] = []  # why the file cannot be written (a full disk, a file size limit)
         # A restarted recorder continues its predecessor's account: what that one flushed (its side
@@ -188,12 +189,13 @@ class StreamRecording:
                 self._write_failed(e)
                 return
             self.meter.add((time.perf_counter() - t0) * 1e3)
-        if env is not None and env[0] == "end":
-            log.info("recorded the end of %s", key_expr)  # what a stage's last message was, for operators
 
     def view(self, key_expr: str, payload: bytes, t_ns: int) -> None:
         """The Foxglove channels derived from one message (same log time as its wire message; JPEG
-        images were written on arrival)."""
+        images were written on arrival). Only messages the inbox took come here: checked, and an ``end``
+        only from the stream's own publisher."""
+        if (env := peek(payload)) is not None and env[0] == "end":
+            log.info("recorded the end of %s", key_expr)  # what a stage's last message was, for operators
         if not self.views_on:
             return
         try:
@@ -205,9 +207,8 @@ class StreamRecording:
             view = self.views[stream] = FoxgloveView(stream)  # its channels: registered on its first message
         try:
             converted = list(view.convert(stage, payload, t_ns, jpeg=False))
-        except WireError as e:
-            self.counts["view_errors"] += 1
-            log.error("%s: no Foxglove view: %s", key_expr, e)
+        except Exception as e:  # noqa: BLE001 - one message's view, never the channel (docs/reliability.md)
+            self._view_failed(key_expr, stage, e)
             return
         with self.lock:
             try:
@@ -218,6 +219,17 @@ class StreamRecording:
                     self._wrote(len(data))
             except OSError as e:
                 self._write_failed(e)
+
+    def _view_failed(self, key_expr: str, stage: str, e: Exception) -> None:
+        """A message whose Foxglove view could not be made: counted, its view skipped, said once per kind
+        (stage and error type; a forged message repeated at 30 Hz must not bury the log)."""
+        self.counts["view_errors"] += 1
+        kind = (stage, type(e).__name__ if not isinstance(e, WireError) else f"WireError:{e.field}")
+        n = self._view_kinds[kind] = self._view_kinds.get(kind, 0) + 1
+        if n == 1:
+            log.error("%s: no Foxglove view of this message (%s: %s); skipped, the channels go on (more of this "
+                      "kind are counted in view_errors, not logged)", key_expr, type(e).__name__, e,
+                      exc_info=not isinstance(e, WireError))
 
     def flusher(self, stop: threading.Event) -> None:
         """A thread until ``stop``: the open chunk out every ``flush_s`` (accept flushes too when one is

@@ -22,6 +22,11 @@ resumes from follows the new numbering, and the new numbering is not a flood of 
 Only messages that pass :func:`quick_stream.stream.wire.check` are accounted (every field valid, the
 envelope's stream and type those of the key it came on): one malformed message with a huge seq
 must not move a stage's newest seq, which restarted services resume from (the stream cursor).
+
+An ``end`` closes a stage's stream only when it comes from the stream's own publisher
+(:meth:`ArrivalLedger.end_refused`, docs/wire-format.md "Who may end a stream"): the publisher whose
+message last moved the stage's newest seq (``source``, the zenoh session that published it), with a
+``last_seq`` not behind that newest seq; with nothing under way on the key, any ``end`` is harmless.
 """
 from __future__ import annotations
 
@@ -46,6 +51,8 @@ class _Stage:
     unreceived: int = 0  # seqs skipped and not (yet) filled: the stage's count
     jumps: JumpGuard = field(default_factory=JumpGuard)  # a far-future or lower seq moves nothing until confirmed
     newest_pub: int | None = None  # when the newest was published (frames carry it), None: unknown
+    owner: str | None = None  # the publisher (zenoh session id) whose message last moved ``newest``
+    owned: bool = True  # False: seeded (a predecessor's account), no message of the stream seen yet
 
 
 @dataclass
@@ -74,35 +81,40 @@ class ArrivalLedger:
         self.invalid = 0  # failed the check: not accounted
         self.jumps = 0  # far ahead of the stage's newest and not (yet) confirmed by a run: not accounted
         self.renumberings = 0  # a stage's numbering went back, confirmed by a run: followed
+        self.ignored_ends = 0  # ends not from the stream's own publisher, or behind what it sent: not honoured
         self.last_error: str | None = None  # why the newest invalid one failed
+        self.last_wire_error: Exception | None = None  # and its error
         # the newest message checked whole (WHOLE_WHEN_CHECKED) and its decode, for its consumer to reuse
         # (a flow's decode costs 0.4-0.7 ms): (payload, decoded), the payload the very bytes object checked
         self.last: tuple[bytes, Decoded] | None = None
 
-    def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None] | None:
-        """(type, seq, publication time ns or None) of a message that passes
-        :func:`~quick_stream.stream.wire.check` on its key (a frame's ``pub_ns``); None (counted in
-        ``invalid``, the reason in ``last_error``) for one that does not."""
+    def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None, int | None] | None:
+        """(type, seq, publication time ns or None, an end's ``last_seq`` or None) of a message that
+        passes :func:`~quick_stream.stream.wire.check` on its key (a frame's ``pub_ns``); None (counted
+        in ``invalid``, the reason in ``last_error``, the error in ``last_wire_error``) for one that does not."""
         try:
             stream, stage = keys.parse(key_expr)
             d = check(payload, stream, stage)
         except (ValueError, WireError) as e:
             self.invalid += 1
             self.last_error = f"{key_expr}: {e}"
+            self.last_wire_error = e
             return None
         if d.type in WHOLE_WHEN_CHECKED:
             self.last = (payload, d)
-        return d.type, d.seq, d.extra.get("pub_ns") if d.extra else None
+        return d.type, d.seq, d.extra.get("pub_ns") if d.extra else None, d.obj.seq if d.type == "end" else None
 
     def add(self, key_expr: str, payload: bytes) -> Gap | None:
         """Check and account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any."""
         env = self.checked(key_expr, payload)
-        return None if env is None else self.account(key_expr, *env)
+        return None if env is None else self.account(key_expr, *env[:3])
 
-    def account(self, key_expr: str, mtype: str, seq: int, pub_ns: int | None = None) -> Gap | None:
-        """Account a checked message (:meth:`checked`; ``pub_ns``: when it was published, if known);
-        the gap it reveals, if any. Stats and health (numbered on their own) are not counted; an
-        ``end`` closes the stage's stream (a new one may start again from 0)."""
+    def account(self, key_expr: str, mtype: str, seq: int, pub_ns: int | None = None,
+                source: str | None = None) -> Gap | None:
+        """Account a checked message (:meth:`checked`; ``pub_ns``: when it was published, if known;
+        ``source``: who published it, the zenoh session's id if known); the gap it reveals, if any.
+        Stats and health (numbered on their own) are not counted; an ``end`` (one :meth:`end_refused`
+        lets through) closes the stage's stream (a new one may start again from 0)."""
         if mtype in ("stats", "health"):
             return None
         where = tuple(key_expr.rsplit("/", 2)[-2:])
@@ -115,7 +127,7 @@ class ArrivalLedger:
             return None
         if st.newest < 0:  # the first message of this stage we see: nothing before it is ours to miss
             st.newest = st.first = seq
-            st.newest_pub = pub_ns
+            st.newest_pub, st.owner = pub_ns, source
             return None
         if seq > st.newest and not st.jumps.admit(st.newest, seq):
             self.jumps += 1  # one far-future seq (a glitch, a stray publisher) is not the stage's newest
@@ -127,7 +139,7 @@ class ArrivalLedger:
                 st.missing.update(range(max(st.newest + 1, seq - self.window), seq))
                 st.unreceived += gap.count
             st.newest = seq
-            st.newest_pub = pub_ns
+            st.newest_pub, st.owner, st.owned = pub_ns, source, True
             if len(st.missing) > self.window:
                 st.missing = {s for s in st.missing if s > seq - self.window}
             return gap
@@ -139,7 +151,32 @@ class ArrivalLedger:
         self.duplicates += 1
         if st.jumps.renumbered(seq, published_after(pub_ns, st.newest_pub)):
             self._renumber(where, st, pub_ns)
+            st.owner, st.owned = source, True
         return None
+
+    def foreign(self, key_expr: str, source: str | None) -> bool:
+        """Whether a message on ``key_expr`` from ``source`` is not from the stream's own publisher (the one
+        whose message last moved the stage's newest seq; False with nothing under way)."""
+        st = self._stages.get(tuple(key_expr.rsplit("/", 2)[-2:]))  # type: ignore[arg-type]
+        return st is not None and st.owned and source != st.owner
+
+    def end_refused(self, key_expr: str, source: str | None, last_seq: int) -> str | None:
+        """Why an ``end`` on ``key_expr`` from ``source`` (the zenoh session that published it) ending at
+        ``last_seq`` is not honoured (counted in ``ignored_ends``), or None when it is: with a stream under
+        way on the key it must come from the stream's own publisher, the one whose message last moved the
+        stage's newest seq, and not end behind that seq; with nothing under way there is nothing to cut."""
+        st = self._stages.get(tuple(key_expr.rsplit("/", 2)[-2:]))  # type: ignore[arg-type]
+        if st is None or not st.owned:
+            return None
+        if source != st.owner:
+            why = (f"from {source or 'a publisher that does not say who it is'}, not from the stream's publisher "
+                   f"{st.owner or '(one that does not say who it is)'}")
+        elif last_seq < st.newest:
+            why = f"ends at {last_seq}, behind the newest message received ({st.newest})"
+        else:
+            return None
+        self.ignored_ends += 1
+        return why
 
     def _renumber(self, where: tuple[str, str], st: _Stage, pub_ns: int | None) -> None:
         """Follow a stage's confirmed new numbering: its run (:attr:`JumpGuard.run`) was counted as
@@ -162,7 +199,7 @@ class ArrivalLedger:
         where = (stream, stage)
         st = self._stages.get(where)
         if st is None:
-            self._stages[where] = _Stage(newest=int(newest), first=int(newest))
+            self._stages[where] = _Stage(newest=int(newest), first=int(newest), owned=False)
             return None
         if st.first <= newest + 1:
             return None

@@ -253,7 +253,9 @@ class ServiceRuntime(Cursors, Loop):
             vals.update(p.take())
         for i, b in enumerate(self._inboxes):
             vals[f"inbox{i}_dropped"] = b.dropped
-            vals[f"inbox{i}_invalid"] = b.arrivals.invalid  # failed the check on arrival (not accounted)
+            vals[f"inbox{i}_dropped_foreign"] = b.dropped_foreign  # of them, not from the stream's own publisher
+            vals[f"inbox{i}_invalid"] = b.arrivals.invalid  # failed the check on arrival (not accounted, not queued)
+            vals[f"inbox{i}_ignored_ends"] = b.arrivals.ignored_ends  # not from the stream's publisher: not queued
             vals[f"inbox{i}_queued"] = len(b)
             vals[f"inbox{i}_lost"] = b.lost
             if b.skip_through is not None:

@@ -161,15 +161,14 @@ def load_config(path: str, where: str) -> zenoh.Config:
     return conf
 
 
-def _sets_multicast(path: str) -> bool:
-    """Whether a zenoh configuration file configures multicast scouting itself (JSON5 comments ignored)."""
-    try:
-        text = Path(path).read_text(errors="replace")
-    except OSError:
-        return False
-    text = re.sub(r"/\*.*?\*/", "", text, flags=re.S)
-    text = re.sub(r"(?m)^\s*//.*$", "", text)
-    return re.search(r"\bmulticast\b", text) is not None
+MULTICAST_KEY = "scouting/multicast/enabled"
+
+
+def _sets_multicast(conf: zenoh.Config) -> bool:
+    """Whether a configuration loaded from a ``-c`` file sets multicast scouting itself: zenoh's own
+    JSON5 parser read the file, and a setting the file leaves out reads back ``null`` (comments,
+    strings and keys are the parser's business: a comment naming multicast sets nothing)."""
+    return json.loads(conf.get_json(MULTICAST_KEY)) is not None
 
 
 def _setting(flag_value: Any, environ: Mapping[str, str], name: str, flag: str) -> tuple[Any, str]:
@@ -214,6 +213,7 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
     env = os.environ if environ is None else environ
     config, config_from = _setting(args.config, env, "CONFIG", "--config")
     conf = load_config(config, f"{config_from}{' ' if args.config else '='}{config}") if config else zenoh.Config()
+    sets_multicast = _sets_multicast(conf)  # read before anything below sets it
 
     def put(key: str, value_json: str, flag: str) -> None:
         try:
@@ -258,9 +258,9 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
     if getattr(args, "multicast_scouting", False):
         if args.no_multicast_scouting:
             raise ValueError("--multicast-scouting and --no-multicast-scouting contradict each other")
-        put("scouting/multicast/enabled", "true", "--multicast-scouting")
-    elif args.no_multicast_scouting or not (config and _sets_multicast(config)):
-        put("scouting/multicast/enabled", "false", "--no-multicast-scouting")
+        put(MULTICAST_KEY, "true", "--multicast-scouting")
+    elif args.no_multicast_scouting or not (config and sets_multicast):
+        put(MULTICAST_KEY, "false", "--no-multicast-scouting")
     tls_dir, dir_from = _setting(getattr(args, "tls_dir", None), env, "TLS_DIR", "--tls-dir")
     tls_name, name_from = _setting(getattr(args, "tls_name", None), env, "TLS_NAME", "--tls-name")
     if tls_dir or tls_name:

@@ -13,6 +13,8 @@ Other engines and targets share :class:`FuzzReport`, :func:`check` and :func:`fo
 ``--engine hypothesis`` (:mod:`.fuzz_hypothesis`, Hypothesis strategies) and ``--target mcap``
 (:mod:`.fuzz_mcap`, corrupted recordings through every reader entry point); :func:`main` runs
 any of them (exit 0 when nothing but the named errors came out, 1 on any crash or hang).
+``--target live`` (:mod:`.fuzz_live`) puts these mutations, and forged ``end`` markers, on a running
+pipeline's keys and reports what became of the real frames (exit 1 if any was lost).
 """
 from __future__ import annotations
 
@@ -238,17 +240,39 @@ def build_parser(prog: str = "python -m tests.tools.fuzz") -> argparse.ArgumentP
                    help="wire target: 'mutate' (hand-written mutators, default) or 'hypothesis' (Hypothesis "
                         "strategies: message-shaped maps with wrong fields, byte edits of valid messages; "
                         "needs pip install 'quick-stream[test]')")
-    p.add_argument("--target", choices=("wire", "mcap"), default="wire",
-                   help="'wire' (wire.decode, default) or 'mcap' (damaged recordings through read_messages, "
-                        "recover and the mcap: source)")
+    p.add_argument("--target", choices=("wire", "mcap", "live"), default="wire",
+                   help="'wire' (wire.decode, default), 'mcap' (damaged recordings through read_messages, "
+                        "recover and the mcap: source) or 'live' (mutated and forged messages put on a running "
+                        "`quick-stream up`'s keys, tests/tools/fuzz_live.py)")
     p.add_argument("--keep", default="out/fuzz-mcap", metavar="DIR",
-                   help="--target mcap: where recordings that find a bug are kept (default out/fuzz-mcap)")
+                   help="--target mcap: where recordings that find a bug are kept (default out/fuzz-mcap); "
+                        "--target live: the run's folder (default out/fuzz-live)")
+    p.add_argument("--keys", default="frame", help="--target live: comma-separated stages whose keys get --n "
+                   "messages each, or 'all' (default frame)")
+    p.add_argument("--forged-ends", type=int, default=10,
+                   help="--target live: valid end markers among each key's messages (default 10)")
+    p.add_argument("--after", type=at.positive_int, default=150,
+                   help="--target live: frames the stream goes on for after the messages (default 150)")
     return p
 
 
 def main(argv: list[str] | None = None, prog: str = "python -m tests.tools.fuzz") -> int:
     """Exit 0 when nothing but the named errors came out, 1 on any crash or hang, 2 on a usage error."""
     args = build_parser(prog).parse_args(argv)
+    if args.target == "live":
+        from pathlib import Path
+
+        from . import fuzz_live
+
+        chosen = fuzz_live.KEYS if args.keys == "all" else tuple(args.keys.split(","))
+        if not set(chosen) <= set(fuzz_live.KEYS):
+            print(f"{prog}: --keys: stages of {', '.join(fuzz_live.KEYS)}, got {args.keys!r}", file=sys.stderr)
+            return 2
+        keep = args.keep if args.keep != "out/fuzz-mcap" else "out/fuzz-live"
+        r = fuzz_live.run(Path(keep), args.n or 2000, args.seed, after=args.after, forged_ends=args.forged_ends,
+                          keys_=chosen)
+        print(fuzz_live.format_report(r))
+        return 0 if fuzz_live.ok(r) else 1
     if args.target == "mcap":
         if args.engine != "mutate":
             print(f"{prog}: --target mcap mutates recordings itself; --engine applies to the wire target only",

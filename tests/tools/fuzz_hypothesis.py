@@ -5,7 +5,8 @@ Three strategy families, drawn 60/30/10 % (:data:`FAMILY_WEIGHTS`):
 
 * ``fields:<type>``: msgpack maps shaped like each message type (envelope ``v``/``type``/
   ``stream``/``seq`` and every field by name, with valid values: small JPEG or raw images,
-  raw or zstd depth, float32 arrays of one row count, finite matrices), built fresh or taken
+  raw or zstd depth, float32 arrays of one row count, matrices of their group; numbers within the
+  wire's ranges, wire/ranges.py), built fresh or taken
   from :func:`~tests.tools.fuzz.seeds`, then 0-3 corruptions at any depth: a field
   deleted or replaced by an arbitrary msgpack value (nested containers, NaN/inf, huge ints,
   long strings, deep nesting), retyped (int <-> float, str <-> bin, ...), resized (bin blobs
@@ -37,6 +38,7 @@ from hypothesis import HealthCheck, Phase, given, settings, strategies as st
 from hypothesis import seed as hypothesis_seed
 
 from quick_stream.stream.wire import flowpack
+from quick_stream.core.lie import get_group
 from quick_stream.stream.wire.messages import GROUP_DIMS
 from .fuzz import FuzzReport, check, seeds
 
@@ -81,9 +83,21 @@ def _floats(draw: st.DrawFn, n: int, elements: st.SearchStrategy = _FINITE) -> l
 
 
 def _intrinsics(draw: st.DrawFn, w: int, h: int) -> dict[str, Any]:
-    fx, fy = (draw(st.floats(1e-3, 1e5)) for _ in range(2))
-    cx, cy = (draw(st.floats(-1e4, 1e4)) for _ in range(2))
+    """In the wire's ranges (wire/ranges.py): a field of view of 1-178 degrees, the principal point
+    within the image give or take its size."""
+    fx, fy = (side / (2 * math.tan(math.radians(draw(st.floats(1.0, 178.0))) / 2)) for side in (w, h))
+    cx, cy = draw(st.floats(-w, 2 * w)), draw(st.floats(-h, 2 * h))
     return {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "width": w, "height": h}
+
+
+_TIME = st.integers(0, 2**63 - 1)  # timestamps, ns
+_ENTRY = st.floats(-1e6, 1e6)  # a pose's entries (wire/ranges.py MAX_ENTRY)
+
+
+def _transform(draw: st.DrawFn, group: str = "se3") -> list[float]:
+    """A matrix of ``group`` (wire/ranges.py: in range), row-major: exp of a twist drawn in [-2, 2]."""
+    G = get_group(group)
+    return [float(x) for x in G.exp(np.asarray(_floats(draw, G.dim, st.floats(-2.0, 2.0)))).ravel()]
 
 
 def _image(draw: st.DrawFn, w: int, h: int) -> dict[str, Any]:
@@ -122,9 +136,9 @@ def _opt(draw: st.DrawFn, strategy: st.SearchStrategy) -> Any:
 def _frame(draw: st.DrawFn) -> dict[str, Any]:
     w, h = _size(draw)
     capture = st.dictionaries(st.text(max_size=12), st.one_of(_INT, st.floats(), st.text(max_size=12)), max_size=4)
-    return {"t_ns": draw(_INT), "intrinsics": _intrinsics(draw, w, h), "color": _image(draw, w, h),
-            "depth": _depth(draw, w, h), "pose": _opt(draw, st.lists(_FINITE, min_size=16, max_size=16)),
-            "origin": _opt(draw, st.text(max_size=20)), "pub_ns": _opt(draw, _INT), "capture": _opt(draw, capture)}
+    return {"t_ns": draw(_TIME), "intrinsics": _intrinsics(draw, w, h), "color": _image(draw, w, h),
+            "depth": _depth(draw, w, h), "pose": _opt(draw, st.lists(_ENTRY, min_size=16, max_size=16)),
+            "origin": _opt(draw, st.text(max_size=20)), "pub_ns": _opt(draw, _TIME), "capture": _opt(draw, capture)}
 
 
 def _flow(draw: st.DrawFn) -> dict[str, Any]:
@@ -170,7 +184,7 @@ def _motion(draw: st.DrawFn) -> dict[str, Any]:
     group = draw(st.sampled_from(sorted(GROUP_DIMS)))
     dim = GROUP_DIMS[group]
     return {"seq_next": draw(st.integers(0, 2**63)), "group": group,
-            "estimator": draw(st.sampled_from(["exact", "induced", ""])), "matrix": _floats(draw, 16),
+            "estimator": draw(st.sampled_from(["exact", "induced", ""])), "matrix": _transform(draw, group),
             "twist": _floats(draw, dim), "zeta_bar": _opt(draw, st.lists(_FINITE, min_size=dim, max_size=dim)),
             "valid": draw(st.booleans()), "reason": draw(st.text(max_size=20)),
             "n_points": draw(st.integers(0, 2**63)), "inlier_ratio": draw(st.floats(0, 1)), "rms_px": draw(st.floats())}
@@ -179,15 +193,15 @@ def _motion(draw: st.DrawFn) -> dict[str, Any]:
 def _correction(draw: st.DrawFn) -> dict[str, Any]:
     size = draw(st.integers(1, 100))
     batch = [draw(st.integers(0, 2**40)), draw(st.integers(0, size - 1)), size]
-    return {"matrix": _floats(draw, 16), "segment": draw(_INT), "keyframe": draw(st.booleans()),
+    return {"matrix": _transform(draw), "segment": draw(_INT), "keyframe": draw(st.booleans()),
             "valid": draw(st.booleans()), "reason": draw(st.text(max_size=20)),
-            "zoom": _opt(draw, st.floats(1e-6, 1e6)), "batch": _opt(draw, st.just(batch))}
+            "zoom": _opt(draw, st.floats(0.01, 100.0)), "batch": _opt(draw, st.just(batch))}
 
 
 def _stabilized(draw: st.DrawFn) -> dict[str, Any]:
-    return {"t_ns": draw(_INT), "image": _image(draw, *_size(draw)), "zoom": draw(st.floats(1e-6, 1e6)),
-            "flags": draw(st.lists(st.text(max_size=12), max_size=3)), "src_pub_ns": _opt(draw, _INT),
-            "ready_pub_ns": _opt(draw, _INT)}
+    return {"t_ns": draw(_TIME), "image": _image(draw, *_size(draw)), "zoom": draw(st.floats(0.01, 100.0)),
+            "flags": draw(st.lists(st.text(max_size=12), max_size=3)), "src_pub_ns": _opt(draw, _TIME),
+            "ready_pub_ns": _opt(draw, _TIME)}
 
 
 def _stats(draw: st.DrawFn) -> dict[str, Any]:

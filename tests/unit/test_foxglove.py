@@ -322,3 +322,71 @@ def test_topics_validate_stream_ids():
     with pytest.raises(ValueError):
         fx.topic("cam0", "depth")
     assert fx.topic("cam0", "tf") == "/cam0/tf" and fx.camera_frame("cam0", stabilized=True) == "cam0_stabilized"
+
+
+def _forged(data: bytes, **fields) -> bytes:
+    import msgpack
+
+    d = msgpack.unpackb(data, raw=False)
+    d.update(fields)
+    return msgpack.packb(d, use_bin_type=True)
+
+
+def test_a_bad_message_costs_its_own_view_and_never_a_channel(tmp_path, monkeypatch, caplog):
+    """Issue 30 row 5: one motion with matrix entries of 1e308 (finite) stopped the pose, stabilized-pose
+    and tf channels for the rest of the run (the integrated pose overflowed, every later view raised). Now
+    it is refused at decode, an exception making any one view is counted and said once per kind, and
+    every later frame still has its poses."""
+    from quick_stream.io.stream_recording import StreamRecording
+
+    frames = list(open_source("synthetic:frames=12,width=64,height=48"))
+    out = tmp_path / "rec.mcap"
+    real, failed = fx.pose_in_frame, []
+
+    def flaky(matrix, t, frame_id="world"):  # an unforeseen failure in one view (a bug, a case no check knew)
+        if t == WALL + 9 * 33_000_000 and not failed:
+            failed.append(t)
+            raise RuntimeError("boom")
+        return real(matrix, t, frame_id)
+
+    monkeypatch.setattr(fx, "pose_in_frame", flaky)
+    with StreamRecording(str(out), split_mb=0) as rec:
+        for f in frames:
+            t = WALL + f.seq * 33_000_000
+            msgs = [("frame", encode_frame(f, "cam0", pub_ns=t)),
+                    ("correction", encode_correction(Correction(f.seq, np.eye(4), 0, False, True, ""), "cam0"))]
+            motion = encode_motion(_motion(f.seq), "cam0")
+            if f.seq in (3, 6):  # forged, twice: one kind, said once
+                msgs.append(("motion", _forged(motion, matrix=[1e308] * 16)))
+            msgs.append(("motion", motion))
+            for stage, data in msgs:
+                rec.accept(key("cam0", stage), data, t)
+                rec.view(key("cam0", stage), data, t)  # raises nothing
+        assert rec.stats()["view_errors"] == 3  # two forged motions, one failed view
+    stamps = {}
+    for topic, _, data in read_messages(out):
+        if topic in ("/cam0/camera_pose", "/cam0/stabilized_pose"):
+            stamps.setdefault(topic, set()).add(ns(fx.parse("foxglove.PoseInFrame", data).timestamp))
+    want = {WALL + f.seq * 33_000_000 for f in frames}
+    assert stamps["/cam0/camera_pose"] == want - {WALL + 9 * 33_000_000}  # all but the one that failed
+    assert stamps["/cam0/stabilized_pose"] == want
+    said = [r for r in caplog.records if "no Foxglove view" in r.getMessage()]
+    assert len(said) == 2 and "seq 3" in said[0].getMessage() and "'matrix'" in said[0].getMessage()
+
+
+def test_a_pose_chain_is_not_rewritten_by_a_late_copy_nor_kept_out_of_range():
+    view = FoxgloveView("cam0")
+    m = _motion(0)
+    view.convert("motion", encode_motion(m, "cam0"))
+    late = MotionEstimate(0, 1, "se3", "exact", np.eye(4), np.zeros(6), True, "", 1, 1.0, 0.1, None)
+    late.matrix[:3, 3] = (5.0, 0.0, 0.0)
+    view.convert("motion", encode_motion(late, "cam0"))  # the pair again: rewrites nothing
+    assert np.allclose(view._pose[1], m.matrix)
+    far = np.eye(4)
+    far[:3, 3] = (9e5, 0.0, 0.0)  # in range, but two of them leave it
+    for seq in (1, 2):
+        view.convert("motion", encode_motion(MotionEstimate(seq, seq + 1, "se3", "exact", far, np.zeros(6), True, "",
+                                                            1, 1.0, 0.1, None), "cam0"))
+    assert 3 not in view._pose and view.chain_restarts == 1
+    view.convert("motion", encode_motion(_motion(3), "cam0"))  # the chain restarts at frame 3
+    assert np.allclose(view._pose[3], np.eye(4)) and 4 in view._pose

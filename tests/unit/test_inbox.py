@@ -81,16 +81,16 @@ def test_end_markers_are_never_skipped():
     assert len(box) == 1 and box.skipped == 0
 
 
-def test_a_message_that_fails_the_check_is_queued_but_never_skipped_or_accounted():
-    """A malformed frame with a far-future seq: its consumer still gets it (to log why it is refused),
-    but the skips and the arrival ledger (the restart cursor) never read its seq."""
+def test_a_message_that_fails_the_check_is_never_queued_skipped_or_accounted():
+    """A malformed frame with a far-future seq: refused on arrival (logged there), and neither the
+    queue, the skips nor the arrival ledger (the restart cursor) read its seq."""
     box = Inbox(5, threading.Condition())
     box.skip_through = 10
     box._on_sample(sample(11))
     box._on_sample(sample(0, data=pack({}, "frame", "cam0", 10**12)))
     box._on_sample(sample(3))  # owed? no: <= skip_through, skipped
     box._on_sample(sample(12))
-    assert len(box) == 3 and box.skipped == 1 and box.arrivals.invalid == 1
+    assert len(box) == 2 and box.skipped == 1 and box.arrivals.invalid == 1
     assert box.arrivals.newest() == {("cam0", "frame"): 12} and box.arrivals.unreceived() == {}
 
 
@@ -110,3 +110,70 @@ def test_the_status_board_counts_bad_stats_messages_and_keeps_only_good_ones():
     put("quick/@v1/cam0/stats", encode_stats(Stats("flow", {"frames": 10**12}), "cam9", 1))  # another stream's
     put("quick/@v1/cam0/stats", encode_frame(FRAME, "cam0"))  # not a stats message
     assert board.errors == 3 and board.snapshot() == {("cam0", "flow"): {"frames": 7}}
+
+
+def _from(who: str | None, seq: int, mtype: str = "frame", data: bytes | None = None):
+    """A sample as zenoh delivers it from publisher session ``who`` (source info and timestamp)."""
+    s = sample(seq, mtype, data)
+    if who is not None:
+        s.source_info = SimpleNamespace(source_id=SimpleNamespace(zid=who, eid=3), source_sn=seq)
+        s.timestamp = SimpleNamespace(get_id=lambda: who)
+    return s
+
+
+def test_bad_messages_never_take_a_real_frames_slot():
+    """Issue 30 row 6: undecodable and damaged messages took slots in flow's drop-oldest queue before
+    being checked, pushing real frames out (151 dropped in the fuzz run). Now they are refused on arrival:
+    garbage, a frame whose depth stream is damaged behind an intact header, one of a wrong version."""
+    import msgpack
+
+    box = Inbox(3, threading.Condition())
+    for seq in (0, 1, 2):
+        box._on_sample(sample(seq))
+    good = encode_frame(FRAME.with_(seq=3), "cam0", depth="zstd")
+    d = msgpack.unpackb(good, raw=False)
+    d["depth"]["data"] = d["depth"]["data"][:-10]  # the zstd frame cut short, its header (content size) intact
+    damaged = msgpack.packb(d, use_bin_type=True)
+    for data in (b"\x00garbage", damaged, msgpack.packb({**d, "v": 9}, use_bin_type=True), good[:-20]) * 5:
+        box._on_sample(sample(3, data=data))
+    assert box.dropped == 0 and box.arrivals.invalid == 20
+    assert [peek(box.pop()[1])[1] for _ in range(3)] == [0, 1, 2]
+
+
+def test_an_end_is_honoured_only_from_the_streams_own_publisher():
+    """Issue 30 row 6: a forged `end` on the frame key ended flow's, motion's and render's stream. An end
+    is taken only from the publisher whose message last moved the stream's newest seq, and not when it
+    ends behind that seq; any other is counted and never queued (the ledger, the cursor, stay open)."""
+    box = Inbox(50, threading.Condition())
+    for seq in range(5):
+        box._on_sample(_from("capture", seq))
+    box._on_sample(_from("fuzzer", 1))  # a foreign frame behind the newest: moves nothing, owns nothing
+    for forged in (_from("fuzzer", 4, "end"), _from(None, 9, "end"), _from("capture", 2, "end")):
+        box._on_sample(forged)
+    copied = _from("capture", 9, "end")  # a source info copied from the capture's samples, stamped by another
+    copied.timestamp = SimpleNamespace(get_id=lambda: "fuzzer")
+    box._on_sample(copied)
+    assert box.arrivals.ignored_ends == 4 and len(box) == 6
+    assert box.arrivals.newest() == {("cam0", "frame"): 4}  # the stream is still under way
+    box._on_sample(_from("capture", 4, "end"))  # the capture's own end, after its last frame
+    assert len(box) == 7 and peek(box._q[-1][1]) == ("end", 4) and box.arrivals.newest() == {}
+    box._on_sample(_from("fuzzer", 7, "end"))  # nothing under way: nothing to cut, taken (harmless)
+    assert len(box) == 8 and box.arrivals.ignored_ends == 4
+
+
+def test_a_full_queue_sheds_a_foreign_publishers_messages_before_the_streams():
+    """Issue 30 row 6: valid messages from another publisher (fuzzed frames that still decode) filled flow's
+    queue and pushed the capture's frames out. A full queue drops a message not from the stream's own
+    publisher first (the oldest of them, or the one arriving), the stream's only when none is queued."""
+    box = Inbox(4, threading.Condition())
+    for seq in range(3):
+        box._on_sample(_from("capture", seq))
+    for _ in range(10):
+        box._on_sample(_from("fuzzer", 1))  # valid, stale: the consumer refuses them, and they cost no slot
+    box._on_sample(_from("capture", 3))
+    box._on_sample(_from("fuzzer", 2))
+    assert box.dropped == box.dropped_foreign == 11
+    assert [peek(box.pop()[1])[1] for _ in range(4)] == [0, 1, 2, 3]
+    for seq in range(4, 10):  # the stream's own, too many: the oldest go
+        box._on_sample(_from("capture", seq))
+    assert box.dropped == 13 and box.dropped_foreign == 11 and [peek(it[1])[1] for it in box._q] == [6, 7, 8, 9]

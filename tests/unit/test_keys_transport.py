@@ -79,3 +79,20 @@ def test_multicast_scouting_is_off_unless_asked_for(tmp_path):
     assert multicast(["-c", str(plain)]) is False
     with pytest.raises(ValueError, match="contradict"):
         config_from_args(_args(["--multicast-scouting", "--no-multicast-scouting"]), {})
+
+
+def test_a_config_file_sets_multicast_only_by_its_setting(tmp_path):
+    """Issue 30 row 7: the -c file is read by zenoh's JSON5 parser, not searched for a word: a comment at
+    the end of a line or a string naming multicast leaves it off; the file's own setting, on or off,
+    written any way JSON5 allows, is kept."""
+    def multicast(text: str) -> bool:
+        f = tmp_path / "z.json5"
+        f.write_text(text)
+        return json.loads(config_from_args(_args(["-c", str(f)]), {}).get_json("scouting/multicast/enabled"))
+
+    assert multicast('{\n  mode: "peer", // multicast not wanted here\n}') is False
+    assert multicast('{ mode: "peer", metadata: { note: "no multicast" } }') is False
+    assert multicast('{ mode: "peer", scouting: { gossip: { enabled: true } } } // multicast: off') is False
+    assert multicast("{ scouting: { 'multicast': { enabled: true, }, }, }") is True
+    assert multicast('{ "scouting": { "multicast": { "enabled": false } } }') is False
+    assert multicast('{ scouting: { multicast: { enabled: /* yes */ true } } }') is True

@@ -82,15 +82,17 @@ def test_messages_are_dispatched_per_type_and_bad_ones_counted_and_contained(cap
     assert box.skip_through is None and stopped == [True]
     last = rt._stats_pub.sent[-1]
     assert last["state"] == "stopped" and last["mine"] == 4
-    assert last["decode_errors"] == 3 and last["internal_errors"] == 1  # garbage, stats on frame, cam9's end
+    # garbage, stats on the frame key, cam9's end: refused on arrival, never queued (issue 30 row 6)
+    assert last["inbox0_invalid"] == 3 and last["decode_errors"] == 0 and last["internal_errors"] == 1
     text = caplog.text
-    assert "frame/end message on quick/@v1/cam0/frame rejected" in text and "unexpected stats message" in text
+    assert "quick/@v1/cam0/frame: message refused on arrival: wire: not valid msgpack" in text
+    assert "stats message on the frame key" in text and "message of stream 'cam9'" in text
     assert "cam0/t: frame number 1 failed (RuntimeError: a bug)" in text
 
 
 def test_pending_takes_only_what_was_queued_and_a_paused_input_waits():
     rt = bare_runtime()
-    first = inbox(rt, frame(0), end(0), frame(1), key="quick/@v1/cam0/correction")
+    first = inbox(rt, frame(0), end(0), frame(1))
     second = inbox(rt, frame(10), frame(11))
     order: list[str] = []
     state = {"paused": False}
@@ -103,7 +105,8 @@ def test_pending_takes_only_what_was_queued_and_a_paused_input_waits():
     def on_second(msg) -> None:
         order.append(f"b{msg.seq}")
         if msg.seq == 10:  # arrives while the second input is being read: for the next pass
-            second._on_sample(SimpleNamespace(key_expr="k", payload=SimpleNamespace(to_bytes=lambda: frame(12))))
+            second._on_sample(SimpleNamespace(key_expr="quick/@v1/cam0/frame",
+                                              payload=SimpleNamespace(to_bytes=lambda: frame(12))))
 
     passes: list[list[str]] = []
 
@@ -129,13 +132,19 @@ def test_an_input_has_handlers_or_a_raw_handler_and_a_known_take():
         Input(box, {"frame": None}, take="some")
 
 
-def test_raw_inputs_get_every_item_undecoded_and_the_final_state_is_the_services():
+def test_raw_inputs_get_every_valid_item_undecoded_and_the_final_state_is_the_services():
     rt = bare_runtime()
-    box = inbox(rt, b"anything", frame(3))
+    arrived: list[bytes] = []
+    box = Inbox(1000, rt._cond, on_arrival=lambda k, d, t: arrived.append(d))
+    rt._inboxes.append(box)
+    for data in (b"anything", frame(3)):
+        box._on_sample(SimpleNamespace(key_expr="quick/@v1/cam0/frame",
+                                       payload=SimpleNamespace(to_bytes=lambda d=data: d)))
     seen: list[tuple[str, bytes]] = []
     rt.serve([Input(box, raw=lambda k, d, t: seen.append((k, d)))], lambda: {}, tick=stop_when_empty(rt, box),
              final_state=lambda: "error")
-    assert [d for _, d in seen] == [b"anything", frame(3)]
+    assert arrived == [b"anything", frame(3)]  # on arrival: every message (the recorder records them all)
+    assert [d for _, d in seen] == [frame(3)]  # queued: those that pass the check
     assert rt._stats_pub.sent[-1]["state"] == "error" and "decode_errors" not in rt._stats_pub.sent[-1]
 
 

@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 
 from ..lie import LieGroup
+from ..render.framing import ZOOM_LIMIT
 from .frame_model import FrameModel, SegmentMeshes
 from .qp import dual_qp, working_set_qp
 from .smoother import SegmentSystem
@@ -55,8 +56,8 @@ class BudgetParams:
         return self.max_zoom > 0
 
     def validate(self) -> None:
-        if not (np.isfinite(self.max_zoom) and (self.max_zoom == 0 or self.max_zoom >= 1.0)):
-            raise ValueError(f"max zoom must be 0 (no budget) or >= 1, got {self.max_zoom}")
+        if not (np.isfinite(self.max_zoom) and (self.max_zoom == 0 or 1.0 <= self.max_zoom <= ZOOM_LIMIT)):
+            raise ValueError(f"max zoom must be 0 (no budget) or in [1, {ZOOM_LIMIT:g}], got {self.max_zoom}")
         if not (self.margin_px >= 0 and self.near_px > self.margin_px and self.model_points >= 8
                 and self.max_rounds >= 1 and self.stop_gain > 0 and self.crop_weight >= 0 and 0 <= self.fill < 0.5
                 and self.fill_reach >= 0):

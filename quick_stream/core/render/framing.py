@@ -39,6 +39,9 @@ class Framing(str, Enum):
             ) from None
 
 
+ZOOM_LIMIT = 100.0  # no zoom setting goes beyond (a 100x zoom shows 1 % of the frame's width); the wire's range
+
+
 @dataclass
 class FramingParams:
     """Parameters of the framing modes (each one documented where it acts)."""
@@ -60,16 +63,16 @@ class FramingParams:
 
     def validate(self) -> None:
         Framing.parse(self.mode)
-        if not (np.isfinite(self.crop_zoom) and self.crop_zoom >= 1.0):
-            raise ValueError(f"framing crop_zoom must be >= 1, got {self.crop_zoom}")
-        if not (np.isfinite(self.max_zoom) and self.max_zoom >= 1.0):
-            raise ValueError(f"framing max_zoom must be >= 1, got {self.max_zoom}")
+        if not (np.isfinite(self.crop_zoom) and 1.0 <= self.crop_zoom <= ZOOM_LIMIT):
+            raise ValueError(f"framing crop_zoom must be in [1, {ZOOM_LIMIT:g}], got {self.crop_zoom}")
+        if not (np.isfinite(self.max_zoom) and 1.0 <= self.max_zoom <= ZOOM_LIMIT):
+            raise ValueError(f"framing max_zoom must be in [1, {ZOOM_LIMIT:g}], got {self.max_zoom}")
         if not (self.fall_per_frame > 0 and self.rise_per_frame > 0):
             raise ValueError("framing fall_per_frame and rise_per_frame must be > 0")
         if not (isinstance(self.fill_frames, int) and self.fill_frames >= 0):
             raise ValueError(f"framing fill_frames must be an integer >= 0, got {self.fill_frames!r}")
-        if not (np.isfinite(self.fill_zoom_max) and self.fill_zoom_max >= 1.0):
-            raise ValueError(f"framing fill_zoom_max must be >= 1, got {self.fill_zoom_max}")
+        if not (np.isfinite(self.fill_zoom_max) and 1.0 <= self.fill_zoom_max <= ZOOM_LIMIT):
+            raise ValueError(f"framing fill_zoom_max must be in [1, {ZOOM_LIMIT:g}], got {self.fill_zoom_max}")
         if not self.fill_lift_rate > 0:
             raise ValueError(f"framing fill_lift_rate must be > 0, got {self.fill_lift_rate}")
         if not (isinstance(self.fill_lookahead, int) and self.fill_lookahead >= 0):

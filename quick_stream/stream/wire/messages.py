@@ -27,6 +27,7 @@ from .codec import (
     pack,
     unpack,
 )
+from . import ranges
 from .pixels import decode_depth, decode_image, encode_depth, encode_image
 from .flowpack import compact_fields, decode_compact
 
@@ -95,7 +96,7 @@ def read_intrinsics(r: Reader, name: str) -> Intrinsics:
         k.validate()
     except FrameError as e:
         raise r.error(name, str(e)) from None
-    return k
+    return ranges.intrinsics(r, name, k)
 
 
 def _str(name: str, s: Any) -> str:
@@ -151,7 +152,7 @@ def restamp_frame(data: bytes, stream: str, pub_ns: int, seq: int | None = None)
 
 def _decode_frame(r: Reader) -> Decoded:
     k = read_intrinsics(r, "intrinsics")
-    t_ns = r.int("t_ns")
+    t_ns = ranges.time_ns(r, "t_ns", r.int("t_ns"))
     color, cenc, luma = decode_image(r, "color")
     depth, denc, scale = decode_depth(r, "depth")
     if color.shape[:2] != (k.height, k.width):
@@ -159,6 +160,7 @@ def _decode_frame(r: Reader) -> Decoded:
     if depth.shape != (k.height, k.width):
         raise r.error("depth", f"depth is {depth.shape[1]}x{depth.shape[0]} but intrinsics say {k.width}x{k.height}")
     pose = r.floats("pose", 16, optional=True)
+    pose = None if pose is None else ranges.transform(r, "pose", pose.reshape(4, 4), affine=False)
     capture = {}
     if r.has("capture"):
         cr = r.map("capture")
@@ -166,11 +168,11 @@ def _decode_frame(r: Reader) -> Decoded:
             if not isinstance(key_, str) or isinstance(v, bool) or not isinstance(v, _CAPTURE_TYPES):
                 raise cr.error(str(key_), f"expected int/float/str, got {type(v).__name__}")
             capture[key_] = v
-    frame = RGBDFrame(color, depth, k, t_ns, r.seq, None if pose is None else pose.reshape(4, 4),
+    frame = RGBDFrame(color, depth, k, t_ns, r.seq, pose,
                       r.str("origin", optional=True) or "", capture=capture, luma=luma)
     return Decoded("frame", frame, r.stream, r.seq,
                    extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale,
-                          "pub_ns": r.int("pub_ns", optional=True)})
+                          "pub_ns": ranges.time_ns(r, "pub_ns", r.int("pub_ns", optional=True))})
 
 
 # --- flow ---------------------------------------------------------------------------------------
@@ -258,10 +260,14 @@ def _decode_motion(r: Reader) -> Decoded:
     if kind not in MOTION_KINDS:
         raise r.error("kind", f"expected one of {', '.join(MOTION_KINDS)}, got {kind!r}")
     cov = r.floats("covariance", dim * dim, optional=True)
+    inliers = r.float("inlier_ratio")
+    if not 0.0 <= inliers <= 1.0:
+        raise r.error("inlier_ratio", f"must be in [0, 1], got {inliers:g}")
     m = MotionEstimate(
-        r.seq, r.int("seq_next", min=0), group, r.str("estimator"), r.floats("matrix", 16).reshape(4, 4),
+        r.seq, r.int("seq_next", min=0), group, r.str("estimator"),
+        ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4), group),
         r.floats("twist", dim), r.bool("valid"), r.str("reason"), r.int("n_points", min=0),
-        r.float("inlier_ratio"), r.float("rms_px", finite=False), zeta,
+        inliers, r.float("rms_px", finite=False), zeta,
         kind=kind, covariance=None if cov is None else cov.reshape(dim, dim),
     )
     return Decoded("motion", m, r.stream, r.seq)
@@ -293,13 +299,15 @@ def encode_correction(c: Correction, stream: str, zoom: float | None = None,
 
 def _decode_correction(r: Reader) -> Decoded:
     camera = r.floats("camera", 16, optional=True)
+    camera = None if camera is None else ranges.transform(r, "camera", camera.reshape(4, 4))
     chain = r.int("chain", optional=True)
     motion = r.str("motion", optional=True) or "fit"  # optional (added within v1)
     if motion not in CORRECTION_MOTIONS:
         raise r.error("motion", f"expected one of {', '.join(CORRECTION_MOTIONS)}, got {motion!r}")
-    c = Correction(r.seq, r.floats("matrix", 16).reshape(4, 4), r.int("segment"), r.bool("keyframe"),
-                   r.bool("valid"), r.str("reason"), r.float("zoom", positive=True, optional=True),
-                   None if camera is None else camera.reshape(4, 4), -1 if chain is None else chain, motion)
+    c = Correction(r.seq, ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4)), r.int("segment"),
+                   r.bool("keyframe"), r.bool("valid"), r.str("reason"),
+                   ranges.zoom(r, "zoom", r.float("zoom", positive=True, optional=True)), camera,
+                   -1 if chain is None else chain, motion)
     batch, closed_by = r.get("batch", optional=True), r.int("closed_by", optional=True)
     if batch is not None:
         if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
@@ -336,10 +344,10 @@ def _decode_stabilized(r: Reader) -> Decoded:
     flags = r.list("flags")
     if not all(isinstance(x, str) for x in flags):
         raise r.error("flags", "expected an array of str")
-    s = StabilizedImage(r.seq, r.int("t_ns"), img, r.float("zoom", positive=True), flags)
-    return Decoded("stabilized", s, r.stream, r.seq,
-                   extra={"encoding": enc, "src_pub_ns": r.int("src_pub_ns", optional=True),
-                          "ready_pub_ns": r.int("ready_pub_ns", optional=True)})
+    s = StabilizedImage(r.seq, ranges.time_ns(r, "t_ns", r.int("t_ns")), img,
+                        ranges.zoom(r, "zoom", r.float("zoom", positive=True)), flags)
+    src, ready = (ranges.time_ns(r, k, r.int(k, optional=True)) for k in ("src_pub_ns", "ready_pub_ns"))
+    return Decoded("stabilized", s, r.stream, r.seq, extra={"encoding": enc, "src_pub_ns": src, "ready_pub_ns": ready})
 
 
 # --- stats --------------------------------------------------------------------------------------

@@ -197,7 +197,10 @@ def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
         if params.content_size != want:
             raise m.error("data", f"zstd content size {params.content_size} does not match "
                                   f"dtype <u2 x shape {shape} = {want} bytes")
-        if not r.pixels:
+        if not r.pixels:  # checked all the same (a damaged frame must not take a queue's slot), in 1 MiB pieces
+            got = _zstd_length(data)
+            if got != want:
+                raise m.error("data", f"decompressed {got} bytes, expected {want}")
             return np.broadcast_to(np.float32(0), shape), enc, scale
         raw = zstandard.ZstdDecompressor(max_window_size=_ZSTD_MAX_WINDOW).decompress(data, max_output_size=want)
     except zstandard.ZstdError as e:
@@ -205,3 +208,13 @@ def decode_depth(r: Reader, name: str) -> tuple[np.ndarray, str, float]:
     if len(raw) != want:
         raise m.error("data", f"decompressed {len(raw)} bytes, expected {want}")
     return dequantize_depth(from_byte_planes(raw, "<u2", shape), scale), enc, scale
+
+
+def _zstd_length(data: bytes) -> int:
+    """How many bytes the zstd frame ``data`` decompresses to, without holding them (1 MiB pieces: a
+    check of a 16384x16384 depth map costs 1 MiB, not 512); ``ZstdError`` if it does not decompress."""
+    n = 0
+    for piece in zstandard.ZstdDecompressor(max_window_size=_ZSTD_MAX_WINDOW).read_to_iter(
+            data, read_size=1 << 20, write_size=1 << 20):
+        n += len(piece)
+    return n
