@@ -13,6 +13,9 @@ services' own stats (a restarted service's predecessors included, :meth:`StatusB
 * motion, recorder: what their queues dropped (the recorder: Foxglove views thinned) and, the
   recorder, what it could not write (``unrecorded``).
 
+A queue's drops are the stream's own messages only: a flood from another publisher is shed first
+(``inbox<i>_dropped_foreign``) and drops none of the stream's frames.
+
 A frame lost on the way to flow but rendered uncorrected shows at both (flow: lost; render:
 uncorrected). The final account (:class:`FrameAccount`) splits the frames the source offered
 once each: stabilized, shed, lost in transit, rendered uncorrected, dropped at render.
@@ -44,7 +47,9 @@ def _n(v: dict[str, Any], key: str) -> int:
 
 
 def _queues(v: dict[str, Any]) -> int:
-    return sum(_n(v, k) for k in v if k.startswith("inbox") and k.endswith("_dropped"))
+    """Messages of the stream's own publishers its queues dropped (another publisher's, shed first when a
+    queue is full, ``inbox<i>_dropped_foreign``, are no frame of the stream)."""
+    return sum(_n(v, k) - _n(v, f"{k}_foreign") for k in v if k.startswith("inbox") and k.endswith("_dropped"))
 
 
 def frame_drops(service: str, totals: Totals) -> int:

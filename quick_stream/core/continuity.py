@@ -19,7 +19,9 @@ stage asks :class:`ContinuityCheck` about every frame against the previous good 
 * **jumps**: a seq more than ``max_jump`` frames ahead of the previous good frame is refused
   unless ``confirm`` such frames in a row, each following the last, confirm a new numbering
   (then it is a break): one message with a far-future seq (a glitch, a stray publisher) must
-  not make every later frame look out of order and halt the stream (:class:`JumpGuard`).
+  not make every later frame look out of order and halt the stream (:class:`JumpGuard`). The motion
+  stage's flows and the render stage's corrections far ahead are held the same way until such a run
+  confirms them, then taken whole (:class:`AheadHold`).
 * **renumbering**: a seq at or behind the previous good frame's is refused, unless ``resync``
   such frames in a row, each following the last, confirm that the numbering went back (a camera
   or capture restarted without the stream's cursor): then it is a break, counted in
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 from .frame import FrameError, RGBDFrame
 
@@ -148,6 +151,12 @@ class JumpGuard:
         new numbering that confirmed it, the confirming one last)."""
         return list(self._back)
 
+    @property
+    def ahead(self) -> list[int]:
+        """The current far-ahead run, oldest first (after :meth:`admit` said True for a far-ahead seq:
+        the seqs that confirmed the new numbering, the confirming one last; empty after an ordinary seq)."""
+        return list(self._run)
+
     def _extend(self, run: list[int], seq: int) -> list[int]:
         """``run`` with ``seq`` appended if it follows the run's last seq by 1..step, else a new run of ``seq``."""
         if run and 0 < seq - run[-1] <= self.step:
@@ -176,6 +185,49 @@ class JumpGuard:
             return False
         self._back = self._extend(self._back, seq)
         return len(self._back) >= self.resync
+
+
+T = TypeVar("T")
+
+
+class AheadHold(Generic[T]):
+    """A stage's intake of messages numbered by frame (flows, corrections) under :meth:`JumpGuard.admit`:
+    one whose seq is more than ``max_jump`` ahead of the newest the stage took is *held*, not taken,
+    until ``confirm`` in a row confirm a new numbering; then the run's held messages are taken, in
+    order, with the confirming one (a real jump loses nothing). An ordinary seq admitted first drops
+    what was held (counted in ``dropped``): one forged or garbled message with a far-future seq
+    never becomes the newest, so it cannot make every later message look stale and halt the stream.
+    Messages at or behind the newest are the caller's to judge (stale, or a renumbering) and are
+    not offered: they neither end nor join a run."""
+
+    def __init__(self, guard: JumpGuard | None = None) -> None:
+        self.guard = guard or JumpGuard()
+        self._held: list[T] = []
+        self.dropped = 0  # held, then dropped: no run confirmed them
+
+    def drop(self) -> int:
+        """End of stream: what is held will not be confirmed; dropped (counted), how many."""
+        n = len(self._held)
+        self.dropped += n
+        self._held = []
+        return n
+
+    def offer(self, newest: int | None, seq: int, item: T) -> list[T]:
+        """The messages to take now, in order, given ``item`` numbered ``seq`` (ahead of ``newest``, the
+        newest the stage took): ``[item]`` for an ordinary seq, nothing while a far-ahead run is being
+        confirmed (``item`` held), the run's held messages and ``item`` when it confirms the run."""
+        if self.guard.admit(newest, seq):
+            if self.guard.ahead:  # the confirming one of a far-ahead run: the run's held ones first
+                out, self._held = [*self._held, item], []
+                return out
+            self.dropped += len(self._held)
+            self._held = []
+            return [item]
+        if len(self.guard.ahead) == 1:  # a new run: what the last one held is not continued by it
+            self.dropped += len(self._held)
+            self._held = []
+        self._held.append(item)
+        return []
 
 
 class ContinuityCheck:

@@ -22,7 +22,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, NamedTuple
 
-from .continuity import starts_numbering
+from .continuity import AheadHold, starts_numbering
 from .frame import RGBDFrame
 from .path.planner import Correction
 from .render import FramingParams, WarpParams
@@ -81,6 +81,11 @@ class ReleaseGroups:
         self.abandoned = 0
         self.numbering = 0  # renumberings the corrections announced
         self._newest: int | None = None  # the newest correction seq of the current numbering
+
+    @property
+    def newest(self) -> int | None:
+        """The newest correction seq of the current numbering (None: none yet)."""
+        return self._newest
 
     def _hand_over(self, rel: int) -> None:
         _, got, numbering, closed_by = self._open.pop(rel)
@@ -166,6 +171,7 @@ class RenderDriver:
         self._make = lambda: RenderStage(warp, framing, max_frames=max_frames, keep_inputs=keep_inputs)
         self.stage = self._make()
         self.releases = ReleaseGroups(clock)  # one for the service's life: a restarted motion renumbers from 0
+        self.ahead: AheadHold[tuple[Correction, Tag | None]] = AheadHold()  # far-ahead corrections
         self.max_frames, self.frame_wait, self.resume_after = max_frames, frame_wait, resume_after
         self.log, self.clock = log, clock
         self._pub_ns: dict[tuple[int, int], int] = {}  # (numbering, seq) -> when the capture published the frame
@@ -180,8 +186,27 @@ class RenderDriver:
             self.log.log(level, msg, *args)
 
     def add_correction(self, c: Correction, tag: Tag | None) -> None:
-        """One correction as it arrives, with its release tag (None: a sender without tags)."""
-        if self.resume_after is None or c.seq > self.resume_after:
+        """One correction as it arrives, with its release tag (None: a sender without tags). One more
+        than ``max_jump`` frames beyond both the newest correction and the newest frame taken is held
+        until a run confirms it, as the flow and motion stages do
+        (:class:`~quick_stream.core.continuity.AheadHold`; dropped unconfirmed:
+        ``jump_corrections``): rendered as a release, one from the far future made orphans of every frame held."""
+        if self.resume_after is not None and c.seq <= self.resume_after:
+            return
+        newest = max((s for s in (self.releases.newest, self.stage.newest) if s is not None), default=None)
+        dropped = self.ahead.dropped
+        if self.releases.newest is None or c.seq <= self.releases.newest:
+            taken = [(c, tag)]  # (not ahead of the corrections: neither joins nor ends a run)
+        else:
+            taken = self.ahead.offer(newest, c.seq, (c, tag))
+        if self.ahead.dropped > dropped:
+            self._say(logging.ERROR, "%d corrections held far ahead dropped: no run confirmed a new numbering",
+                      self.ahead.dropped - dropped)
+        if not taken:
+            self._say(logging.WARNING, "correction %d is %d frames beyond frame %d (more than %d): held until %d in "
+                      "a row continue from it", c.seq, c.seq - newest, newest, self.ahead.guard.max_jump,
+                      self.ahead.guard.confirm)
+        for c, tag in taken:
             self.releases.add(c, tag)
 
     def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None) -> bool:
@@ -260,6 +285,8 @@ class RenderDriver:
         """The corrections' end: no more corrections of this stream; what arrived of a release is
         a release (``abandoned``), and the frames the end overtook get ``frame_wait`` (:meth:`end_due`)."""
         self.ending, self.end_marker, self._deadline = True, marker, None
+        if self.ahead.drop():
+            self._say(logging.ERROR, "end of stream with corrections held far ahead: dropped, no run confirmed them")
         n = self.releases.flush_incomplete()
         if n:
             self._say(logging.WARNING, "end of stream with %d incomplete releases", n)
@@ -305,4 +332,4 @@ class RenderDriver:
         return {"refused_frames": self.refused, "taken_over": self.taken_over, "buffered": self.stage.buffered,
                 **{k: self._done[k] + v for k, v in self._per_stream().items()}, "flagged": self.flagged,
                 "pending_releases": len(self.releases.ready), "ended": self.ended,
-                "abandoned_releases": self.releases.abandoned}
+                "abandoned_releases": self.releases.abandoned, "jump_corrections": self.ahead.dropped}

@@ -36,7 +36,7 @@ import logging
 import time
 from typing import Any
 
-from .continuity import ContinuityCheck, ContinuityParams, breaks_stream, published_after, restarts_numbering
+from .continuity import AheadHold, ContinuityCheck, ContinuityParams, breaks_stream, published_after, restarts_numbering
 from .frame import RGBDFrame
 from .motion import KINDS, MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .motion.chain import MotionBridge
@@ -104,11 +104,17 @@ class MotionStage:
         self.gaps = 0
         self.renumberings = 0  # breaks to a new numbering taken (the path restarted at a lower seq)
         self._break: tuple[int, int] | None = None  # (seq, seq_next) of the last of them
+        self.ahead: AheadHold[SceneFlowResult] = AheadHold()  # far-ahead flows (the flow stage's defaults)
         self.timer = StageTimer()
 
     @property
     def started(self) -> bool:
         return self._last is not None
+
+    @property
+    def reached(self) -> int | None:
+        """The newest frame the path has reached (None: not started)."""
+        return self._last
 
     def start(self, seq: int) -> list[Correction]:
         """First frame of the stream: its correction batch (identity, a keyframe)."""
@@ -120,19 +126,59 @@ class MotionStage:
 
         Starts the path at ``flow.seq`` if not started. A flow that does not begin
         at the newest frame reached (frames skipped upstream) first gets an invalid
-        motion across the gap. A flow that ends at or before that frame is refused
-        with ValueError (stale or duplicate), unless it is the flow stage's break to a
-        new numbering (:meth:`renumbers`): the path then restarts at its ``seq_next``, and
-        the corrections of the old numbering and of the new one go out in separate batches.
+        motion across the gap. A flow that ends at or before that frame, begins before it or goes
+        back is refused with ValueError (stale, duplicate or overlapping), unless it is the flow
+        stage's break to a new numbering (:meth:`renumbers`): the path then restarts at its
+        ``seq_next``, and the corrections of the old numbering and of the new one go out in separate
+        batches. A flow reaching more than ``max_jump`` frames beyond the newest frame reached is
+        held (nothing returned) until ``confirm`` flows in a row confirm the new numbering, as the
+        flow stage confirms frames (:class:`~quick_stream.core.continuity.AheadHold`): then they are
+        all taken, in order; an ordinary flow first drops them (``jump_flows``), so one far-future
+        flow (forged or garbled) never halts the stream.
         """
-        batches: list[list[Correction]] = []
+        reach = max(flow.seq, flow.seq_next)
+        if not self.started or reach <= self._last:
+            return self._take(flow)  # the first flow, a stale one (refused) or the break to a lower numbering
+        self._refuse(flow)  # one the path could never take is refused as it comes, never held
+        taken = self.ahead.offer(self._last, reach, flow)
+        if len(taken) <= 1:
+            return self._take(flow) if taken else ([], [])
         motions: list[MotionEstimate] = []
-        if self._last is None:
-            batches.append(self.start(flow.seq))
+        batches: list[list[Correction]] = []
+        for f in taken:  # a confirmed run: the held flows, then this one
+            try:
+                m, b = self._take(f)
+            except ValueError:  # (the run's flows follow each other: only a copy among them)
+                self.ahead.dropped += 1
+                continue
+            motions += m
+            batches += b
+        return motions, batches
+
+    def _refuse(self, flow: SceneFlowResult) -> bool:
+        """Raises ValueError for a flow the path cannot take after the newest frame reached (stale,
+        duplicate, overlapping, going back); returns whether it is the break to a new numbering."""
         renumbered = self.renumbers(flow)
-        if flow.seq_next <= self._last and not renumbered:
+        if renumbered or self._last is None:
+            return renumbered
+        if flow.seq_next <= self._last:
             raise ValueError(f"flow {flow.seq}->{flow.seq_next} ends at or before frame {self._last} "
                              "(stale or duplicate)")
+        if flow.seq < self._last:
+            raise ValueError(f"flow {flow.seq}->{flow.seq_next} begins before frame {self._last}, the newest the "
+                             "path reached (stale or duplicate: overlapping)")
+        if flow.seq_next <= flow.seq:
+            raise ValueError(f"flow {flow.seq}->{flow.seq_next} goes back but is not the flow stage's break to "
+                             "a new numbering")
+        return False
+
+    def _take(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[list[Correction]]]:
+        """:meth:`push` without the far-ahead hold."""
+        batches: list[list[Correction]] = []
+        motions: list[MotionEstimate] = []
+        renumbered = self._refuse(flow)
+        if self._last is None:
+            batches.append(self.start(flow.seq))
         if renumbered:
             self.renumberings += 1
             self._break = (flow.seq, flow.seq_next)
@@ -177,7 +223,8 @@ class MotionStage:
                                       b.model_points)
 
     def finish(self) -> list[list[Correction]]:
-        """End of stream: the last segment's batch (if any)."""
+        """End of stream: the last segment's batch (if any); flows still held far ahead are dropped."""
+        self.ahead.drop()
         b = self.planner.finish() if self.started else []
         return [b] if b else []
 
@@ -234,7 +281,8 @@ class MotionDriver:
 
     ``resume_after``: a restarted motion service starts a new path after the last correction its
     predecessor released (flows up to it are skipped, ``taken_over``, until a renumbering or the
-    end of the stream). A stale or duplicate flow is refused (``refused_flows``), an invalid
+    end of the stream). A stale or duplicate flow is refused (``refused_flows``; of them ``jump_flows``:
+    held far ahead, :meth:`MotionStage.push`, and dropped unconfirmed), an invalid
     motion counted (``invalid_motions``), both reported on ``log`` (None: silent). At the end of a
     stream :meth:`finish` closes the last segment; :meth:`restart` starts the next stream (the
     release numbers and the counters go on)."""
@@ -249,6 +297,7 @@ class MotionDriver:
         self.refused = self.invalid = self.taken_over = 0
         self.kinds = dict.fromkeys(KINDS, 0)  # motions by how they were known (docs/method.md 2.4)
         self._renumberings = 0  # of the streams already ended
+        self._jumped = 0  # flows held far ahead and dropped, of the streams already ended
 
     def _say(self, level: int, msg: str, *args: Any) -> None:
         if self.log is not None:
@@ -264,12 +313,22 @@ class MotionDriver:
         if self.resume_after is not None and flow.seq <= self.resume_after:
             self.taken_over += 1  # its frames were corrected before the restart
             return None
+        ahead, last = self.stage.ahead, self.stage.reached
+        dropped = ahead.dropped
         try:
             motions, batches = self.stage.push(flow)
         except ValueError as e:
             self.refused += 1
             self._say(logging.ERROR, "flow %d->%d refused: %s", flow.seq, flow.seq_next, e)
             return None
+        if ahead.dropped > dropped:
+            self._say(logging.ERROR, "%d flows held far ahead dropped: no run of flows confirmed a new numbering "
+                      "(the stream went on from frame %s)", ahead.dropped - dropped, last)
+        if not motions:  # held: far ahead of the path, until a run confirms it
+            self._say(logging.WARNING, "flow %d->%d reaches %d frames beyond frame %d (more than %d): held until %d "
+                      "flows in a row continue from it", flow.seq, flow.seq_next,
+                      max(flow.seq, flow.seq_next) - last, last, ahead.guard.max_jump, ahead.guard.confirm)
+            return [], []
         if flow.seq_next <= flow.seq:
             self.resume_after = None  # a new numbering: the predecessor's cursor says nothing of it
         for m in motions:
@@ -292,12 +351,15 @@ class MotionDriver:
     def restart(self) -> None:
         """After :meth:`finish`: a new stream may follow (a new path; the counters go on)."""
         self._renumberings += self.stage.renumberings
+        self._jumped += self.stage.ahead.dropped
         self.stage = self._make()
         self.resume_after = None
 
     def stats(self) -> dict[str, int]:
         st = self.stage
-        return {"refused_flows": self.refused, "invalid_motions": self.invalid, "taken_over": self.taken_over,
+        jumped = self._jumped + st.ahead.dropped
+        return {"refused_flows": self.refused + jumped, "jump_flows": jumped, "invalid_motions": self.invalid,
+                "taken_over": self.taken_over,
                 **{f"motions_{k}": n for k, n in self.kinds.items() if k != "none"},
                 "gaps": st.gaps, "segments": len(st.planner.segments), "corrections": self.releases.sent,
                 "renumberings": self._renumberings + st.renumberings}

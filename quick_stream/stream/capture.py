@@ -50,7 +50,8 @@ class OutputCredit:
     :class:`~quick_stream.core.pacing.CreditWindow` lets it go (:meth:`wait_for`; after ``stall_s``
     with no progress it says so and goes on waiting: a stage or the router restarting comes back;
     with nothing downstream at all, use ``--window 0`` or realtime pace); ``--pace realtime``
-    (:meth:`admit`) sheds what the pipeline cannot take (:class:`~quick_stream.core.shedding.Shedder`)."""
+    (:meth:`admit`) sheds what the pipeline cannot take (:class:`~quick_stream.core.shedding.Shedder`).
+    Progress beyond the newest frame sent (:meth:`sending`) is no stage's: it is ignored."""
 
     def __init__(self, rt: ServiceRuntime, stream: str, window: int, stall_s: float = 10.0,
                  shed: dict[str, ShedLimits] | None = None) -> None:
@@ -58,6 +59,7 @@ class OutputCredit:
         self.credit = CreditWindow(window)
         self.shedder = Shedder(shed or {})
         self.waits = 0
+        self.newest_sent = -1  # no stage can have reached a later frame: a message saying so is not the pipeline's
         self._cond = threading.Condition()
         if window > 0 or self.shedder.enabled:
             for stage in CREDIT_STAGES:
@@ -77,13 +79,21 @@ class OutputCredit:
         seq = r.d.get("seq_next") if r.type == "motion" else r.seq
         if r.type in CREDIT_STAGES and isinstance(seq, int):
             with self._cond:
+                if seq > self.newest_sent:  # forged or garbled: one far-future seq switched flow control off
+                    return
                 self.credit.progressed(r.type, seq)
                 self.shedder.progressed(r.type, seq, time.monotonic())
                 self._cond.notify_all()
 
+    def sending(self, seq: int) -> None:
+        """Frame ``seq`` goes out now (before its put: the stages may answer at once)."""
+        with self._cond:
+            self.newest_sent = max(self.newest_sent, seq)
+
     def resume_from(self, seq: int) -> None:
         """A restarted capture: every stage had reached frame ``seq`` (the stream's cursor)."""
         with self._cond:
+            self.newest_sent = max(self.newest_sent, seq)
             self.credit.resume_from(seq)
             self.shedder.resume_from(seq)
 
@@ -190,6 +200,7 @@ class Capture:
                 self.bad += 1
                 log.error("%s: cannot encode: %s", fr.label, e)
                 continue
+            credit.sending(seq)
             self.pub.put(data)
             self.sent += 1
             self.last_seq = seq

@@ -35,6 +35,7 @@ import zenoh
 
 from . import keys
 from .cursor import RESTARTED_ENV
+from .inbox import publisher_of
 from .wire import WireError, check
 
 log = logging.getLogger(__name__)
@@ -232,9 +233,20 @@ class StatusBoard:
 
     A service's counters start again from 0 when it is restarted (its stats numbering starts again
     too): :meth:`totals` adds the last values its predecessors published, so a restart hides no
-    count (the predecessor's last second, after its last stats message, is not known)."""
+    count (the predecessor's last second, after its last stats message, is not known).
 
-    def __init__(self, session: zenoh.Session, capacity: int = 4096) -> None:
+    A service's stats are taken from one publisher (the zenoh session that sent them,
+    :func:`~quick_stream.stream.inbox.publisher_of`): another publisher's stats under its name are
+    ignored (counted in :attr:`foreign`) unless that one has been quiet for ``quiet_s`` (a restarted
+    service's predecessor is gone). A stats message forged with a lower seq passed for a restart and
+    added the service's counts to its totals again (the live fuzz: flow's refused frames counted twice
+    in the final summary, docs/reliability.md)."""
+
+    def __init__(self, session: zenoh.Session, capacity: int = 4096, quiet_s: float = 3.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.quiet_s, self.clock = quiet_s, clock
+        self.foreign = 0  # stats under a service's name from a publisher other than the service's
+        self._source: dict[tuple[str, str], str | None] = {}
         self.latest: dict[tuple[str, str], dict[str, Any]] = {}
         self.updated: dict[tuple[str, str], float] = {}
         self.carried: dict[tuple[str, str], dict[str, int]] = {}  # predecessors' counts (int values summed)
@@ -265,7 +277,15 @@ class StatusBoard:
                 log.warning("bad message on %s (%d so far): %s", key, self._errors, e)
             return
         k = (m.stream, m.obj.service)
+        source, now = publisher_of(sample), self.clock()
         with self._lock:
+            if k in self.latest and source != self._source.get(k) and now - self.updated[k] < self.quiet_s:
+                self.foreign += 1  # the service is alive and publishing: not its stats
+                if self.foreign <= 10 or self.foreign % 1000 == 0:
+                    log.warning("stats of %s/%s from %s, not from the service's publisher %s: ignored (%d so far)",
+                                *k, source, self._source.get(k), self.foreign)
+                return
+            self._source[k] = source
             if k in self.latest and m.seq <= self._seq.get(k, -1):  # numbered from 0 again: a restarted service
                 carried = self.carried.setdefault(k, {})
                 for name, v in self.latest[k].items():
@@ -273,7 +293,7 @@ class StatusBoard:
                         carried[name] = carried.get(name, 0) + v
             self._seq[k] = m.seq
             self.latest[k] = dict(m.obj.values)
-            self.updated[k] = time.monotonic()
+            self.updated[k] = now
 
     @property
     def errors(self) -> int:

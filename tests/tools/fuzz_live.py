@@ -10,7 +10,9 @@ motion key's first message is a motion whose matrix entries are all 1e308 (finit
 Then the stream goes on for ``after`` frames and the capture is stopped (SIGTERM: its own end).
 
 Reports what the pipeline did with the real frames (the capture's, told from the injected ones by
-their bytes): sent, passed through flow (a seq or seq_next of some flow), stabilized, flagged; the end
+their bytes): sent, passed through flow (a seq or seq_next of some flow), stabilized, flagged, also
+split into those sent before, during and after the injection (by the newest real frame seen when it
+began and ended); every service's ``internal_errors`` and the recorder's ``view_errors``; the end
 markers each stage published (one per stage when a forged end ends nothing); each service's counters
 (drops, messages refused on arrival, ends ignored, decode and internal errors; the recorder's failed
 Foxglove views) and restarts. Exit 0 when no real frame was lost, each stage ended once and no service
@@ -45,7 +47,8 @@ from .faults import STREAM, _config, _status, _wait_status, _wait_until
 from .fuzz import MUTATORS
 
 COUNTERS = ("dropped", "dropped_foreign", "invalid", "ignored_ends", "decode_errors", "internal_errors", "view_errors",
-            "refused_frames", "orphans", "missing", "shed")
+            "refused_frames", "refused_flows", "jump_flows", "jump_corrections", "abandoned_releases", "orphans",
+            "missing", "shed")
 KEYS = ("frame", "flow", "motion", "correction", "stabilized", "stats")
 
 
@@ -71,9 +74,11 @@ class Monitor:
         with self._lock:
             self.seen.append(row)
 
-    def newest(self, stage: str) -> int:
+    def newest(self, stage: str, injected: set[bytes] | frozenset[bytes] = frozenset()) -> int:
+        """The newest seq of ``stage``'s own messages seen, those ``injected`` left out."""
         with self._lock:
-            return max((s for st, t, s, *_ in self.seen if st == stage and t == stage), default=0)
+            return max((s for st, t, s, *_, d in self.seen if st == stage and t == stage and d not in injected),
+                       default=0)
 
     def count(self, stage: str, mtype: str) -> int:
         with self._lock:
@@ -148,19 +153,21 @@ def run(out: Path, n: int = 2000, seed: int = 0, fps: float = 30.0, size: str = 
             _wait_until(lambda pub=pub: pub.matching_status.matching, timeout_s)
         names = list(MUTATORS)
         t0 = time.monotonic()
+        span = [mon.newest("frame")]  # the newest real frame when the injection began, and when it ended
         for k in keys_:
             base = seeds(k, size)
             every = max(n // max(forged_ends, 1), 1)
             for i in range(n):
                 if k == "motion" and i == 0:
-                    data = huge_motion(mon.newest(k))  # the pair last integrated: every later pose builds on it
+                    data = huge_motion(mon.newest(k, injected))  # the pair last integrated: later poses build on it
                 elif forged_ends and i % every == every // 2 and k != "stats":
-                    data = forged_end(mon.newest(k))
+                    data = forged_end(mon.newest(k, injected))
                 else:
                     data = MUTATORS[names[i % len(names)]](rng, rng.choice(base))
                 injected.add(_digest(data))
                 pubs[k].put(data)
         inject_s = time.monotonic() - t0
+        span.append(mon.newest("frame", injected))
         sent_then = (_status(status) or {})["services"]["capture"]["stats"].get("sent", 0)
         st = _wait_status(status, lambda s: s["services"]["capture"]["stats"].get("sent", 0) >= sent_then + after,
                           timeout_s, proc)
@@ -179,7 +186,7 @@ def run(out: Path, n: int = 2000, seed: int = 0, fps: float = 30.0, size: str = 
         for s in sessions:
             s.close()
     (out / "up.log").write_text(text or "")
-    r = report(mon, injected, _status(status) or {}, proc.returncode, n, keys_, forged_ends, inject_s)
+    r = report(mon, injected, _status(status) or {}, proc.returncode, n, keys_, forged_ends, inject_s, tuple(span))
     from quick_stream.io.recording import read_messages
 
     topics = [t for f in sorted(out.glob("recording*.mcap")) for t, _, _ in read_messages(f)]
@@ -189,7 +196,10 @@ def run(out: Path, n: int = 2000, seed: int = 0, fps: float = 30.0, size: str = 
 
 
 def report(mon: Monitor, injected: set[bytes], st: dict, code: int | None, n: int, keys_: tuple[str, ...],
-           forged_ends: int, inject_s: float) -> dict:
+           forged_ends: int, inject_s: float, span: tuple[int, int] = (-1, -1)) -> dict:
+    """What became of the real frames (all, and ``before``/``during``/``after`` the injection: up to the
+    newest real frame seen when it began, ``span[0]``, and after the newest seen when it ended, ``span[1]``),
+    the end markers, and each service's counters."""
     real = [r for r in mon.seen if r[5] not in injected]
     sent = {s for stage, t, s, *_ in real if stage == "frame" and t == "frame"}
     flowed = {x for stage, t, s, nxt, *_ in real if stage == "flow" and t == "flow" for x in (s, nxt)
@@ -207,8 +217,14 @@ def report(mon: Monitor, injected: set[bytes], st: dict, code: int | None, n: in
             "inject_s": round(inject_s, 2), "frames_sent": len(sent),
             "not_through_flow": len(sent - flowed), "stabilized": len(stab & sent), "lost": len(sent - stab),
             "flagged": len(flagged & sent),
+            "phases": {name: {"sent": len(part), "stabilized": len(part & stab), "flagged": len(part & flagged)}
+                       for name, part in (("before", {s for s in sent if s <= span[0]}),
+                                          ("during", {s for s in sent if span[0] < s <= span[1]}),
+                                          ("after", {s for s in sent if s > span[1]}))},
             "ends": {k: mon_count for k in ("frame", "flow", "correction", "stabilized")
                      if (mon_count := sum(1 for stage, t, *_ in real if stage == k and t == "end"))},
+            "internal_errors": {name: v.get("stats", {}).get("internal_errors", 0) for name, v in services.items()},
+            "view_errors": services.get("recorder", {}).get("stats", {}).get("view_errors"),
             "counters": counters, "restarts": {k: v["restarts"] for k, v in services.items() if v.get("restarts")},
             "up_exit": code}
 
@@ -219,6 +235,9 @@ def format_report(r: dict) -> str:
             f"{r['not_through_flow']}, stabilized {r['stabilized']}, lost {r['lost']}, flagged {r['flagged']}; "
             f"end markers per stage {r['ends']}; recorded Foxglove poses {r.get('foxglove')}; restarts "
             f"{r['restarts']}; up exit {r['up_exit']}\n"
+            + "".join(f"  {name:<6} real frames sent {p['sent']}, stabilized {p['stabilized']}, flagged {p['flagged']}\n"
+                      for name, p in r.get("phases", {}).items())
+            + f"  internal_errors {r.get('internal_errors')}; recorder view_errors {r.get('view_errors')}\n"
             + "\n".join(f"  {name:<9} {c}" for name, c in r["counters"].items()))
 
 

@@ -122,3 +122,40 @@ def test_the_motion_driver_takes_over_tags_releases_and_carries_counters_over_st
     assert d.push(flows[-1]) is None and d.stats()["refused_flows"] == 1  # stale: refused, counted
     d.restart()
     assert d.resume_after is None and d.stats()["segments"] == 0 and d.stats()["corrections"] == len(tags)
+
+
+@pytest.mark.parametrize("far", [10**12, 2**64 - 1, 400])
+def test_a_far_future_correction_orphans_nothing_and_the_stream_goes_on(frames, far):
+    """One valid correction from the far future (forged, or garbled on its way) was a release of its own:
+    once ``frame_wait`` passed it rendered every frame held for the real corrections as an orphan,
+    uncorrected, and their corrections then found no frame. It is held until a run confirms it, and
+    dropped when the stream's own next correction comes."""
+    clock = Clock()
+    d = RenderDriver(max_frames=50, frame_wait=1.0, clock=clock)
+    for f in frames[:10]:
+        d.add_frame(f.seq, f)
+    real = ReleaseNumbering().number([corrections(0, 1, 2), corrections(3, 4, 5), corrections(6, 7, 8, 9)])
+    out = []
+    for c, tag in real[:3]:
+        d.add_correction(c, tag)
+    d.add_correction(Correction(far, np.eye(4), 2, False, True, ""), (5, 0, 1))
+    clock.t += 1.5
+    for c, tag in real[3:]:
+        for rel in d.due():
+            out += list(d.render(rel))
+        d.add_correction(c, tag)
+    for _, group in d.finish():
+        out += list(group)
+    assert [x.frame.seq for x in out] == list(range(10)) and not any(x.frame.flags for x in out)
+    st = d.stats()
+    assert st["orphans"] == st["missing"] == 0 and st["jump_corrections"] == 1
+
+
+def test_a_correction_run_that_confirms_a_jump_is_taken_whole(frames):
+    """Corrections of a stream that jumped ahead before its frames came: held, then all taken on the fifth."""
+    d = RenderDriver(max_frames=50)
+    d.add_frame(0, frames[0])
+    for c, tag in ReleaseNumbering().number([corrections(0), corrections(*range(5000, 5005))]):
+        d.add_correction(c, tag)
+    assert [[c.seq for c in b] for _, b, *_ in d.releases.ready] == [[0], list(range(5000, 5005))]
+    assert d.stats()["jump_corrections"] == 0

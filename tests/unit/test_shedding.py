@@ -107,3 +107,36 @@ def test_limits_are_checked():
     with pytest.raises(ValueError):
         ShedLimits(soft=5, hard=4, needs=("flow",))
     assert not Shedder({"motion": ShedLimits(0, 0, ("flow",))}).enabled
+
+
+@pytest.mark.parametrize("pace", ["fast", "realtime"])
+def test_the_capture_takes_no_progress_beyond_the_newest_frame_sent(pace):
+    """One motion (or stabilized image) forged with a far-future seq told the capture that the pipeline had
+    reached it: flow control (fast pace) and shedding (realtime pace) were off for the rest of the stream."""
+    import threading
+    from types import SimpleNamespace
+
+    from quick_stream.core.motion import MotionEstimate
+    from quick_stream.stream.capture import OutputCredit
+    from quick_stream.stream.wire import encode
+
+    rt = SimpleNamespace(subscribe=lambda key, cb: None, watch_health=lambda cb: None, stop=threading.Event())
+    oc = OutputCredit(rt, "cam0", 30 if pace == "fast" else 0, shed=DEFAULT_LIMITS if pace == "realtime" else None)
+    for service in ("flow", "motion", "render"):
+        oc._on_health(service, True)
+
+    def progress(seq: int, seq_next: int) -> None:
+        m = MotionEstimate(seq, seq_next, "se3", "exact", np.eye(4), np.zeros(6), True, "", 9, 0.9, 0.3)
+        oc._on_output(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: encode(m, "cam0"))))
+
+    for seq in range(40):
+        oc.sending(seq)
+        if pace == "realtime":
+            oc.admit(seq)
+    progress(4, 5)
+    progress(7, 2**64 - 1)  # forged
+    assert oc.credit.done["motion"] == 5
+    if pace == "fast":
+        assert oc.credit.blocked(40)  # the motion stage is 35 frames behind: more than window // 3
+    else:
+        assert oc.shedder.done["motion"] == 5 and oc.shedder.in_flight("motion") == 34

@@ -197,3 +197,77 @@ def test_flow_refuses_one_far_future_frame_and_breaks_at_a_confirmed_renumbering
     f = st.push(renumbered[4])  # the fifth in a row: a discontinuity, the path restarts there
     assert (f.seq, f.seq_next) == (1, 7004) and "missing" in f.problem
     assert st.check.counts["seq_jumps"] == 5
+
+
+def _flows(frames) -> list:
+    from quick_stream.core.continuity import FrameRefused
+
+    st, out = FlowStage(), []
+    for f in frames:
+        try:
+            if (fl := st.push(f)) is not None:
+                out.append(fl)
+        except FrameRefused:
+            pass
+    return out
+
+
+def _corrected(motion: MotionStage, flows) -> tuple[list[int], list, int]:
+    """Every correction's seq (in release order), every motion and the flows refused, the flows pushed
+    one by one."""
+    batches, motions, refused = [], [], 0
+    for fl in flows:
+        try:
+            m, b = motion.push(fl)
+        except ValueError:
+            refused += 1
+            continue
+        motions += m
+        batches += b
+    batches += motion.finish()
+    return [c.seq for b in batches for c in b], motions, refused
+
+
+@pytest.mark.parametrize("forged", [(7, 2**64 - 1), (10**12, 10**12 + 1), (25, 10**9)])
+def test_motion_stage_holds_a_far_future_flow_and_the_stream_goes_on(frames, forged):
+    """A valid flow ``7 -> 18446744073709551615`` forged among real ones (the live fuzz, issue 30) became the
+    path's newest frame: every later flow was refused as stale (90 frames lost, 175 uncorrected)."""
+    import dataclasses
+
+    flows = _flows(frames)
+    fake = dataclasses.replace(flows[3], seq=forged[0], seq_next=forged[1])
+    motion = MotionStage()
+    seqs, motions, refused = _corrected(motion, flows[:10] + [fake] + flows[10:])
+    assert seqs == list(range(len(frames)))  # every frame corrected once, in order: nothing lost
+    assert all(m.valid for m in motions) and motion.gaps == 0
+    assert refused + motion.ahead.dropped == 1  # refused as it came (it overlaps), or held and then dropped
+    assert motion.reached == len(frames) - 1
+
+
+def test_motion_stage_takes_a_confirmed_jump_whole(frames):
+    """A stream that really jumps ahead (the flow stage's break after five frames in a row): the held flows
+    are all taken once the run confirms it, none lost."""
+    jumped = frames[:12] + [f.with_(seq=9000 + f.seq) for f in frames[12:]]
+    flows = _flows(jumped)
+    motion = MotionStage()
+    seqs, _, refused = _corrected(motion, flows)
+    assert refused == 0
+    taken = [f.seq for f in jumped[:12]] + [9000 + s for s in range(16, len(frames))]  # flow refused 4 of them
+    assert seqs == taken and motion.ahead.dropped == 0
+    assert flows[11].seq == 11 and flows[11].seq_next == 9016 and "missing" in flows[11].problem
+
+
+@pytest.mark.parametrize("forged,why", [((3, 30), "stale or duplicate"), ((15, 14), "goes back")])
+def test_motion_stage_refuses_a_flow_that_overlaps_or_goes_back(frames, forged, why):
+    """A flow that begins before the newest frame reached (``415 -> 7`` was taken as a gap going back) or
+    goes back without being a renumbering's break is refused; the stream goes on."""
+    import dataclasses
+
+    flows = _flows(frames)
+    motion = MotionStage()
+    for fl in flows[:10]:
+        motion.push(fl)
+    with pytest.raises(ValueError, match=why):
+        motion.push(dataclasses.replace(flows[3], seq=forged[0], seq_next=forged[1]))
+    seqs, motions, _ = _corrected(motion, flows[10:])
+    assert all(m.valid for m in motions) and motion.gaps == 0 and motion.reached == len(frames) - 1

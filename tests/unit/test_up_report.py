@@ -62,6 +62,15 @@ def test_frames_lost_on_the_way_to_flow_dropped_or_flagged_at_render_are_counted
     assert "in flight when the run stopped" in acc.line("realtime", whole_stream=False)
 
 
+def test_a_foreign_flood_shed_from_a_queue_is_no_drop_of_the_streams_frames():
+    """10,000 forged frames in a live fuzz: flow's queue shed 1,190 of them (``inbox0_dropped_foreign``) and
+    no real frame, yet the board showed flow with 1,190 drops (2,380 with the forged stats counted twice)."""
+    t = totals({"capture": {"sent": 300}, "flow": {"missing_frames": 0, "inbox0_dropped": 1195,
+                                                   "inbox0_dropped_foreign": 1190},
+                "motion": {"inbox0_dropped": 4, "inbox0_dropped_foreign": 4}})
+    assert frame_drops("flow", t) == 5 and frame_drops("motion", t) == 0
+
+
 def test_no_stats_from_render_is_said_not_taken_for_zero():
     acc = frame_account(totals({"capture": {"sent": 10}}))
     assert not acc.render_known and acc.rendered == 0
@@ -88,6 +97,31 @@ def test_a_restarted_service_counts_its_predecessors_frames():
     assert board.get("cam0", "capture")["sent"] == 12  # the current process's
     t = board.totals("cam0", "capture")
     assert t["sent"] == 102 and t["shed"] == 6 and t["send_fps"] == 30.0
+
+
+def test_stats_forged_under_a_live_services_name_are_not_taken():
+    """A stats message under flow's name from another publisher, with a lower seq, passed for a restarted
+    flow: flow's counts were added to its totals again (the live fuzz: refused frames 731 on flow's own
+    stats, 1,462 in the final summary). A real successor is taken once its predecessor is quiet."""
+    board, ring = _ring_board()
+    t = [0.0]
+    board.clock = lambda: t[0]
+
+    def put(who: str, seq: int, **values) -> None:
+        _stats(ring, "flow", seq, **values)
+        ring[-1].timestamp = SimpleNamespace(get_id=lambda: who)
+        board.drain()
+
+    for seq in range(5):
+        t[0] += 1.0
+        put("flow-1", seq, refused_frames=100 * seq)
+    put("forger", 4, refused_frames=7)
+    t[0] += 1.0
+    put("flow-1", 5, refused_frames=500)
+    assert board.totals("cam0", "flow")["refused_frames"] == 500 and board.foreign == 1
+    t[0] += 10.0  # flow-1 killed: quiet since; its successor numbers its stats from 0 again
+    put("flow-2", 0, refused_frames=3)
+    assert board.totals("cam0", "flow")["refused_frames"] == 503 and board.foreign == 1
 
 
 def test_status_json_that_cannot_be_written_raises_naming_it_and_leaves_no_part(tmp_path):
