@@ -52,6 +52,10 @@ class Inbox:
         self._newest: int | None = None  # taking over: the newest data seq queued so far
         self._newest_pub: int | None = None  # taking over: the latest publication time queued so far (frames)
         self.arrivals = ArrivalLedger()
+        # the flow service's shedding (stream/gate.py): asked with the checked envelope (None: not valid)
+        # before a message takes a slot (False: not queued, the asker counts it), told of each dropped for room
+        self.admit: Callable[[str, bytes, tuple[str, int, int | None] | None], bool] | None = None
+        self.on_drop: Callable[[str, bytes], None] | None = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, data = str(sample.key_expr), sample.payload.to_bytes()
@@ -80,12 +84,17 @@ class Inbox:
                     # (and after the queue first drained); it is owed, so hold it as during catch-up
                     self.capacity = max(self.capacity, self.catch_up)
                 self._newest = env[1] if self._newest is None else max(self._newest, env[1])
+        if self.admit is not None and not self.admit(key, data, env):
+            return
+        old = None
         with self._cond:
             if len(self._q) >= self.capacity:
-                self._q.popleft()
+                old = self._q.popleft()
                 self.dropped += 1
             self._q.append(item)
             self._cond.notify_all()
+        if old is not None and self.on_drop is not None:
+            self.on_drop(old[0], old[1])
 
     def _on_miss(self, miss: Any) -> None:
         self.lost += miss.nb

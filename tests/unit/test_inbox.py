@@ -109,3 +109,19 @@ def test_the_status_board_counts_bad_stats_messages_and_keeps_only_good_ones():
     put("quick/@v1/cam0/stats", encode_stats(Stats("flow", {"frames": 10**12}), "cam9", 1))  # another stream's
     put("quick/@v1/cam0/stats", encode_frame(FRAME, "cam0"))  # not a stats message
     assert board.errors == 3 and board.snapshot() == {("cam0", "flow"): {"frames": 7}}
+
+
+def test_a_message_its_admit_refuses_takes_no_slot_and_each_one_dropped_for_room_is_told():
+    """The flow service's gate (quick_stream/stream/gate.py) decides on a frame as it arrives, from
+    the envelope the check read (None for a message that fails it), and names the frames the full
+    queue drops."""
+    box = Inbox(2, threading.Condition())
+    asked, dropped = [], []
+    box.admit = lambda key, data, env: asked.append(env) or env is None or env[1] % 2 == 0
+    box.on_drop = lambda key, data: dropped.append(peek(data)[1])
+    for seq in range(7):
+        box._on_sample(sample(seq))
+    box._on_sample(sample(0, data=b"not msgpack"))
+    assert [e[:2] for e in asked[:7]] == [("frame", s) for s in range(7)] and asked[7] is None
+    assert dropped == [0, 2, 4] and box.dropped == 3  # the odd ones never took a slot
+    assert [peek(box.pop()[1]) for _ in range(2)] == [("frame", 6), None]
