@@ -1,9 +1,12 @@
 """``flow``: scene flow of consecutive frames, ``frame`` -> ``flow``.
 
-Reads frames through a drop-oldest inbox (``--queue``, default 30: if this stage
-falls that far behind, the oldest frames are dropped and counted, and the next
-flow spans the gap), runs :class:`quick_stream.core.stages.FlowDriver` and publishes
-each pair's ``flow`` message (lossless: the motion stage needs every pair it can
+Takes the pipeline's one shedding decision before decoding a frame
+(:class:`quick_stream.core.admission.FlowAdmission`, fed by :class:`quick_stream.stream.gate.FrameGate`):
+a frame that arrives beyond the pace at which flow, the motion stage and the stabilized output keep
+up, one taken from the inbox with more than ``--queue`` frames (default 30) waiting behind it, or one
+the inbox (twice ``--queue``) drops for room is shed (``shed``; the next flow spans the gap) and
+named in the next flow's ``shed`` (or the ``end``'s), so that motion and render let it go too. It runs
+:class:`quick_stream.core.stages.FlowDriver` and publishes each pair's ``flow`` message (lossless: the motion stage needs every pair it can
 get; a receiver whose link dropped flows fetches them back from the publisher's
 cache, and no subscriber can make the put wait). Undecodable or out-of-order frames
 are logged and counted; a stream whose numbering restarts lower is followed once a
@@ -19,14 +22,16 @@ import time
 
 import zenoh
 
+from quick_stream.core.admission import MAX_NAMED, FlowAdmission
 from quick_stream.core.settings import settings_digest
 from quick_stream.core.stages import FlowDriver
 from quick_stream.stream import argtypes as at, keys
+from quick_stream.stream.gate import FrameGate
 from quick_stream.stream.meters import RateMeter
 from quick_stream.stream.process import add_queue_args, service_main, service_parser
 from quick_stream.stream.runtime import Input, ServiceRuntime
 from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
-from quick_stream.stream.wire import Decoded, encode_end, encode_flow
+from quick_stream.stream.wire import Decoded, EndOfStream, encode_end, encode_flow
 
 log = logging.getLogger("flow")
 
@@ -34,7 +39,7 @@ log = logging.getLogger("flow")
 def build_parser() -> argparse.ArgumentParser:
     p = service_parser("flow", __doc__)
     add_stabilizer_args(p)
-    add_queue_args(p, queue=30, queue_help="frames held before the oldest is dropped (default 30, 1 s at 30 fps)",
+    add_queue_args(p, queue=30, queue_help="frames waiting before the oldest is shed (default 30, 1 s at 30 fps)",
                    history=150, history_help="flows kept for a restarted motion service to take over from and for "
                    "receivers to recover what their link dropped (default 150; at least 150 are kept)")
     p.add_argument("--catch-up", type=at.positive_int, default=150,
@@ -52,29 +57,43 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
             log.warning("stream %s under way (flows out up to frame %d): taking over from the frames' history",
                         args.stream, resume_after)
         taking_over = resume_after is not None
-        inbox = rt.inbox(keys.key(args.stream, "frame"), args.queue, history=taking_over, publisher="capture",
+        inbox = rt.inbox(keys.key(args.stream, "frame"), 2 * args.queue, history=taking_over, publisher="capture",
                          skip_through=resume_after, catch_up=args.catch_up if taking_over else 0)
         pub = rt.publisher("flow", lossless=True, cache=args.history)
+        gate = FrameGate(rt, args.stream, inbox, FlowAdmission(args.queue, max_jump=params.continuity.max_jump))
         rt.serve_cursor()
         rt.ready()
         meter = RateMeter()
+        shed: list[int] = []  # shed and not yet named: each named in the next flow that ends after it
 
         def on_frame(msg: Decoded) -> None:
             t0 = time.perf_counter()
-            if (flow := driver.push(msg.obj, msg.extra.get("pub_ns"))) is not None:
-                pub.put(encode_flow(flow, args.stream))
+            shed.extend(gate.take_shed())
+            del shed[:-MAX_NAMED]  # what one message names at most (no flow for that long: the oldest unnamed)
+            flow = driver.push(msg.obj, msg.extra.get("pub_ns"), shed)
+            if driver.taken is not None:
+                gate.taken(driver.taken)
+            if flow is not None:  # it names the frames shed before its end; those shed on arrival after it wait
+                bound = max(flow.seq, flow.seq_next)
+                pub.put(encode_flow(flow, args.stream, [s for s in shed if s < bound]))
+                shed[:] = [s for s in shed if s >= bound]
                 meter.add((time.perf_counter() - t0) * 1e3)
 
         def on_end(msg: Decoded) -> None:
-            pub.put(encode_end(msg.obj, args.stream))
-            log.info("end of stream after frame %d", msg.obj.seq)
+            end = msg.obj
+            shed.extend(gate.take_shed())
+            del shed[:-MAX_NAMED]
+            pub.put(encode_end(EndOfStream(end.seq, end.reason, tuple(s for s in shed if s <= end.seq)), args.stream))
+            log.info("end of stream after frame %d", end.seq)
+            shed.clear()
+            gate.restart()
             driver.restart()  # a new stream may follow
 
         # taken over: frames whose flow was out before the restart, skipped by the inbox (a replay of the
         # capture's history; a frame published after those queued is live, a renumbered stream)
         # a JPEG frame decodes to its grey only: the scene flow reads nothing else (~60 % of the colour decode)
-        rt.serve([Input(inbox, {"frame": on_frame, "end": on_end}, color="luma")],
-                 lambda: {"taken_over": inbox.skipped, **driver.stats(), **meter.take("flow")})
+        rt.serve([Input(inbox, {"frame": on_frame, "end": on_end}, color="luma", admit=gate.admit)],
+                 lambda: {"taken_over": inbox.skipped, **driver.stats(), **gate.stats(), **meter.take("flow")})
     return 0
 
 

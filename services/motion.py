@@ -6,7 +6,8 @@ pair's ``motion`` and, one segment late, the ``correction`` of every frame of a
 closed segment, tagged with its planner release (``batch``) so the renderer
 frames each release as a whole. A flow that skips frames (upstream drops or a
 restarted flow service) becomes an invalid motion: the path restarts there and
-those frames are flagged. The flow stage's break to a new numbering (a stream renumbered
+those frames are flagged. The frames a flow names as shed by the flow stage go out on the
+correction of the frame it ends at (``shed``), so that render lets them go. The flow stage's break to a new numbering (a stream renumbered
 lower) restarts the path at its first frame (``renumberings``); the old numbering's
 corrections and the new one's go out in separate releases. On ``end`` the last segment is
 closed and released, then ``end`` is forwarded on ``correction``.
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
 
         def on_flow(msg: Decoded) -> None:
             t0 = time.perf_counter()
-            out = driver.push(msg.obj)
+            out = driver.push(msg.obj, msg.extra.get("shed", ()))  # frames flow shed: named on the correction
             if driver.resume_after is None:
                 inbox.skip_through = None  # a new numbering: the predecessor's cursor says nothing of it
             if out is not None:

@@ -1,11 +1,14 @@
 """``render``: stabilized frames, ``frame`` + ``correction`` -> ``stabilized`` (+ MP4/PNG).
 
-Frames are decoded as they arrive and held until their correction arrives, one segment later;
-each planner release is warped, framed and rendered as a whole once all its frames are here, a
-newer frame has arrived (a missing one is lost: counted) or ``--frame-wait`` seconds passed.
-Frames no correction will reach (skipped upstream) are rendered uncorrected and flagged; a
-stream renumbered lower is followed once a run of frames confirms it (``renumberings``).
-``--max-frames`` bounds what is held (the oldest dropped, counted). Each stabilized frame is
+Frames are held as they arrived (checked, not decoded) until their correction arrives, one
+segment later, and decoded then; each planner release is warped, framed and rendered as a whole
+once all its frames are here, a newer frame has arrived (a missing one is lost: counted) or
+``--frame-wait`` seconds passed, one release a pass (the frames arriving meanwhile are taken
+between releases). Frames the flow stage shed, named by the corrections, are let go undecoded
+(``shed_upstream``: the flow stage's decision, counted there); frames no correction will reach for
+another reason (refused upstream) are rendered uncorrected and flagged; a stream renumbered lower
+is followed once a run of frames confirms it (``renumberings``). ``--max-frames`` and
+``--max-held-mb`` bound what is held (the oldest dropped, counted). Each stabilized frame is
 published as soon as it is rendered, with its latency stamps (docs/wire-format.md);
 ``--output``/``--png`` also write it to disk from a worker thread. On ``end`` (on ``correction``)
 everything left is rendered and ``end`` forwarded on ``stabilized``; the video is closed, and
@@ -25,6 +28,7 @@ from collections.abc import Callable, Iterable, Iterator
 
 import zenoh
 
+from quick_stream.core.frame import RGBDFrame
 from quick_stream.core.release import RenderDriver, Rendered
 from quick_stream.core.settings import StabilizerParams, settings_digest
 from quick_stream.io.sinks import VIDEO_CODECS, BackgroundSink, FileOutput, VideoSink, check_video
@@ -33,7 +37,7 @@ from quick_stream.stream.meters import Latency, RateMeter
 from quick_stream.stream.process import service_main, service_parser
 from quick_stream.stream.runtime import Input, ServiceRuntime
 from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
-from quick_stream.stream.wire import StabilizedImage, encode_end, encode_image, encode_stabilized
+from quick_stream.stream.wire import StabilizedImage, decode, encode_end, encode_image, encode_stabilized
 
 log = logging.getLogger("render")
 
@@ -50,8 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--video-codec", choices=VIDEO_CODECS, default="mjpeg",
                    help="--output's codec: mjpeg stores the JPEGs published, with no second encode; mp4v encodes "
                    "each frame again (~2.5 ms a 640x480 frame), files a third of the size (default mjpeg)")
-    p.add_argument("--max-frames", type=at.positive_int, default=150,
-                   help="frames held for corrections (default 150, 5 s at 30 fps)")
+    p.add_argument("--max-frames", type=at.positive_int, default=3600,
+                   help="frames held for corrections (default 3600, 30 s at 120 fps)")
+    p.add_argument("--max-held-mb", type=at.positive_float, default=256.0,
+                   help="MB of frames held for corrections, as they arrived (default 256: 2,700 640x480 frames "
+                   "of JPEG colour and zstd depth, 22 s at 120 fps)")
     p.add_argument("--frame-wait", type=at.nonneg_float, default=1.0,
                    help="seconds a complete release waits for missing frames (default 1)")
     add_stabilizer_args(p)
@@ -76,8 +83,9 @@ def serve(args: argparse.Namespace, params: StabilizerParams, rt: ServiceRuntime
         log.warning("stream %s under way (stabilized out up to frame %d): taking over from the frames' and "
                     "corrections' history", args.stream, resume_after)
     driver = RenderDriver(params.warp, params.framing, max_frames=args.max_frames, frame_wait=args.frame_wait,
-                          resume_after=resume_after, log=log)
-    frames_in = rt.inbox(keys.key(args.stream, "frame"), 256, history=resume_after is not None, publisher="capture")
+                          resume_after=resume_after, log=log, max_bytes=int(args.max_held_mb * 2**20))
+    # frames wait there as their messages while a release renders (8 s at 120 frames/s, not 2)
+    frames_in = rt.inbox(keys.key(args.stream, "frame"), 1024, history=resume_after is not None, publisher="capture")
     corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=resume_after is not None,
                        publisher="motion")
     pub = rt.publisher("stabilized")
@@ -100,7 +108,9 @@ def serve(args: argparse.Namespace, params: StabilizerParams, rt: ServiceRuntime
                     rt.maybe_stats()
 
     def tick(stopping: bool = False) -> None:
-        publish((rel.label, driver.render(rel)) for rel in driver.due())
+        for rel in driver.due():  # one a pass: the frames arriving meanwhile are taken between releases
+            publish([(rel.label, driver.render(rel))])
+            break
         if driver.end_due(stopping):
             publish(driver.finish())
             sink.drain()  # the frames reported written below are on disk when the end is announced
@@ -112,14 +122,17 @@ def serve(args: argparse.Namespace, params: StabilizerParams, rt: ServiceRuntime
             driver.restart()  # a new stream may follow
             rt.publish_stats()
 
+    def take_frame(m) -> bool:
+        return driver.add_frame(m.seq, held(m.extra["payload"]), m.extra.get("pub_ns"), len(m.extra["payload"]))
+
     # all pending corrections, then the frames pending by then (RenderDriver.takes_corrections)
     rt.serve([Input(corr_in, {"correction": lambda m: driver.add_correction(m.obj, m.extra.get("batch")),
                               "end": lambda m: driver.end(m.obj)}, take="all",
                     paused=lambda: not driver.takes_corrections),
-              Input(frames_in, {"frame": lambda m: driver.add_frame(m.seq, m.obj, m.extra.get("pub_ns")),
-                                "end": None}, take="pending")],
+              Input(frames_in, {"frame": take_frame, "end": None}, take="pending", lazy=True)],
              lambda: {**driver.stats(), **sink.stats(), **meter.take("render"), **latency.take()},
-             tick=tick, idle_s=lambda: driver.idle_s, on_stop=lambda: stopping(driver, tick, sink),
+             tick=tick, idle_s=lambda: 0.0 if driver.has_due else driver.idle_s,
+             on_stop=lambda: stopping(driver, tick, sink),
              final_state=lambda: "error" if sink.error is not None else "stopped")
 
 
@@ -131,6 +144,11 @@ def stopping(driver: RenderDriver, tick: Callable[..., None], sink: FileOutput) 
             tick(stopping=True)
     finally:
         sink.close()
+
+
+def held(data: bytes) -> Callable[[], RGBDFrame]:
+    """A frame as render holds it: its message, decoded when its correction comes."""
+    return lambda: decode(data).obj
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -240,10 +240,11 @@ class ContinuityCheck:
         self.jumps = JumpGuard(self.params.max_jump, self.params.confirm, self.params.max_missing + 1,
                                self.params.resync)
 
-    def inspect(self, prev: RGBDFrame | None, frame: RGBDFrame, fresh: bool = True) -> Verdict:
+    def inspect(self, prev: RGBDFrame | None, frame: RGBDFrame, fresh: bool = True, shed: int = 0) -> Verdict:
         """Verdict on ``frame`` following ``prev`` (None: the first frame); raises :class:`FrameRefused`.
         ``fresh=False``: the frame was published before ``prev`` (:func:`published_after`), so it
-        cannot start a new numbering."""
+        cannot start a new numbering. ``shed``: how many of the frames between them the caller shed
+        (:mod:`~quick_stream.core.admission`): bridged by the same rules, counted as shed, not missing."""
         c = self.counts
         renumbered = False
         if prev is not None and frame.seq <= prev.seq:
@@ -276,8 +277,8 @@ class ContinuityCheck:
             reasons.append(f"{RENUMBERED}: frame {frame.seq} follows frame {prev.seq}, confirmed by "
                            f"{self.params.resync} frames in a row")
         elif missing:
-            c["seq_gaps"] += 1
-            c["missing_frames"] += missing
+            c["seq_gaps"] += missing > shed
+            c["missing_frames"] += missing - shed
             bridged = 0 < dt <= self.params.max_bridge_s and missing < self.params.max_jump  # not a renumbering
             if missing > self.params.max_missing and not bridged:
                 reasons.append(f"{missing} frames missing between frame {prev.seq} and {frame.seq}")

@@ -150,7 +150,8 @@ class Rendered:
     ready_pub_ns: int | None
 
 
-CARRIED = ("dropped", "missing", "orphans", "bad_frames", "filled", "fill_raised", "bordered", "renumberings")
+CARRIED = ("dropped", "missing", "orphans", "bad_frames", "filled", "fill_raised", "bordered", "renumberings",
+           "shed_upstream")
 
 
 class RenderDriver:
@@ -158,7 +159,9 @@ class RenderDriver:
     due releases rendered with their latency stamps out, one stream after another.
 
     ``frame_wait``: seconds a release whose frames are not all here waits for them (unless a newer
-    frame shows they will not come); ``resume_after``: a restarted render takes over after the
+    frame shows they will not come); ``max_frames``, ``max_bytes``: what the stage holds at most
+    (:class:`~quick_stream.core.render_stage.RenderStage`); frames the flow stage shed, named by the
+    corrections and the end marker (``shed``), are let go (``shed_upstream``); ``resume_after``: a restarted render takes over after the
     last frame its predecessor rendered (frames and corrections up to it are skipped, counted in
     ``taken_over``, until a renumbering or the end of the stream); ``log``: where refusals,
     renumberings and frames that cannot be rendered are reported (None: silent); ``clock``: seconds,
@@ -167,8 +170,9 @@ class RenderDriver:
     def __init__(self, warp: WarpParams | None = None, framing: FramingParams | None = None, *,
                  max_frames: int = 150, frame_wait: float = 1.0, resume_after: int | None = None,
                  keep_inputs: bool = False, log: logging.Logger | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self._make = lambda: RenderStage(warp, framing, max_frames=max_frames, keep_inputs=keep_inputs)
+                 clock: Callable[[], float] = time.monotonic, max_bytes: int | None = None) -> None:
+        self._make = lambda: RenderStage(warp, framing, max_frames=max_frames, keep_inputs=keep_inputs,
+                                         max_bytes=max_bytes)
         self.stage = self._make()
         self.releases = ReleaseGroups(clock)  # one for the service's life: a restarted motion renumbers from 0
         self.ahead: AheadHold[tuple[Correction, Tag | None]] = AheadHold()  # far-ahead corrections
@@ -190,7 +194,8 @@ class RenderDriver:
         than ``max_jump`` frames beyond both the newest correction and the newest frame taken is held
         until a run confirms it, as the flow and motion stages do
         (:class:`~quick_stream.core.continuity.AheadHold`; dropped unconfirmed:
-        ``jump_corrections``): rendered as a release, one from the far future made orphans of every frame held."""
+        ``jump_corrections``): rendered as a release, one from the far future made orphans of every frame held.
+        The frames a correction names as shed by the flow stage are let go when its release renders."""
         if self.resume_after is not None and c.seq <= self.resume_after:
             return
         newest = max((s for s in (self.releases.newest, self.stage.newest) if s is not None), default=None)
@@ -209,9 +214,11 @@ class RenderDriver:
         for c, tag in taken:
             self.releases.add(c, tag)
 
-    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None) -> bool:
-        """Hold a frame (or its loader) for its release; False when it is not taken: rendered before a
-        restart (``taken_over``) or refused by the stage (``refused_frames``, reported)."""
+    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None,
+                  size: int | None = None) -> bool:
+        """Hold a frame (or its loader, ``size`` bytes) for its release; False when it is not taken:
+        rendered before a restart (``taken_over``), refused by the stage (``refused_frames``, reported)
+        or shed by the flow stage (``shed_upstream``)."""
         st = self.stage
         if self.resume_after is not None and seq <= self.resume_after and (st.newest is None or not st.fresh(pub_ns)):
             # rendered before the restart (the frames' history); once frames are taken, one published
@@ -220,7 +227,8 @@ class RenderDriver:
             return False
         renumberings = st.renumberings
         try:
-            st.add_frame(seq, frame, pub_ns)
+            if not st.add_frame(seq, frame, pub_ns, size):
+                return False
         except ValueError as e:
             self.refused += 1
             self._say(logging.ERROR, "frame %d: %s", seq, e)
@@ -239,12 +247,18 @@ class RenderDriver:
         """The releases to render now, in order, each popped as it is yielded (render it with
         :meth:`render` before asking for the next): all its frames are here, a newer frame has
         arrived (a missing one will not come), ``frame_wait`` has passed, or ``force``."""
-        while self.releases.ready:
-            rel, batch, t_done, _, closed_by = self.releases.ready[0]
-            if not (force or self.stage.can_render(batch) or self.clock() - t_done > self.frame_wait):
-                return
-            self.releases.ready.pop(0)
+        while force and self.releases.ready or self.has_due:
+            rel, batch, _, _, closed_by = self.releases.ready.pop(0)
             yield Release(rel, batch, closed_by)
+
+    @property
+    def has_due(self) -> bool:
+        """Whether a release is due now (:meth:`due`; a service that renders one a pass, so that the
+        frames arriving meanwhile are taken between releases, does not sleep while one is)."""
+        if not self.releases.ready:
+            return False
+        _, batch, t_done, _, _ = self.releases.ready[0]
+        return self.stage.can_render(batch) or self.clock() - t_done > self.frame_wait
 
     def render(self, release: Release) -> Iterator[Rendered]:
         """Render a release and the orphans it reveals, each frame stamped as it is rendered: ready when
@@ -287,6 +301,7 @@ class RenderDriver:
         self.ending, self.end_marker, self._deadline = True, marker, None
         if self.ahead.drop():
             self._say(logging.ERROR, "end of stream with corrections held far ahead: dropped, no run confirmed them")
+        self.stage.let_go(getattr(marker, "shed", ()))  # shed after the last flow: never corrected
         n = self.releases.flush_incomplete()
         if n:
             self._say(logging.WARNING, "end of stream with %d incomplete releases", n)
@@ -325,11 +340,12 @@ class RenderDriver:
         st = self.stage
         return {"dropped": st.dropped, "missing": st.missing, "orphans": st.orphans, "bad_frames": len(st.bad),
                 "filled": st.filled, "fill_raised": st.fill_raised, "bordered": st.bordered,
-                "renumberings": st.renumberings}
+                "renumberings": st.renumberings, "shed_upstream": st.shed}
 
     def stats(self) -> dict[str, int]:
         """The counters of docs/reliability.md (the stream under way plus those ended)."""
         return {"refused_frames": self.refused, "taken_over": self.taken_over, "buffered": self.stage.buffered,
+                "held_mb": round(self.stage.held_bytes / 2**20, 1),
                 **{k: self._done[k] + v for k, v in self._per_stream().items()}, "flagged": self.flagged,
                 "pending_releases": len(self.releases.ready), "ended": self.ended,
                 "abandoned_releases": self.releases.abandoned, "jump_corrections": self.ahead.dropped}

@@ -16,7 +16,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Callable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -85,9 +85,10 @@ class RenderStage:
     """Holds frames until their correction batch arrives, then warps, frames and renders them.
 
     Frames may be given decoded or as a loader (decoded only when rendered, so a
-    service buffers compressed bytes). At most ``max_frames`` wait; beyond that the
-    oldest is dropped and counted (``dropped``); a correction whose frame is gone is
-    counted in ``missing``; a frame that cannot be loaded is reported in ``bad``.
+    service buffers compressed bytes). At most ``max_frames`` wait, and at most ``max_bytes`` of
+    them; beyond that the oldest is dropped and counted (``dropped``); a correction whose frame is
+    gone is counted in ``missing``; a frame that cannot be loaded is reported in ``bad``; a frame the
+    flow stage shed is let go undecoded, not rendered as an orphan (``shed``, :meth:`let_go`).
 
     A stream whose numbering goes back (confirmed as the flow stage confirms it,
     :class:`~quick_stream.core.continuity.JumpGuard`) is held apart from the frames of the old
@@ -99,13 +100,17 @@ class RenderStage:
     """
 
     def __init__(self, warp: WarpParams | None = None, framing: FramingParams | None = None,
-                 max_frames: int = 240, keep_inputs: bool = False) -> None:
+                 max_frames: int = 240, keep_inputs: bool = False, max_bytes: int | None = None) -> None:
         self.warp = warp or WarpParams()
         self.framing = framing or FramingParams()
         self.framing.validate()
         self.zoom = ZoomSmoother(self.framing)
-        self.max_frames = max_frames
+        self.max_frames, self.max_bytes = max_frames, max_bytes
         self.keep_inputs = keep_inputs
+        self._sizes: dict[tuple[int, int], int] = {}  # (numbering, seq) -> bytes, of the frames held
+        self.held_bytes = 0
+        self.shed = 0  # frames let go because the flow stage shed them
+        self._shed_ahead: OrderedDict[int, None] = OrderedDict()  # named as shed before they arrived
         self.timer = StageTimer()
         # held frames per numbering (0, then one more per renumbering), only those the corrections may still reach
         self._held: dict[int, OrderedDict[int, RGBDFrame | FrameLoader]] = {0: OrderedDict()}
@@ -140,19 +145,26 @@ class RenderStage:
         (:func:`~quick_stream.core.continuity.published_after`): False for a history replay."""
         return published_after(pub_ns, self._newest_pub)
 
-    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None) -> None:
-        """Buffer a frame (or its loader) until its correction arrives. Refused (ValueError): one not
+    def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None,
+                  size: int | None = None) -> bool:
+        """Buffer a frame (or its loader, ``size`` bytes held) until its correction arrives; False
+        when it is let go instead (the flow stage shed it: :meth:`let_go`). Refused (ValueError): one not
         after the newest taken (unless a run of them confirms that the numbering went back: then
         it is the first frame of a new numbering), and one far ahead of the newest taken that no
         run of frames confirms (:class:`~quick_stream.core.continuity.JumpGuard`, as the flow stage
         does). ``pub_ns``: when the frame was published, so a replay never starts a numbering."""
         newest = self.newest
+        if seq in self._shed_ahead and (newest is None or seq > newest):
+            del self._shed_ahead[seq]
+            self.shed += 1
+            return False
         if newest is not None and seq <= newest:
             if not self.jumps.renumbered(seq, self.fresh(pub_ns)):
                 raise ValueError(f"frame {seq} is not after frame {newest}, the newest taken (out of order or "
                                  "duplicate)")
             self.numbering += 1
             self.renumberings += 1
+            self._shed_ahead.clear()  # named in the old numbering
             self._held[self.numbering] = OrderedDict()
         elif not self.jumps.admit(newest, seq):
             raise ValueError(f"frame {seq} is {seq - newest} frames ahead of frame {newest} "
@@ -160,18 +172,43 @@ class RenderStage:
         self._newest_in[self.numbering] = seq
         self._newest_pub = pub_ns
         self._held[self.numbering][seq] = frame
+        if size is None:
+            size = frame.color.nbytes + frame.depth.nbytes if isinstance(frame, RGBDFrame) else 0
+        self._sizes[(self.numbering, seq)] = size
+        self.held_bytes += size
         if isinstance(frame, RGBDFrame):
             t0 = time.perf_counter()
             wi = prepare_warp(frame, self.warp)
             self._prepared[(self.numbering, seq)] = (wi, (time.perf_counter() - t0) * 1e3)
-        while self.buffered > self.max_frames:
+        while self.buffered > self.max_frames or (self.max_bytes is not None and self.held_bytes > self.max_bytes
+                                                  and self.buffered > 1):
             n = min(k for k, h in self._held.items() if h)
-            old, _ = self._held[n].popitem(last=False)
-            self._prepared.pop((n, old), None)
+            self._take(n, next(iter(self._held[n])))
             self.dropped += 1
+        return True
+
+    def _take(self, n: int, seq: int, keep_prepared: bool = False) -> RGBDFrame | FrameLoader | None:
+        """A held frame (or its loader) of numbering ``n`` out of the buffer (None: not held)."""
+        f = self._held.get(n, {}).pop(seq, None)
+        self.held_bytes -= self._sizes.pop((n, seq), 0)
+        if not keep_prepared:
+            self._prepared.pop((n, seq), None)
+        return f
+
+    def let_go(self, seqs: Iterable[int], numbering: int | None = None) -> None:
+        """Frames of ``numbering`` (default: the newest) the flow stage shed (a correction's or the end's
+        ``shed``): each let go undecoded, counted in ``shed``; one not here yet is let go when it comes."""
+        n = self.numbering if numbering is None else numbering
+        for seq in seqs:
+            if self._take(n, seq) is not None:
+                self.shed += 1
+            elif n == self.numbering and (self.newest is None or seq > self.newest):
+                self._shed_ahead[seq] = None
+                while len(self._shed_ahead) > 4096:
+                    self._shed_ahead.popitem(last=False)
 
     def _load(self, numbering: int, seq: int) -> RGBDFrame | None:
-        f = self._held.get(numbering, {}).pop(seq, None)
+        f = self._take(numbering, seq, keep_prepared=True)
         if f is None or isinstance(f, RGBDFrame):
             return f
         try:
@@ -230,7 +267,8 @@ class RenderStage:
         estimate and those of the ``fill_lookahead`` frames after it (docs/method.md (14a));
         otherwise every warp of the batch and its zoom track. Orphans are held frames older than the
         batch's newest that the batch does not cover (skipped upstream: no correction
-        will ever come); each is framed on its own, uncorrected and flagged."""
+        will ever come); each is framed on its own, uncorrected and flagged, unless a correction of
+        the batch names it as shed by the flow stage (then it is let go: :meth:`let_go`)."""
         if not corrections:
             return
         n = self.numbering_of(corrections)
@@ -242,6 +280,7 @@ class RenderStage:
             del self._held[old]
             self._newest_in.pop(old, None)
         self._corr = n
+        self.let_go([s for c in corrections for s in c.shed], n)  # shed by flow: not orphans
         held = self._held.get(n, {})
         last = max(c.seq for c in corrections)
         covered = {c.seq for c in corrections}

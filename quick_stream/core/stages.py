@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any
+from typing import Any, Collection
 
 from .continuity import AheadHold, ContinuityCheck, ContinuityParams, breaks_stream, published_after, restarts_numbering
 from .frame import RGBDFrame
@@ -62,7 +62,7 @@ class FlowStage:
         self._prev: RGBDFrame | None = None
         self._prev_pub: int | None = None  # when the previous good frame was published (None: unknown)
 
-    def push(self, frame: RGBDFrame, pub_ns: int | None = None) -> SceneFlowResult | None:
+    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> SceneFlowResult | None:
         """Add the next frame; returns the flow from the previous good frame to it (None for the first).
 
         A frame the check refuses (no valid depth, duplicate, out of order) raises
@@ -71,10 +71,13 @@ class FlowStage:
         renumbering: the flow then goes back, ``seq_next < seq``) the flow is empty and its
         ``problem`` names the discontinuity, so the path restarts there. ``pub_ns``: when the frame
         was published (a frame message's ``pub_ns``), so a history replay of older frames never
-        passes for a new numbering (:func:`~quick_stream.core.continuity.published_after`).
+        passes for a new numbering (:func:`~quick_stream.core.continuity.published_after`). ``shed``:
+        frames this stage shed (:mod:`~quick_stream.core.admission`); those between the previous good
+        frame and this one are bridged as any missing frame but not counted missing.
         """
         prev = self._prev
-        verdict = self.check.inspect(prev, frame, published_after(pub_ns, self._prev_pub))
+        n_shed = 0 if prev is None else sum(prev.seq < s < frame.seq for s in shed)
+        verdict = self.check.inspect(prev, frame, published_after(pub_ns, self._prev_pub), shed=n_shed)
         self.notes = verdict.notes
         self._prev, self._prev_pub = frame, pub_ns
         if prev is None:
@@ -246,20 +249,23 @@ class FlowDriver:
         self.stage = FlowStage(params, continuity)
         self.log = log
         self.refused = self.empty = 0
+        self.taken: int | None = None  # the seq of the frame the last push took (None: it was refused)
 
     def _say(self, level: int, msg: str, *args: Any) -> None:
         if self.log is not None:
             self.log.log(level, msg, *args)
 
-    def push(self, frame: RGBDFrame, pub_ns: int | None = None) -> SceneFlowResult | None:
-        """The flow from the previous good frame to ``frame`` (:meth:`FlowStage.push`); None for the
-        first frame of a stream and for a refused one."""
+    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> SceneFlowResult | None:
+        """The flow from the previous good frame to ``frame`` (:meth:`FlowStage.push`; ``shed``: the
+        frames shed before it); None for the first frame of a stream and for a refused one."""
+        self.taken = None
         try:
-            flow = self.stage.push(frame, pub_ns)
+            flow = self.stage.push(frame, pub_ns, shed)
         except ValueError as e:
             self.refused += 1
             self._say(logging.ERROR, "refused: %s", e)
             return None
+        self.taken = frame.seq
         for note in self.stage.notes:
             self._say(logging.WARNING, "%s", note)
         if flow is not None and flow.problem:
@@ -298,6 +304,7 @@ class MotionDriver:
         self.kinds = dict.fromkeys(KINDS, 0)  # motions by how they were known (docs/method.md 2.4)
         self._renumberings = 0  # of the streams already ended
         self._jumped = 0  # flows held far ahead and dropped, of the streams already ended
+        self._shed: dict[int, tuple[int, ...]] = {}  # frame -> the frames the flow stage shed before it
 
     def _say(self, level: int, msg: str, *args: Any) -> None:
         if self.log is not None:
@@ -307,9 +314,18 @@ class MotionDriver:
         """The stream's first frame, before any flow (in-process): its correction, released at once."""
         return self.releases.number([self.stage.start(seq)], closed_by=seq)
 
-    def push(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[tuple[Correction, Tag]]] | None:
+    def _named(self, batches: list[list[Correction]]) -> list[list[Correction]]:
+        """The batches, each correction carrying the frames the flow stage shed before its frame."""
+        if self._shed:
+            for c in (c for b in batches for c in b):
+                c.shed = self._shed.pop(c.seq, ())
+        return batches
+
+    def push(self, flow: SceneFlowResult, shed: Collection[int] = ()) -> tuple[list[MotionEstimate],
+                                                                              list[tuple[Correction, Tag]]] | None:
         """The motions made and the tagged corrections released by one flow; None when the flow is
-        skipped (taken over) or refused."""
+        skipped (taken over) or refused. ``shed``: the frames the flow stage shed since its previous
+        flow (the flow message's ``shed``), put on the correction of the frame the flow ends at."""
         if self.resume_after is not None and flow.seq <= self.resume_after:
             self.taken_over += 1  # its frames were corrected before the restart
             return None
@@ -331,6 +347,11 @@ class MotionDriver:
             return [], []
         if flow.seq_next <= flow.seq:
             self.resume_after = None  # a new numbering: the predecessor's cursor says nothing of it
+        if shed:
+            self._shed[flow.seq_next] = tuple(shed)
+            while len(self._shed) > 4096:  # frames whose correction never came (bounded)
+                self._shed.pop(next(iter(self._shed)))
+        batches = self._named(batches)
         for m in motions:
             self.kinds[m.kind] = self.kinds.get(m.kind, 0) + 1
             if not m.valid:
@@ -343,7 +364,7 @@ class MotionDriver:
 
     def finish(self) -> list[tuple[Correction, Tag]]:
         """End of stream: the last segment's corrections, tagged."""
-        out = self.releases.number(self.stage.finish())
+        out = self.releases.number(self._named(self.stage.finish()))
         self._say(logging.INFO, "end of stream: %d segments, %d corrections", len(self.stage.planner.segments),
                   self.releases.sent)
         return out
@@ -354,6 +375,7 @@ class MotionDriver:
         self._jumped += self.stage.ahead.dropped
         self.stage = self._make()
         self.resume_after = None
+        self._shed.clear()
 
     def stats(self) -> dict[str, int]:
         st = self.stage

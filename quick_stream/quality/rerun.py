@@ -116,19 +116,19 @@ def _header(data: bytes) -> _Msg:
         return _Msg(None, None, data)
 
 
-def _runs(msgs: list[_Msg], mtype: str) -> list[tuple[list[_Msg], bool]]:
+def _runs(msgs: list[_Msg], mtype: str) -> list[tuple[list[_Msg], _Msg | None]]:
     """A channel's ``mtype`` messages (undecodable ones kept, to be reported) split at its
-    ``end`` messages into stream runs: (the run's messages, whether it ended)."""
-    out: list[tuple[list[_Msg], bool]] = []
+    ``end`` messages into stream runs: (the run's messages, its end message or None)."""
+    out: list[tuple[list[_Msg], _Msg | None]] = []
     cur: list[_Msg] = []
     for m in msgs:
         if m.type == "end":
-            out.append((cur, True))
+            out.append((cur, m))
             cur = []
         elif m.type in (mtype, None):
             cur.append(m)
     if cur or not out:
-        out.append((cur, False))
+        out.append((cur, None))
     return out
 
 
@@ -234,7 +234,7 @@ def _rerun_motion(ch: dict[str, list[_Msg]], stream: str, params: StabilizerPara
             corrections.extend(_tagged(driver.finish(), stream))
             corrections.append(encode_end(msg.obj, stream))
             driver.restart()
-        elif msg.type == "flow" and (out := driver.push(msg.obj)) is not None:
+        elif msg.type == "flow" and (out := driver.push(msg.obj, msg.extra.get("shed", ()))) is not None:
             motions.extend(encode_motion(x, stream) for x in out[0])
             corrections.extend(_tagged(out[1], stream))
     if driver.refused:
@@ -245,7 +245,8 @@ def _rerun_motion(ch: dict[str, list[_Msg]], stream: str, params: StabilizerPara
         _compare_sequence(t, got, ch[name], res)
 
 
-def _render_run(driver: RenderDriver, frames: list[_Msg], corrections: list[_Msg], ended: bool) -> list[StabilizedFrame]:
+def _render_run(driver: RenderDriver, frames: list[_Msg], corrections: list[_Msg],
+                ended: _Msg | None) -> list[StabilizedFrame]:
     """One stream run through the render service's driver, frames fed as its releases need them
     (every frame of a release there: each renders as soon as it is complete, as in the service)."""
     held = deque((m.seq, m.data) for m in frames if m.type == "frame")
@@ -265,9 +266,13 @@ def _render_run(driver: RenderDriver, frames: list[_Msg], corrections: list[_Msg
         for rel in driver.due(force=True):
             feed(max(c.seq for c in rel.batch))
             out.extend(r.frame for r in driver.render(rel))
-    if ended:
+    if ended is not None:
         feed(None)
-        driver.end()
+        try:
+            marker = decode(ended.data).obj  # the frames it names as shed are let go, as by the service
+        except WireError:
+            marker = None
+        driver.end(marker)
         for _, group in driver.finish():
             out.extend(r.frame for r in group)
         driver.restart()

@@ -67,6 +67,10 @@ class Inbox:
         self._newest_pub: int | None = None  # taking over: the latest publication time queued so far (frames)
         self.arrivals = ArrivalLedger()
         self.refusals = RefusalLog()
+        # the flow service's shedding (stream/gate.py): asked with the checked envelope (None: not valid)
+        # before a message takes a slot (False: not queued, the asker counts it), told of each dropped for room
+        self.admit: Callable[[str, bytes, tuple[str, int, int | None] | None], bool] | None = None
+        self.on_drop: Callable[[str, bytes], None] | None = None
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key, data = str(sample.key_expr), sample.payload.to_bytes()
@@ -108,7 +112,10 @@ class Inbox:
                     # (and after the queue first drained); it is owed, so hold it as during catch-up
                     self.capacity = max(self.capacity, self.catch_up)
                 self._newest = env[1] if self._newest is None else max(self._newest, env[1])
+        if self.admit is not None and not self.admit(key, data, env[:3]):
+            return
         foreign = self.arrivals.foreign(key, source)
+        gone_item = None  # a message the full queue dropped (this one or a queued one): told to on_drop
         with self._cond:
             if len(self._q) >= self.capacity:
                 # full: the oldest message not from its stream's own publisher goes first (a foreign flood,
@@ -117,15 +124,20 @@ class Inbox:
                 self.dropped += 1
                 if not self._foreign and foreign:
                     self.dropped_foreign += 1
-                    return
-                i = next(j for j, it in enumerate(self._q) if it[3]) if self._foreign else 0
-                gone = self._q[i][3]
-                del self._q[i]
-                self._foreign -= gone
-                self.dropped_foreign += gone
-            self._q.append((*item, foreign))
-            self._foreign += foreign
-            self._cond.notify_all()
+                    gone_item = item
+                else:
+                    i = next(j for j, it in enumerate(self._q) if it[3]) if self._foreign else 0
+                    gone_item = self._q[i]
+                    gone = gone_item[3]
+                    del self._q[i]
+                    self._foreign -= gone
+                    self.dropped_foreign += gone
+            if gone_item is not item:
+                self._q.append((*item, foreign))
+                self._foreign += foreign
+                self._cond.notify_all()
+        if gone_item is not None and self.on_drop is not None:
+            self.on_drop(gone_item[0], gone_item[1])
 
     def _on_miss(self, miss: Any) -> None:
         self.lost += miss.nb

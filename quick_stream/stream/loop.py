@@ -44,7 +44,11 @@ class Input:
     stream wait while the last one ends). ``label(msg)`` (``raw``: ``label(key)``) names the
     data message in a contained error (default, and for ``end``: its type and seq). ``color``:
     what a frame's JPEG colour decodes to (:func:`~quick_stream.stream.wire.decode`; the flow
-    service needs only its grey)."""
+    service needs only its grey). ``admit(key, payload)``: asked before a message is decoded;
+    False: it is let go undecoded (the flow service's shedding, counted by its policy). ``lazy``:
+    every field is checked but images and depth maps are left undecoded (``pixels=False``), the
+    handler finding the message's bytes in ``extra["payload"]`` to decode when it needs the pixels
+    (the render service: when the frame's correction arrives)."""
 
     inbox: Inbox
     on: dict[str, Handler | None] = field(default_factory=dict)
@@ -53,6 +57,8 @@ class Input:
     paused: Callable[[], bool] | None = None
     label: Callable[[Any], str] | None = None
     color: str = "bgr"
+    admit: Callable[[str, bytes], bool] | None = None
+    lazy: bool = False
 
     def __post_init__(self) -> None:
         if self.take not in TAKES:
@@ -115,11 +121,16 @@ class Loop:
             with self.contained((lambda: inp.label(key_expr)) if inp.label else f"message on {key_expr}"):
                 inp.raw(key_expr, payload, arrival_ns)
             return
+        if inp.admit is not None and not inp.admit(key_expr, payload):
+            return
         last = getattr(getattr(inp.inbox, "arrivals", None), "last", None)  # the check's decode, when whole
         msg = self.decode(key_expr, payload, tuple(inp.on), inp.color,
-                          checked=last[1] if last is not None and last[0] is payload else None)
+                          checked=last[1] if last is not None and last[0] is payload else None,
+                          pixels=not inp.lazy)
         if msg is None:
             return
+        if inp.lazy:
+            msg.extra["payload"] = payload
         handler = inp.on[msg.type]
         if handler is not None:
             data = inp.label is not None and msg.type != "end"  # an end marker is named by its type and seq
@@ -139,7 +150,7 @@ class Loop:
         raise NotImplementedError
 
     def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr",
-               checked: Decoded | None = None) -> Decoded | None:
+               checked: Decoded | None = None, pixels: bool = True) -> Decoded | None:
         raise NotImplementedError
 
     def contained(self, what: str | Callable[[], str]) -> Any:

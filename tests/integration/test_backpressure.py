@@ -21,9 +21,8 @@ def peak_rss_mb(pid: int) -> float:
 
 def test_a_slow_render_makes_the_live_capture_shed_and_nothing_downstream_drops(tmp_path):
     """The capture sends only what the pipeline takes (shedding, counted), so render drops nothing
-    and every frame sent comes out. (Without shedding, --shed off or a publisher that is not ours,
-    render drops the oldest frames it holds beyond --max-frames and counts them: the render stage's
-    bound, tests/unit/test_stages.py.)"""
+    and every frame sent comes out. (Without the capture's shedding, --shed off or a publisher that
+    is not ours, the flow stage sheds for every stage: tests/integration/test_flood.py.)"""
     # 120 ms more per frame: at most ~8 frames/s against 15 coming in (15, not 30: flow keeps twice its
     # pace in hand, so a second suite beside this one does not make flow drop frames of its own, which
     # is not what this test is about)

@@ -206,6 +206,7 @@ RENDER_RECORDER_QUEUES = [
     *(c("render", f"--fps {v}", "--fps", f"'{v}'") for v in ("0", "nan")),
     *(c("render", f"--quality {v}", "--quality", f"'{v}'") for v in ("0", "101")),
     *(c("render", f"--max-frames {v}", "--max-frames", f"'{v}'") for v in ("0", "-1")),
+    *(c("render", f"--max-held-mb {v}", "--max-held-mb", f"'{v}'") for v in ("0", "nan")),
     *(c("render", f"--frame-wait {v}", "--frame-wait", f"'{v}'") for v in ("-1", "nan")),
     *(c("tools.slow_render", f"--slow-ms {v}", "--slow-ms", f"'{v}'") for v in ("-1", "nan", "inf")),
     c("tools.slow_render", "--slow-ms 5 --max-frames 0", "--max-frames", "'0'"),  # the render service's own flags

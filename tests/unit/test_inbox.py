@@ -177,3 +177,17 @@ def test_a_full_queue_sheds_a_foreign_publishers_messages_before_the_streams():
     for seq in range(4, 10):  # the stream's own, too many: the oldest go
         box._on_sample(_from("capture", seq))
     assert box.dropped == 13 and box.dropped_foreign == 11 and [peek(it[1])[1] for it in box._q] == [6, 7, 8, 9]
+def test_a_message_its_admit_refuses_takes_no_slot_and_each_one_dropped_for_room_is_told():
+    """The flow service's gate (quick_stream/stream/gate.py) decides on a frame as it arrives, from
+    the envelope the check read (a message that fails the check is refused before it is asked), and
+    names the frames the full queue drops."""
+    box = Inbox(2, threading.Condition())
+    asked, dropped = [], []
+    box.admit = lambda key, data, env: asked.append(env) or env is None or env[1] % 2 == 0
+    box.on_drop = lambda key, data: dropped.append(peek(data)[1])
+    for seq in range(7):
+        box._on_sample(sample(seq))
+    box._on_sample(sample(0, data=b"not msgpack"))  # refused on arrival: never asked, never queued
+    assert [e[:2] for e in asked] == [("frame", s) for s in range(7)]
+    assert dropped == [0, 2] and box.dropped == 2  # the odd ones never took a slot
+    assert [peek(box.pop()[1]) for _ in range(2)] == [("frame", 4), ("frame", 6)]

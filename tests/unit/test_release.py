@@ -10,6 +10,7 @@ from quick_stream.core.path.planner import Correction
 from quick_stream.core.release import ReleaseNumbering, RenderDriver
 from quick_stream.core.stages import FlowStage, MotionDriver
 from quick_stream.io.sources import open_source
+from quick_stream.stream.wire import EndOfStream
 
 
 @pytest.fixture(scope="module")
@@ -159,3 +160,56 @@ def test_a_correction_run_that_confirms_a_jump_is_taken_whole(frames):
         d.add_correction(c, tag)
     assert [[c.seq for c in b] for _, b, *_ in d.releases.ready] == [[0], list(range(5000, 5005))]
     assert d.stats()["jump_corrections"] == 0
+def loaders(frames, loaded: list[int]):
+    """Each frame as render holds it: a loader (its message decoded when asked), recording what was."""
+    def load(f):
+        loaded.append(f.seq)
+        return f
+    return [(f.seq, lambda f=f: load(f)) for f in frames]
+
+
+def test_frames_the_flow_stage_shed_are_let_go_undecoded_and_a_refused_one_is_still_an_orphan(frames):
+    """Flow shed frames 2 and 3 (named on frame 4's correction) and refused frame 6 (bad input, named
+    nowhere): render never decodes the shed ones, renders no orphan of them and counts them as shed
+    upstream, not as its own drops; frame 6 still comes out uncorrected and flagged, as before."""
+    loaded: list[int] = []
+    d = RenderDriver()
+    for seq, load in loaders(frames[:9], loaded):
+        d.add_frame(seq, load, size=1000)
+    cs = corrections(0, 1, 4, 5, 7, 8)
+    cs[2].shed = (2, 3)
+    for c, tag in ReleaseNumbering().number([cs]):
+        d.add_correction(c, tag)
+    assert d.stage.buffered == 9 and d.stage.held_bytes == 9000
+    (rel,) = list(d.due())
+    out = [r.frame for r in d.render(rel)]
+    assert [sf.seq for sf in out] == [0, 1, 4, 5, 6, 7, 8] and [sf.seq for sf in out if sf.flags] == [6]
+    assert sorted(loaded) == [0, 1, 4, 5, 6, 7, 8] and d.stage.buffered == d.stage.held_bytes == 0
+    st = d.stats()
+    assert (st["shed_upstream"], st["orphans"], st["missing"], st["dropped"], st["flagged"]) == (2, 1, 0, 0, 1)
+
+
+def test_a_frame_named_shed_that_comes_after_its_release_and_those_shed_after_the_last_flow_are_let_go(frames):
+    """Frame 4's correction names frame 3 as shed; the release renders (frame_wait passed) before frame 3
+    reaches render: it is let go when it comes. Frames 6 and 7 were shed after the last flow: the end
+    names them, and the end of the stream renders neither (frame 5, which nothing names, still comes
+    out flagged)."""
+    clock = Clock()
+    d = RenderDriver(frame_wait=1.0, clock=clock)
+    for f in frames[:3]:
+        d.add_frame(f.seq, f)
+    cs = corrections(0, 1, 2, 4)
+    cs[3].shed = (3,)
+    for c, tag in ReleaseNumbering().number([cs]):
+        d.add_correction(c, tag)
+    clock.t += 1.5
+    (rel,) = list(d.due())
+    assert [r.frame.seq for r in d.render(rel)] == [0, 1, 2]  # frame 4 missing: it never came in time
+    assert not d.add_frame(3, frames[3]) and d.stage.buffered == 0
+    for f in frames[4:8]:
+        assert d.add_frame(f.seq, f)
+    d.end(EndOfStream(7, "done", (6, 7)))
+    out = [r.frame for _, group in d.finish() for r in group]
+    assert [sf.seq for sf in out] == [4, 5] and all(sf.flags for sf in out)  # too late for its correction
+    st = d.stats()
+    assert (st["shed_upstream"], st["orphans"], st["missing"]) == (3, 2, 1)

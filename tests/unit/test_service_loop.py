@@ -174,3 +174,25 @@ def test_a_frame_is_decoded_whole_again_after_its_check():
     got: list = []
     rt.serve([Input(box, {"frame": got.append})], lambda: {}, tick=stop_when_empty(rt, box))
     assert np.array_equal(got[0].obj.color, FRAME.color) and np.array_equal(got[0].obj.depth, FRAME.depth)
+
+
+def test_a_message_its_input_does_not_admit_is_let_go_undecoded_and_a_lazy_input_gets_its_bytes():
+    """``admit`` is asked before anything is decoded (the flow service's shedding); a ``lazy`` input's
+    frames are checked but their pixels left undecoded, the bytes handed on for later (render)."""
+    rt = bare_runtime()
+    jpeg = [encode_frame(FRAME.with_(seq=seq), "cam0", color="jpeg", depth="zstd") for seq in (0, 1)]
+    box = inbox(rt, *jpeg, b"garbage", end(1))
+    asked: list[bytes] = []
+    got: list = []
+
+    def admit(key: str, payload: bytes) -> bool:
+        asked.append(payload)
+        return payload != jpeg[1]
+
+    rt.serve([Input(box, {"frame": got.append, "end": got.append}, admit=admit, lazy=True)], lambda: {},
+             tick=stop_when_empty(rt, box))
+    assert asked == [*jpeg, b"garbage", end(1)]
+    assert [(m.type, m.seq) for m in got] == [("frame", 0), ("end", 1)]  # frame 1 let go; garbage refused
+    assert rt.errors["decode_errors"] == 1
+    assert got[0].extra["payload"] == jpeg[0] and not got[0].obj.color.any() and not got[0].obj.depth.any()
+    assert decode(got[0].extra["payload"]).obj.color.any()  # decoded when asked

@@ -118,6 +118,37 @@ def test_render_stage_bounds_what_it_holds(frames):
     assert out == [] and r.missing == 1 and r.buffered == 5
 
 
+def test_render_stage_bounds_the_bytes_it_holds(frames):
+    """Frames held as their messages (loaders, ``size`` bytes each) up to ``max_bytes``; the oldest
+    beyond are dropped and counted."""
+    r = RenderStage(max_bytes=3000)
+    for f in frames[:8]:
+        assert r.add_frame(f.seq, lambda f=f: f, size=1000)
+    assert r.buffered == 3 and r.dropped == 5 and r.held_bytes == 3000
+    assert [sf.seq for sf in r.render_batch([Correction(5, np.eye(4), 0, True)])] == [5]
+    assert r.held_bytes == 2000
+
+
+def test_frames_shed_by_flow_are_bridged_named_on_the_next_correction_and_not_counted_missing(frames):
+    """Flow shed frames 1-2 and 5 (its admission) and never saw frame 4: the pair 0 -> 3 is bridged as
+    any 2 missing frames would be, counted as shed, not missing; motion puts the shed frames on the
+    correction of the frame each flow ends at, and no other correction names any."""
+    from quick_stream.core.stages import MotionDriver
+
+    flow, motion = FlowStage(), MotionDriver()
+    flow.push(frames[0])
+    named = {}
+    for seq, shed in ((3, (1, 2)), (6, (5,)), (7, ())):
+        fl = flow.push(frames[seq], shed=shed)
+        assert fl.problem == ""
+        for c, _ in motion.push(fl, shed)[1]:
+            named[c.seq] = c.shed
+    for c, _ in motion.finish():
+        named[c.seq] = c.shed
+    assert named == {0: (), 3: (1, 2), 6: (5,), 7: ()}
+    assert flow.check.counts["missing_frames"] == 1 and flow.check.counts["seq_gaps"] == 1  # frame 4 alone
+
+
 def test_the_render_stage_times_every_frame_once_per_step(frames):
     """One warp, framing and render sample per frame, so each mean is ms per frame (the border fill's
     zoom estimate counts in framing, the warp inputs made on a frame's arrival in warp)."""

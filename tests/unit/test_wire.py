@@ -17,6 +17,7 @@ from quick_stream.core.sceneflow import SceneFlowResult
 from quick_stream.stream.wire import (
     FORMAT_VERSION,
     Decoded,
+    EndOfStream,
     StabilizedImage,
     Stats,
     WireError,
@@ -24,6 +25,7 @@ from quick_stream.stream.wire import (
     dequantize_depth,
     encode,
     encode_correction,
+    encode_end,
     encode_flow,
     encode_frame,
     encode_motion,
@@ -217,6 +219,37 @@ def test_correction_round_trip():
     tagged = decode(encode_correction(c, "cam0", batch=Tag(3, 1, 5, 40))).extra["batch"]
     assert tagged == (3, 1, 5, 40) and tagged.closed_by == 40
     assert decode(encode_correction(c, "cam0", batch=(3, 1, 5))).extra["batch"] == Tag(3, 1, 5, None)
+
+
+def test_the_frames_a_flow_stage_shed_travel_on_the_flow_the_correction_and_the_end():
+    """docs/wire-format.md: the optional ``shed`` of a flow (frames shed since the previous flow), a
+    correction (frames shed before its frame) and an ``end`` (after the last flow); left out when
+    there are none, and a message without it decodes as none shed."""
+    fl = make_flow()  # 3 -> 4 ... the seqs shed lie before seq_next
+    fl.seq, fl.seq_next = 3, 9
+    assert decode(encode_flow(fl, "cam0", shed=[4, 6, 7])).extra["shed"] == (4, 6, 7)
+    assert "shed" not in raw(encode_flow(fl, "cam0")) and decode(encode_flow(fl, "cam0")).extra["shed"] == ()
+    c = make_correction()
+    c.shed = (8, 9, 10)
+    assert decode(encode_correction(c, "cam0")).obj.shed == (8, 9, 10)
+    c.shed = ()
+    assert "shed" not in raw(encode_correction(c, "cam0")) and decode(encode_correction(c, "cam0")).obj.shed == ()
+    e = decode(encode_end(EndOfStream(20, "done", (18, 20)), "cam0")).obj
+    assert (e.seq, e.shed) == (20, (18, 20)) and decode(encode_end(EndOfStream(20), "cam0")).obj.shed == ()
+
+
+@pytest.mark.parametrize("bad", [[-1], [11], [3.0], ["4"], [True], "4", list(range(10_001))])
+def test_a_shed_list_out_of_range_or_not_of_ints_is_refused_naming_it(bad):
+    """A correction of frame 11 names frames before it; anything else (a later or negative seq, not an
+    int, too many) is refused, naming the field, and never encoded."""
+    d = raw(encode_correction(make_correction(), "cam0"))
+    d["shed"] = bad
+    rejects(repack(d), "shed")
+    c = make_correction()
+    if isinstance(bad, list) and all(type(x) is int for x in bad):
+        c.shed = tuple(bad)
+        with pytest.raises(WireError, match="shed"):
+            encode_correction(c, "cam0")
 
 
 def test_stabilized_and_stats_round_trip():

@@ -94,6 +94,9 @@ class Correction:
     camera: np.ndarray | None = None  # g_c: the real camera's pose in the planner's chain (renderer's border fill)
     chain: int = -1  # the chain ``camera`` is in: poses of one chain compose (a path restart opens a new one)
     motion: str = "fit"  # how the motion into this frame was known (MotionEstimate.kind; "restart": not known)
+    # frames before this one that the flow stage shed (never decoded by any stage; docs/architecture.md,
+    # Overload): the render stage lets them go instead of rendering them uncorrected
+    shed: tuple[int, ...] = ()
 
     @property
     def point_transform(self) -> np.ndarray:

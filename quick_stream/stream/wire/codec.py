@@ -27,6 +27,7 @@ DEFAULT_MAX_BYTES = 64 * 1024 * 1024
 
 
 MAX_LIST_LEN = 100_000  # msgpack arrays (lists); bulk data travels as bin, not lists
+MAX_SEQ_LIST = 10_000  # frame seqs one message names (the frames a flow stage shed; a flow spans at most 300)
 MAX_MAP_LEN = 10_000
 # What a frame's JPEG colour decodes to: "bgr" the colour only; "bgr+luma" the colour and the JPEG's
 # own grey (its Y channel, RGBDFrame.luma, what the optical flow reads); "luma" the grey only, the
@@ -219,6 +220,17 @@ class Reader:
     def list(self, name: str, optional: bool = False) -> list | None:
         return self._typed(name, (list,), "array", optional)
 
+    def seqs(self, name: str, below: int, optional: bool = True) -> tuple[int, ...]:
+        """A msgpack array of frame seqs, each in [0, ``below``), at most :data:`MAX_SEQ_LIST` (the
+        frames an ``end``, a flow or a correction names as shed); () when absent."""
+        vals = self.list(name, optional)
+        if vals is None:
+            return ()
+        if len(vals) > MAX_SEQ_LIST or not all(_is_int(x) and 0 <= x < below for x in vals):
+            raise self.error(name, f"expected at most {MAX_SEQ_LIST} frame seqs in [0, {below}), got "
+                             f"{vals[:5]!r}{'...' if len(vals) > 5 else ''} ({len(vals)} values)")
+        return tuple(vals)
+
     def map(self, name: str, optional: bool = False) -> Reader | None:
         val = self._typed(name, (dict,), "map", optional)
         if val is None:
@@ -300,6 +312,16 @@ def from_byte_planes(raw: bytes, dtype: str, shape: tuple[int, ...]) -> np.ndarr
     if dt.itemsize == 1 or planes.shape[1] == 0:
         return planes.view(dt).reshape(shape).copy()
     return cv2.merge([p.reshape(-1, 1) for p in planes]).view(dt).reshape(shape)
+
+
+def seq_list(name: str, seqs: Any, below: int, stream: str | None = None, seq: int | None = None) -> list[int] | None:
+    """Frame seqs for the wire, each in [0, ``below``) (:meth:`Reader.seqs`); None when there are none
+    (the field is then left out)."""
+    out = [int(x) for x in seqs]
+    if len(out) > MAX_SEQ_LIST or not all(0 <= x < below for x in out):
+        raise WireError(f"expected at most {MAX_SEQ_LIST} frame seqs in [0, {below}), got {out[:5]} "
+                        f"({len(out)} values)", field=name, stream=stream, seq=seq)
+    return out or None
 
 
 def float_list(name: str, values: Any, n: int | None = None) -> list[float]:

@@ -24,6 +24,7 @@ from .codec import (
     WireError,
     encode_array,
     float_list,
+    seq_list,
     pack,
     unpack,
 )
@@ -63,6 +64,7 @@ class EndOfStream:
 
     seq: int
     reason: str = ""
+    shed: tuple[int, ...] = ()  # frames after the last flow that the flow stage shed (docs/wire-format.md)
 
 
 @dataclass
@@ -180,12 +182,15 @@ def _decode_frame(r: Reader) -> Decoded:
 _FLOW_ARRAYS = (("points", 3), ("displacements", 3), ("weights", None), ("pixels", 2), ("pixels_next", 2))
 
 
-def encode_flow(flow: SceneFlowResult, stream: str) -> bytes:
+def encode_flow(flow: SceneFlowResult, stream: str, shed: Any = ()) -> bytes:
     """A SceneFlowResult as a ``flow`` message: the compact layout of version 2 when it gives every
     array back bit for bit (the scene flow's own results: :mod:`.flowpack`), else version 1's five
-    float32 arrays."""
+    float32 arrays. ``shed``: the frames the flow stage shed since its previous flow (all before
+    ``seq_next``; the field is left out when there are none)."""
     compact = compact_fields(flow)
     f: dict[str, Any] = {"seq_next": int(flow.seq_next)}
+    if (named := seq_list("shed", shed, max(int(flow.seq), int(flow.seq_next)), stream, flow.seq)) is not None:
+        f["shed"] = named
     if compact is None:
         for name, _ in _FLOW_ARRAYS:
             f[name] = encode_array(getattr(flow, name), "<f4")
@@ -217,11 +222,13 @@ def _decode_flow(r: Reader) -> Decoded:
     counts = {}
     for key in counts_r.d:
         counts[key] = counts_r.int(key)
+    seq_next = r.int("seq_next", min=0)
     flow = SceneFlowResult(
-        r.seq, r.int("seq_next", min=0), arrays["points"], arrays["displacements"], arrays["weights"],
+        r.seq, seq_next, arrays["points"], arrays["displacements"], arrays["weights"],
         arrays["pixels"], arrays["pixels_next"], K0, K1, counts, r.str("problem"),
     )
-    return Decoded("flow", flow, r.stream, r.seq, version=r.version)
+    return Decoded("flow", flow, r.stream, r.seq, version=r.version,
+                   extra={"shed": r.seqs("shed", max(r.seq, seq_next))})
 
 
 # --- motion -------------------------------------------------------------------------------------
@@ -294,6 +301,8 @@ def encode_correction(c: Correction, stream: str, zoom: float | None = None,
          "closed_by": None if closed_by is None else int(closed_by),
          "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain),
          "motion": _kind("motion", c.motion, CORRECTION_MOTIONS, stream, c.seq)}
+    if (named := seq_list("shed", c.shed, c.seq, stream, c.seq)) is not None:
+        f["shed"] = named
     return pack(f, "correction", stream, c.seq)
 
 
@@ -307,7 +316,7 @@ def _decode_correction(r: Reader) -> Decoded:
     c = Correction(r.seq, ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4)), r.int("segment"),
                    r.bool("keyframe"), r.bool("valid"), r.str("reason"),
                    ranges.zoom(r, "zoom", r.float("zoom", positive=True, optional=True)), camera,
-                   -1 if chain is None else chain, motion)
+                   -1 if chain is None else chain, motion, r.seqs("shed", r.seq))
     batch, closed_by = r.get("batch", optional=True), r.int("closed_by", optional=True)
     if batch is not None:
         if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
@@ -379,13 +388,17 @@ def _decode_stats(r: Reader) -> Decoded:
 # --- end of stream ------------------------------------------------------------------------------
 
 def encode_end(e: EndOfStream, stream: str) -> bytes:
-    """An EndOfStream as an ``end`` message (envelope seq = last frame's seq, 0 when none)."""
-    return pack({"last_seq": int(e.seq), "reason": _str("reason", e.reason)}, "end", stream, max(int(e.seq), 0))
+    """An EndOfStream as an ``end`` message (envelope seq = last frame's seq, 0 when none; ``shed``
+    left out when there are none)."""
+    f: dict[str, Any] = {"last_seq": int(e.seq), "reason": _str("reason", e.reason)}
+    if (named := seq_list("shed", e.shed, int(e.seq) + 1, stream, max(int(e.seq), 0))) is not None:
+        f["shed"] = named
+    return pack(f, "end", stream, max(int(e.seq), 0))
 
 
 def _decode_end(r: Reader) -> Decoded:
     last = r.int("last_seq", min=-1)
-    return Decoded("end", EndOfStream(last, r.str("reason")), r.stream, r.seq)
+    return Decoded("end", EndOfStream(last, r.str("reason"), r.seqs("shed", last + 1)), r.stream, r.seq)
 
 
 # --- dispatch -----------------------------------------------------------------------------------
