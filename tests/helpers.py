@@ -34,6 +34,21 @@ def stabilize(frames, params=None) -> tuple[Stabilizer, list]:
     return st, out
 
 
+def flows_of(frames: list) -> list:
+    """The flows a flow stage makes of ``frames``, the frames it refuses skipped."""
+    from quick_stream.core.continuity import FrameRefused
+    from quick_stream.core.stages import FlowStage
+
+    st, out = FlowStage(), []
+    for f in frames:
+        try:
+            if (fl := st.push(f)) is not None:
+                out.append(fl)
+        except FrameRefused:
+            pass
+    return out
+
+
 def offline_images(spec: str, *settings: str) -> dict[int, np.ndarray]:
     """Stabilized images by seq from the in-process stabilizer with ``stabilize``'s settings (the
     defaults, or the ``settings`` flags: what ``up`` passes on) and one OpenCV thread, as the services

@@ -21,6 +21,7 @@ from quick_stream.io.sources import open_source
 from quick_stream.io.sources.synthetic import SyntheticSource
 from quick_stream.stream.arrivals import ArrivalLedger
 from quick_stream.stream.wire import encode_frame
+from tests.helpers import flows_of
 
 RESYNC = ContinuityParams().resync
 OLD, NEW = 40, 30  # frames 0..39, then the source renumbered 0..29
@@ -86,17 +87,6 @@ def test_flow_never_takes_an_interleaved_publisher_a_replay_or_a_stray_frame(sma
     nxt = st.push(small[OLD].with_(seq=OLD), pub_ns=10**6 + 1)
     assert [(p.seq, p.seq_next) for p in pairs[1:] + [nxt]] == [(s, s + 1) for s in range(OLD)]
     assert st.check.counts["renumberings"] == 0 and st.check.counts["breaks"] == 0
-
-
-def flows_of(frames: list) -> list:
-    st, out = FlowStage(), []
-    for f in frames:
-        try:
-            if (fl := st.push(f)) is not None:
-                out.append(fl)
-        except FrameRefused:
-            pass
-    return out
 
 
 def test_motion_restarts_the_path_at_the_renumbering_and_still_refuses_stale_flows(frames):

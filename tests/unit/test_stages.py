@@ -9,7 +9,7 @@ from quick_stream.core.path.planner import Correction
 from quick_stream.core.render_stage import RenderStage
 from quick_stream.core.stages import FlowStage, MotionStage
 from quick_stream.io.sources import open_source
-from tests.helpers import stabilize
+from tests.helpers import flows_of, stabilize
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +100,7 @@ def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, br
     assert sum(sf.correction.motion == "restart" for sf in out) == breaks
 
 
-def test_motion_stage_refuses_stale_flows(frames):
+def test_motion_stage_refuses_staleflows_of(frames):
     flow, motion = FlowStage(), MotionStage()
     flow.push(frames[0])
     f01 = flow.push(frames[1])
@@ -230,19 +230,6 @@ def test_flow_refuses_one_far_future_frame_and_breaks_at_a_confirmed_renumbering
     assert st.check.counts["seq_jumps"] == 5
 
 
-def _flows(frames) -> list:
-    from quick_stream.core.continuity import FrameRefused
-
-    st, out = FlowStage(), []
-    for f in frames:
-        try:
-            if (fl := st.push(f)) is not None:
-                out.append(fl)
-        except FrameRefused:
-            pass
-    return out
-
-
 def _corrected(motion: MotionStage, flows) -> tuple[list[int], list, int]:
     """Every correction's seq (in release order), every motion and the flows refused, the flows pushed
     one by one."""
@@ -265,7 +252,7 @@ def test_motion_stage_holds_a_far_future_flow_and_the_stream_goes_on(frames, for
     path's newest frame: every later flow was refused as stale (90 frames lost, 175 uncorrected)."""
     import dataclasses
 
-    flows = _flows(frames)
+    flows = flows_of(frames)
     fake = dataclasses.replace(flows[3], seq=forged[0], seq_next=forged[1])
     motion = MotionStage()
     seqs, motions, refused = _corrected(motion, flows[:10] + [fake] + flows[10:])
@@ -279,7 +266,7 @@ def test_motion_stage_takes_a_confirmed_jump_whole(frames):
     """A stream that really jumps ahead (the flow stage's break after five frames in a row): the held flows
     are all taken once the run confirms it, none lost."""
     jumped = frames[:12] + [f.with_(seq=9000 + f.seq) for f in frames[12:]]
-    flows = _flows(jumped)
+    flows = flows_of(jumped)
     motion = MotionStage()
     seqs, _, refused = _corrected(motion, flows)
     assert refused == 0
@@ -294,7 +281,7 @@ def test_motion_stage_refuses_a_flow_that_overlaps_or_goes_back(frames, forged, 
     goes back without being a renumbering's break is refused; the stream goes on."""
     import dataclasses
 
-    flows = _flows(frames)
+    flows = flows_of(frames)
     motion = MotionStage()
     for fl in flows[:10]:
         motion.push(fl)
