@@ -24,7 +24,7 @@ import numpy as np
 
 from ..stream.wire import decode
 from ..stream.wire.codec import unpack
-from ..stream.wire.messages import read_intrinsics
+from ..stream.wire.fields import read_intrinsics
 from ..stream.wire.ranges import MAX_ENTRY
 from . import foxglove
 

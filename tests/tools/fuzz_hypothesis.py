@@ -39,7 +39,7 @@ from hypothesis import seed as hypothesis_seed
 
 from quick_stream.stream.wire import flowpack
 from quick_stream.core.lie import get_group
-from quick_stream.stream.wire.messages import GROUP_DIMS
+from quick_stream.stream.wire.estimates import GROUP_DIMS
 from .fuzz import FuzzReport, check, seeds
 
 BATCH = 5_000  # examples per Hypothesis run; bounds the memory of its example tree

@@ -11,29 +11,16 @@ from typing import Any
 
 import numpy as np
 
-from ...core.frame import FrameError, Intrinsics, RGBDFrame
-from ...core.motion import KINDS as MOTION_KINDS, MotionEstimate
-from ...core.path.planner import CORRECTION_MOTIONS, Correction
-from ...core.release import Tag
+from ...core.frame import RGBDFrame
+from ...core.motion import MotionEstimate
+from ...core.path.planner import Correction
 from ...core.sceneflow import SceneFlowResult
-from .codec import (
-    COLOR_MODES,
-    DEFAULT_MAX_BYTES,
-    FORMAT_VERSION,
-    Reader,
-    WireError,
-    encode_array,
-    float_list,
-    seq_list,
-    pack,
-    unpack,
-)
 from . import ranges
+from .codec import COLOR_MODES, DEFAULT_MAX_BYTES, Reader, WireError, float_list, pack, seq_list, unpack
+from .estimates import (_decode_correction, _decode_flow, _decode_motion, encode_correction, encode_flow,
+                        encode_motion)
+from .fields import Decoded, intrinsics_fields, read_intrinsics, text
 from .pixels import decode_depth, decode_image, encode_depth, encode_image
-from .flowpack import compact_fields, decode_compact
-
-GROUP_DIMS = {"se3": 6, "sim3": 7, "sa3": 11, "ga3": 12}
-MAX_FLOW_POINTS = 10_000_000
 
 
 @dataclass
@@ -67,46 +54,6 @@ class EndOfStream:
     shed: tuple[int, ...] = ()  # frames after the last flow that the flow stage shed (docs/wire-format.md)
 
 
-@dataclass
-class Decoded:
-    """A decoded message: ``type``, the object, its envelope and wire-only ``extra`` fields.
-
-    ``extra`` holds what the object has no attribute for: ``zoom`` (correction),
-    ``color_encoding``/``depth_encoding``/``depth_scale`` (frame), ``encoding`` (stabilized).
-    """
-
-    type: str
-    obj: Any
-    stream: str
-    seq: int
-    version: int = FORMAT_VERSION
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-# --- helpers ------------------------------------------------------------------------------------
-
-def _intrinsics(k: Intrinsics) -> dict[str, Any]:
-    return {"fx": float(k.fx), "fy": float(k.fy), "cx": float(k.cx), "cy": float(k.cy),
-            "width": int(k.width), "height": int(k.height)}
-
-
-def read_intrinsics(r: Reader, name: str) -> Intrinsics:
-    m = r.map(name)
-    k = Intrinsics(m.float("fx", positive=True), m.float("fy", positive=True), m.float("cx"), m.float("cy"),
-                   m.int("width", min=1), m.int("height", min=1))
-    try:
-        k.validate()
-    except FrameError as e:
-        raise r.error(name, str(e)) from None
-    return ranges.intrinsics(r, name, k)
-
-
-def _str(name: str, s: Any) -> str:
-    if not isinstance(s, str):
-        raise WireError(f"expected str, got {type(s).__name__}", field=name)
-    return s
-
-
 # --- frame --------------------------------------------------------------------------------------
 
 def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality: int = 90,
@@ -116,11 +63,11 @@ def encode_frame(frame: RGBDFrame, stream: str, *, color: str = "jpeg", quality:
     f = {
         "pub_ns": None if pub_ns is None else int(pub_ns),
         "t_ns": int(frame.timestamp_ns),
-        "intrinsics": _intrinsics(frame.intrinsics),
+        "intrinsics": intrinsics_fields(frame.intrinsics),
         "color": encode_image(frame.color, color, quality),
         "depth": encode_depth(frame.depth, depth, depth_scale),
         "pose": None if frame.pose is None else float_list("pose", frame.pose, 16),
-        "origin": _str("origin", frame.origin),
+        "origin": text("origin", frame.origin),
         "capture": _capture(frame.capture) if frame.capture else None,
     }
     return pack(f, "frame", stream, frame.seq)
@@ -177,156 +124,6 @@ def _decode_frame(r: Reader) -> Decoded:
                           "pub_ns": ranges.time_ns(r, "pub_ns", r.int("pub_ns", optional=True))})
 
 
-# --- flow ---------------------------------------------------------------------------------------
-
-_FLOW_ARRAYS = (("points", 3), ("displacements", 3), ("weights", None), ("pixels", 2), ("pixels_next", 2))
-
-
-def encode_flow(flow: SceneFlowResult, stream: str, shed: Any = ()) -> bytes:
-    """A SceneFlowResult as a ``flow`` message: the compact layout of version 2 when it gives every
-    array back bit for bit (the scene flow's own results: :mod:`.flowpack`), else version 1's five
-    float32 arrays. ``shed``: the frames the flow stage shed since its previous flow (all before
-    ``seq_next``; the field is left out when there are none)."""
-    compact = compact_fields(flow)
-    f: dict[str, Any] = {"seq_next": int(flow.seq_next)}
-    if (named := seq_list("shed", shed, max(int(flow.seq), int(flow.seq_next)), stream, flow.seq)) is not None:
-        f["shed"] = named
-    if compact is None:
-        for name, _ in _FLOW_ARRAYS:
-            f[name] = encode_array(getattr(flow, name), "<f4")
-    else:
-        f.update(compact)
-    f["intrinsics"] = _intrinsics(flow.intrinsics)
-    f["intrinsics_next"] = _intrinsics(flow.intrinsics_next)
-    f["counts"] = {str(k): int(v) for k, v in flow.counts.items()}
-    f["problem"] = _str("problem", flow.problem)
-    return pack(f, "flow", stream, flow.seq, version=1 if compact is None else 2)
-
-
-def _decode_flow(r: Reader) -> Decoded:
-    K0, K1 = read_intrinsics(r, "intrinsics"), read_intrinsics(r, "intrinsics_next")
-    if r.version >= 2:
-        arrays = decode_compact(r, MAX_FLOW_POINTS, K0, K1)
-    else:
-        arrays = {}
-        n = None
-        for name, cols in _FLOW_ARRAYS:
-            a = r.array(name, "<f4", 1 if cols is None else 2, () if cols is None else (cols,),
-                        finite=True, max_elems=3 * MAX_FLOW_POINTS)
-            if n is None:
-                n = a.shape[0]
-            elif a.shape[0] != n:
-                raise r.error(name, f"{a.shape[0]} rows but points has {n}")
-            arrays[name] = a.astype(np.float64)
-    counts_r = r.map("counts")
-    counts = {}
-    for key in counts_r.d:
-        counts[key] = counts_r.int(key)
-    seq_next = r.int("seq_next", min=0)
-    flow = SceneFlowResult(
-        r.seq, seq_next, arrays["points"], arrays["displacements"], arrays["weights"],
-        arrays["pixels"], arrays["pixels_next"], K0, K1, counts, r.str("problem"),
-    )
-    return Decoded("flow", flow, r.stream, r.seq, version=r.version,
-                   extra={"shed": r.seqs("shed", max(r.seq, seq_next))})
-
-
-# --- motion -------------------------------------------------------------------------------------
-
-def encode_motion(m: MotionEstimate, stream: str) -> bytes:
-    """A MotionEstimate as a ``motion`` message (matrix 16 float64 row-major; rms_px may be NaN)."""
-    dim = GROUP_DIMS.get(m.group)
-    if dim is None:
-        raise WireError(f"unknown group {m.group!r}", field="group", stream=stream, seq=m.seq)
-    f = {
-        "seq_next": int(m.seq_next), "group": m.group, "estimator": _str("estimator", m.estimator),
-        "matrix": float_list("matrix", m.matrix, 16), "twist": float_list("twist", m.twist, dim),
-        "zeta_bar": None if m.zeta_bar is None else float_list("zeta_bar", m.zeta_bar, dim),
-        "valid": bool(m.valid), "reason": _str("reason", m.reason), "n_points": int(m.n_points),
-        "inlier_ratio": float(m.inlier_ratio), "rms_px": float(m.rms_px),
-        "kind": _kind("kind", m.kind, MOTION_KINDS, stream, m.seq),
-        "covariance": None if m.covariance is None else float_list("covariance", m.covariance, dim * dim),
-    }
-    return pack(f, "motion", stream, m.seq)
-
-
-def _kind(name: str, value: str, allowed: tuple[str, ...], stream: str, seq: int) -> str:
-    if value not in allowed:
-        raise WireError(f"{name} must be one of {', '.join(allowed)}, got {value!r}", field=name, stream=stream,
-                        seq=seq)
-    return value
-
-
-def _decode_motion(r: Reader) -> Decoded:
-    group = r.str("group")
-    dim = GROUP_DIMS.get(group)
-    if dim is None:
-        raise r.error("group", f"unknown group {group!r} (known: {', '.join(GROUP_DIMS)})")
-    zeta = r.floats("zeta_bar", dim, optional=True)
-    kind = r.str("kind", optional=True) or "fit"  # optional (added within v1): a motion without it was a fit
-    if kind not in MOTION_KINDS:
-        raise r.error("kind", f"expected one of {', '.join(MOTION_KINDS)}, got {kind!r}")
-    cov = r.floats("covariance", dim * dim, optional=True)
-    inliers = r.float("inlier_ratio")
-    if not 0.0 <= inliers <= 1.0:
-        raise r.error("inlier_ratio", f"must be in [0, 1], got {inliers:g}")
-    m = MotionEstimate(
-        r.seq, r.int("seq_next", min=0), group, r.str("estimator"),
-        ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4), group),
-        r.floats("twist", dim), r.bool("valid"), r.str("reason"), r.int("n_points", min=0),
-        inliers, r.float("rms_px", finite=False), zeta,
-        kind=kind, covariance=None if cov is None else cov.reshape(dim, dim),
-    )
-    return Decoded("motion", m, r.stream, r.seq)
-
-
-# --- correction ---------------------------------------------------------------------------------
-
-def encode_correction(c: Correction, stream: str, zoom: float | None = None,
-                      batch: Tag | tuple[int, int, int] | None = None) -> bytes:
-    """A Correction as a ``correction`` message, with the optional framing ``zoom`` (default: the
-    zoom planned with the path, ``c.zoom``) and ``batch`` = (release id, index in it, release
-    size[, closed by]): the planner's release it belongs to (:class:`~quick_stream.core.release.Tag`)."""
-    if zoom is None:
-        zoom = c.zoom
-    if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
-        raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
-    if batch is not None and not (len(batch) in (3, 4) and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
-        raise WireError(f"batch must be (release >= 0, 0 <= index < size, size), got {batch}",
-                        field="batch", stream=stream, seq=c.seq)
-    closed_by = None if batch is None else Tag(*batch).closed_by
-    f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
-         "valid": bool(c.valid), "reason": _str("reason", c.reason), "zoom": None if zoom is None else float(zoom),
-         "batch": None if batch is None else [int(x) for x in batch[:3]],
-         "closed_by": None if closed_by is None else int(closed_by),
-         "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain),
-         "motion": _kind("motion", c.motion, CORRECTION_MOTIONS, stream, c.seq)}
-    if (named := seq_list("shed", c.shed, c.seq, stream, c.seq)) is not None:
-        f["shed"] = named
-    return pack(f, "correction", stream, c.seq)
-
-
-def _decode_correction(r: Reader) -> Decoded:
-    camera = r.floats("camera", 16, optional=True)
-    camera = None if camera is None else ranges.transform(r, "camera", camera.reshape(4, 4))
-    chain = r.int("chain", optional=True)
-    motion = r.str("motion", optional=True) or "fit"  # optional (added within v1)
-    if motion not in CORRECTION_MOTIONS:
-        raise r.error("motion", f"expected one of {', '.join(CORRECTION_MOTIONS)}, got {motion!r}")
-    c = Correction(r.seq, ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4)), r.int("segment"),
-                   r.bool("keyframe"), r.bool("valid"), r.str("reason"),
-                   ranges.zoom(r, "zoom", r.float("zoom", positive=True, optional=True)), camera,
-                   -1 if chain is None else chain, motion, r.seqs("shed", r.seq))
-    batch, closed_by = r.get("batch", optional=True), r.int("closed_by", optional=True)
-    if batch is not None:
-        if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
-                or not (batch[0] >= 0 and 0 <= batch[1] < batch[2])):
-            raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {batch!r}")
-        batch = Tag(*batch, closed_by)
-    return Decoded("correction", c, r.stream, r.seq,
-                   extra={"zoom": c.zoom, "batch": batch})
-
-
 # --- stabilized ---------------------------------------------------------------------------------
 
 def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", quality: int = 90,
@@ -342,7 +139,7 @@ def encode_stabilized(s: StabilizedImage, stream: str, *, color: str = "jpeg", q
         raise WireError(f"zoom must be finite and > 0, got {s.zoom}", field="zoom", stream=stream, seq=s.seq)
     f = {"t_ns": int(s.timestamp_ns), "image": encode_image(s.image, color, quality) if image is None else image,
          "zoom": float(s.zoom),
-         "flags": [_str("flags", x) for x in s.flags],
+         "flags": [text("flags", x) for x in s.flags],
          "src_pub_ns": None if src_pub_ns is None else int(src_pub_ns),
          "ready_pub_ns": None if ready_pub_ns is None else int(ready_pub_ns)}
     return pack(f, "stabilized", stream, s.seq)
@@ -374,7 +171,7 @@ def encode_stats(s: Stats, stream: str, seq: int) -> bytes:
             raise WireError(f"stats values must be str -> number/str/bool/nil, got {k!r}: {type(v).__name__}",
                             field=f"values.{k}", stream=stream, seq=seq)
         vals[k] = v
-    return pack({"service": _str("service", s.service), "values": vals}, "stats", stream, seq)
+    return pack({"service": text("service", s.service), "values": vals}, "stats", stream, seq)
 
 
 def _decode_stats(r: Reader) -> Decoded:
@@ -390,7 +187,7 @@ def _decode_stats(r: Reader) -> Decoded:
 def encode_end(e: EndOfStream, stream: str) -> bytes:
     """An EndOfStream as an ``end`` message (envelope seq = last frame's seq, 0 when none; ``shed``
     left out when there are none)."""
-    f: dict[str, Any] = {"last_seq": int(e.seq), "reason": _str("reason", e.reason)}
+    f: dict[str, Any] = {"last_seq": int(e.seq), "reason": text("reason", e.reason)}
     if (named := seq_list("shed", e.shed, int(e.seq) + 1, stream, max(int(e.seq), 0))) is not None:
         f["shed"] = named
     return pack(f, "end", stream, max(int(e.seq), 0))
