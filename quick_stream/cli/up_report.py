@@ -6,8 +6,9 @@ services' own stats (a restarted service's predecessors included, :meth:`StatusB
 
 * capture: frames shed (offered faster than the pipeline takes them) or that the source could not
   deliver or encode (``shed``, ``bad_frames``);
-* flow: frames missing from the numbering it received (``missing_frames``: lost in transit or dropped
-  from its queue) besides those the capture shed or could not deliver;
+* flow: frames it shed itself (``shed``: a publisher faster than the pipeline takes them; those its full
+  queue dropped among them) and frames missing from the numbering it received (``missing_frames``: lost
+  in transit) besides those the capture shed or could not deliver;
 * render: frames rendered uncorrected (``flagged``) or not rendered at all: dropped from what it holds,
   refused, unreadable or dropped from its queues;
 * motion, recorder: what their queues dropped (the recorder: Foxglove views thinned) and, the
@@ -18,7 +19,8 @@ A queue's drops are the stream's own messages only: a flood from another publish
 
 A frame lost on the way to flow but rendered uncorrected shows at both (flow: lost; render:
 uncorrected). The final account (:class:`FrameAccount`) splits the frames the source offered
-once each: stabilized, shed, lost in transit, rendered uncorrected, dropped at render.
+once each: stabilized, shed at the capture, shed at flow, lost in transit, rendered uncorrected,
+dropped at render.
 """
 from __future__ import annotations
 
@@ -57,9 +59,10 @@ def frame_drops(service: str, totals: Totals) -> int:
     v = totals(service)
     if service == "capture":
         return _n(v, "shed") + _n(v, "bad_frames")
-    if service == "flow":
+    if service == "flow":  # its own shedding (a frame its full queue drops is one of them), then the rest
         cap = totals("capture")
-        return max(_n(v, "missing_frames") - _n(cap, "shed") - _n(cap, "bad_frames"), _queues(v), 0)
+        return _n(v, "shed") + max(_n(v, "missing_frames") - _n(cap, "shed") - _n(cap, "bad_frames"),
+                                   _queues(v) - _n(v, "shed_backlog"), 0)
     if service == "render":
         return (_n(v, "flagged") + _n(v, "dropped") + _n(v, "refused_frames") + _n(v, "bad_frames")
                 + _queues(v))
@@ -69,7 +72,7 @@ def frame_drops(service: str, totals: Totals) -> int:
 @dataclass
 class FrameAccount:
     """Every frame the source offered, once: ``offered`` = ``stabilized`` + ``shed`` + ``bad_source`` +
-    ``lost`` + ``uncorrected`` + ``dropped_render``. ``missing_at_flow``: of the frames sent, those flow
+    ``shed_flow`` + ``lost`` + ``uncorrected`` + ``dropped_render``. ``missing_at_flow``: of the frames sent, those flow
     never had (lost in transit or dropped from its queue; rendered uncorrected or lost, or corrected
     by a path that restarts across them). ``render_known``: render published its stats."""
 
@@ -83,6 +86,7 @@ class FrameAccount:
     lost: int
     missing_at_flow: int
     render_known: bool
+    shed_flow: int = 0  # of the frames sent, those the flow service shed (a publisher faster than the pipeline)
 
     @property
     def stabilized(self) -> int:
@@ -105,6 +109,8 @@ class FrameAccount:
                 else f"{self.lost} not rendered (in flight when the run stopped, or lost in transit)")
         parts = [f"{self.shed} shed at the capture{why}", lost, f"{self.uncorrected} rendered uncorrected (flagged)",
                  f"{self.dropped_render} dropped at render"]
+        if self.shed_flow:
+            parts.insert(1, f"{self.shed_flow} shed at flow (frames came faster than the pipeline takes them)")
         if self.bad_source:
             parts.append(f"{self.bad_source} the source could not deliver")
         text = f"{head} {', '.join(parts)}"
@@ -125,9 +131,11 @@ def frame_account(totals: Totals) -> FrameAccount:
     unrendered = max(sent - rendered, 0)
     dropped = min(_n(render, "dropped") + _n(render, "refused_frames") + _n(render, "bad_frames") + _queues(render),
                   unrendered)
+    shed_flow = min(_n(flow, "shed"), unrendered - dropped)
     return FrameAccount(offered=sent + shed + bad, sent=sent, shed=shed, bad_source=bad, rendered=rendered,
-                        uncorrected=min(flagged, rendered), dropped_render=dropped, lost=unrendered - dropped,
-                        missing_at_flow=max(_n(flow, "missing_frames") - shed - bad, 0), render_known=bool(render))
+                        uncorrected=min(flagged, rendered), dropped_render=dropped, lost=unrendered - dropped - shed_flow,
+                        missing_at_flow=max(_n(flow, "missing_frames") - shed - bad, 0), render_known=bool(render),
+                        shed_flow=shed_flow)
 
 
 def state(sup: Supervisor, name: str) -> str:

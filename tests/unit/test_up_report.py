@@ -71,6 +71,22 @@ def test_a_foreign_flood_shed_from_a_queue_is_no_drop_of_the_streams_frames():
     assert frame_drops("flow", t) == 5 and frame_drops("motion", t) == 0
 
 
+def test_frames_the_flow_service_shed_are_in_its_drops_and_in_the_account():
+    """A publisher faster than the pipeline (not our capture, which sheds before sending): flow sheds,
+    once, before decoding (``shed``; ``shed_backlog`` of them dropped by its full queue, also in its
+    queue's count) and render lets them go. They are flow's drops and "shed at flow" in the account,
+    not frames lost in transit."""
+    t = totals({"capture": {"sent": 7000},  # (the frames the publisher sent)
+                "flow": {"shed": 2000, "shed_backlog": 300, "inbox0_dropped": 300},
+                "render": {"render_total": 5000, "flagged": 0, "shed_upstream": 2000}})
+    assert frame_drops("flow", t) == 2000
+    acc = frame_account(t)
+    assert (acc.stabilized, acc.shed_flow, acc.lost) == (5000, 2000, 0)
+    parts = acc.stabilized + acc.shed + acc.bad_source + acc.shed_flow + acc.lost + acc.uncorrected + acc.dropped_render
+    assert parts == acc.offered == 7000
+    assert "2000 shed at flow" in acc.line("fast")
+
+
 def test_no_stats_from_render_is_said_not_taken_for_zero():
     acc = frame_account(totals({"capture": {"sent": 10}}))
     assert not acc.render_known and acc.rendered == 0
