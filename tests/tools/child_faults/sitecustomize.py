@@ -34,10 +34,10 @@ def _lose(first: int, last: int) -> None:
 
     push = stages.FlowDriver.push
 
-    def lossy(self, frame, pub_ns=None):
+    def lossy(self, frame, *args, **kw):
         if first <= frame.seq <= last:
             return None
-        return push(self, frame, pub_ns)
+        return push(self, frame, *args, **kw)
 
     stages.FlowDriver.push = lossy
 
