@@ -282,7 +282,8 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
     shown = 0
     while True:
         time.sleep(0.25)
-        sup.poll()
+        for name in sup.poll():
+            board.restarted(args.stream, name)
         write_status(status_path, board, sup, args.stream, None)
         render = board.get(args.stream, "render")
         if render.get("ended", 0) >= 1 and sup.children["capture"].finished:

@@ -237,8 +237,8 @@ class StatusBoard:
 
     A service's stats are taken from one publisher (the zenoh session that sent them,
     :func:`~quick_stream.stream.inbox.publisher_of`): another publisher's stats under its name are
-    ignored (counted in :attr:`foreign`) unless that one has been quiet for ``quiet_s`` (a restarted
-    service's predecessor is gone). A stats message forged with a lower seq passed for a restart and
+    ignored (counted in :attr:`foreign`) unless that one has been quiet for ``quiet_s`` or the service
+    was restarted (:meth:`restarted`, its supervisor's word). A stats message forged with a lower seq passed for a restart and
     added the service's counts to its totals again (the live fuzz: flow's refused frames counted twice
     in the final summary, docs/reliability.md)."""
 
@@ -247,6 +247,7 @@ class StatusBoard:
         self.quiet_s, self.clock = quiet_s, clock
         self.foreign = 0  # stats under a service's name from a publisher other than the service's
         self._source: dict[tuple[str, str], str | None] = {}
+        self._restarted: set[tuple[str, str]] = set()  # services restarted: their next publisher is taken
         self.latest: dict[tuple[str, str], dict[str, Any]] = {}
         self.updated: dict[tuple[str, str], float] = {}
         self.carried: dict[tuple[str, str], dict[str, int]] = {}  # predecessors' counts (int values summed)
@@ -279,13 +280,15 @@ class StatusBoard:
         k = (m.stream, m.obj.service)
         source, now = publisher_of(sample), self.clock()
         with self._lock:
-            if k in self.latest and source != self._source.get(k) and now - self.updated[k] < self.quiet_s:
+            if (k in self.latest and k not in self._restarted and source != self._source.get(k)
+                    and now - self.updated[k] < self.quiet_s):
                 self.foreign += 1  # the service is alive and publishing: not its stats
                 if self.foreign <= 10 or self.foreign % 1000 == 0:
                     log.warning("stats of %s/%s from %s, not from the service's publisher %s: ignored (%d so far)",
                                 *k, source, self._source.get(k), self.foreign)
                 return
             self._source[k] = source
+            self._restarted.discard(k)
             if k in self.latest and m.seq <= self._seq.get(k, -1):  # numbered from 0 again: a restarted service
                 carried = self.carried.setdefault(k, {})
                 for name, v in self.latest[k].items():
@@ -294,6 +297,14 @@ class StatusBoard:
             self._seq[k] = m.seq
             self.latest[k] = dict(m.obj.values)
             self.updated[k] = now
+
+    def restarted(self, stream: str, service: str) -> None:
+        """``service`` was restarted (by its supervisor): the next stats under its name come from its new
+        process's publisher, taken at once (not only after ``quiet_s``: a recorder restarted 2 s after its
+        kill near a stream's end had its stats, and the hole it logged, ignored)."""
+        self.drain()  # what the predecessor sent before is its own
+        with self._lock:
+            self._restarted.add((stream, service))
 
     @property
     def errors(self) -> int:

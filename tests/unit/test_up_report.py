@@ -140,6 +140,30 @@ def test_stats_forged_under_a_live_services_name_are_not_taken():
     assert board.totals("cam0", "flow")["refused_frames"] == 503 and board.foreign == 1
 
 
+def test_a_restarted_services_stats_are_taken_at_once():
+    """A recorder restarted 2 s after its kill, near the stream's end: its successor's stats (with the hole
+    it logged) came within the 3 s its predecessor counted as alive and were ignored to the end
+    (test_faults[recorder]: restart_hole 0 in status.json). The supervisor's word opens the name."""
+    board, ring = _ring_board()
+    t = [0.0]
+    board.clock = lambda: t[0]
+
+    def put(who: str, seq: int, **values) -> None:
+        _stats(ring, "recorder", seq, **values)
+        ring[-1].timestamp = SimpleNamespace(get_id=lambda: who)
+        board.drain()
+
+    for seq in range(3):
+        t[0] += 1.0
+        put("rec-1", seq, restart_hole=0)
+    t[0] += 1.5  # killed, restarted by up at once
+    board.restarted("cam0", "recorder")
+    put("rec-2", 0, restart_hole=812)
+    assert board.get("cam0", "recorder")["restart_hole"] == 812 and board.foreign == 0
+    put("forger", 0, restart_hole=1)  # the name is the new process's again
+    assert board.get("cam0", "recorder")["restart_hole"] == 812 and board.foreign == 1
+
+
 def test_status_json_that_cannot_be_written_raises_naming_it_and_leaves_no_part(tmp_path):
     sup = Supervisor([], tmp_path / "logs")
     board, _ = _ring_board()
