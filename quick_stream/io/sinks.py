@@ -306,30 +306,29 @@ class FileOutput:
 
     def write(self, seq: int, image: np.ndarray, jpeg: bytes | None) -> None:
         if self.sink.error is None:
-            try:
-                self.sink.write(seq, image, jpeg)
-            except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
-                pass
-        self.check()
+            self._then_check(self.sink.write, seq, image, jpeg)
+        else:
+            self.check()
 
     def check(self) -> None:
         if self.sink.error is not None and not self.reported:
             self.reported = True
             self.log.error("%s; the service stops: the file is not what was rendered (%d frames on disk)",
-                      self.sink.error, self.sink.written)
+                           self.sink.error, self.sink.written)
             self.stop.set()
 
     def drain(self) -> None:
-        try:
-            self.sink.drain()
-        except Exception:  # noqa: BLE001 - the worker's error, taken up by check()
-            pass
-        self.check()
+        self._then_check(self.sink.drain)
 
     def close(self) -> None:
         """Close the video (checked on disk)."""
+        self._then_check(self.sink.close)
+
+    def _then_check(self, call, *args: object) -> None:
+        """``call(*args)`` on the sink; an error it raises is the sink's own (:attr:`error`), reported by
+        :meth:`check`."""
         try:
-            self.sink.close()
+            call(*args)
         except Exception:  # noqa: BLE001 - the sink's error, taken up by check()
             pass
         self.check()

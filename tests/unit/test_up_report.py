@@ -115,18 +115,26 @@ def test_a_restarted_service_counts_its_predecessors_frames():
     assert t["sent"] == 102 and t["shed"] == 6 and t["send_fps"] == 30.0
 
 
-def test_stats_forged_under_a_live_services_name_are_not_taken():
-    """A stats message under flow's name from another publisher, with a lower seq, passed for a restarted
-    flow: flow's counts were added to its totals again (the live fuzz: refused frames 731 on flow's own
-    stats, 1,462 in the final summary). A real successor is taken once its predecessor is quiet."""
+def _clocked_board(service: str):
+    """A status board on a test clock ``t`` ([seconds]) and ``put(who, seq, **values)``: one stats message
+    of ``service`` from publisher ``who``, taken in."""
     board, ring = _ring_board()
     t = [0.0]
     board.clock = lambda: t[0]
 
     def put(who: str, seq: int, **values) -> None:
-        _stats(ring, "flow", seq, **values)
+        _stats(ring, service, seq, **values)
         ring[-1].timestamp = SimpleNamespace(get_id=lambda: who)
         board.drain()
+
+    return board, t, put
+
+
+def test_stats_forged_under_a_live_services_name_are_not_taken():
+    """A stats message under flow's name from another publisher, with a lower seq, passed for a restarted
+    flow: flow's counts were added to its totals again (the live fuzz: refused frames 731 on flow's own
+    stats, 1,462 in the final summary). A real successor is taken once its predecessor is quiet."""
+    board, t, put = _clocked_board("flow")
 
     for seq in range(5):
         t[0] += 1.0
@@ -144,14 +152,7 @@ def test_a_restarted_services_stats_are_taken_at_once():
     """A recorder restarted 2 s after its kill, near the stream's end: its successor's stats (with the hole
     it logged) came within the 3 s its predecessor counted as alive and were ignored to the end
     (test_faults[recorder]: restart_hole 0 in status.json). The supervisor's word opens the name."""
-    board, ring = _ring_board()
-    t = [0.0]
-    board.clock = lambda: t[0]
-
-    def put(who: str, seq: int, **values) -> None:
-        _stats(ring, "recorder", seq, **values)
-        ring[-1].timestamp = SimpleNamespace(get_id=lambda: who)
-        board.drain()
+    board, t, put = _clocked_board("recorder")
 
     for seq in range(3):
         t[0] += 1.0
