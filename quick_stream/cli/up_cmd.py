@@ -258,16 +258,18 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
         traceback.print_exc()
         o.reason = o.error = f"internal error: {type(e).__name__}: {e}"
     finally:
-        # the board as the run ended (the rates of the services still running), then everything stopped
-        try:
-            final = status_lines(board, sup, args.stream, t0) if board is not None else []
-        except Exception:  # noqa: BLE001 - the children are stopped whatever happens
-            final = []
+        # everything stopped, then the board from the services' last stats: the same counts as the
+        # final account (a board taken before could miss flow's last stats, and drops with them)
+        final: list[str] = []
         order = [n for n in ("capture", "flow", "motion", "render", "recorder", "router") if n in sup.children]
         try:
             codes = sup.stop(order)
             if board is not None:
                 board.drain()  # the services' last stats (the router stops last)
+                try:
+                    final = status_lines(board, sup, args.stream, t0)
+                except Exception:  # noqa: BLE001 - the session is closed whatever happens
+                    final = []
         finally:  # the session closed whatever happened, within a bounded time
             closers = [c.close for c in (board, session) if c is not None]
             closing = close_within(closers, timeout_s=5.0) if closers else None
