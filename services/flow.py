@@ -3,7 +3,7 @@
 Takes the pipeline's one shedding decision before decoding a frame
 (:class:`quick_stream.core.admission.FlowAdmission`, fed by :class:`quick_stream.stream.gate.FrameGate`):
 a frame that arrives beyond the pace at which flow, the motion stage and the stabilized output keep
-up, one taken from the inbox with more than ``--queue`` frames (default 30) waiting behind it, or one
+up (while no capture of ours is up: it paces or sheds itself), one taken from the inbox with more than ``--queue`` frames (default 30) waiting behind it, or one
 the inbox (twice ``--queue``) drops for room is shed (``shed``; the next flow spans the gap) and
 named in the next flow's ``shed`` (or the ``end``'s), so that motion and render let it go too. It runs
 :class:`quick_stream.core.stages.FlowDriver` and publishes each pair's ``flow`` message (lossless: the motion stage needs every pair it can
@@ -22,7 +22,7 @@ import time
 
 import zenoh
 
-from quick_stream.core.admission import MAX_NAMED, FlowAdmission
+from quick_stream.core.admission import MAX_NAMED, FlowAdmission, split_named
 from quick_stream.core.settings import settings_digest
 from quick_stream.core.stages import FlowDriver
 from quick_stream.stream import argtypes as at, keys
@@ -74,9 +74,11 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
             if driver.taken is not None:
                 gate.taken(driver.taken)
             if flow is not None:  # it names the frames shed before its end; those shed on arrival after it wait
-                bound = max(flow.seq, flow.seq_next)
-                pub.put(encode_flow(flow, args.stream, [s for s in shed if s < bound]))
-                shed[:] = [s for s in shed if s >= bound]
+                named, shed[:], dropped = split_named(shed, flow.seq, flow.seq_next)
+                if dropped:
+                    log.warning("%d frames shed after frame %d go unnamed: the numbering restarts at %d (render "
+                                "flags them)", dropped, flow.seq, flow.seq_next)
+                pub.put(encode_flow(flow, args.stream, named))
                 meter.add((time.perf_counter() - t0) * 1e3)
 
         def on_end(msg: Decoded) -> None:

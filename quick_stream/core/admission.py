@@ -25,10 +25,18 @@ shedding leaves as it bridges any missing frames (:class:`~quick_stream.core.con
 up to ``max_missing`` frames, or more within ``max_bridge_s`` of capture time), so the motion is a
 fit across them, not a restart of the path.
 
+While a capture of ours is up on the stream (its liveliness token), nothing is shed on arrival: it
+paces itself by the same stages' progress (``--pace fast``) or sheds before it publishes (live), and
+the two policies' dynamic bounds (a backlog left by a slow start) need not agree, so flow shedding
+behind it would throw away frames the capture chose to send. The queue's own bounds still hold.
+
 A frame that is not after the newest one offered, or far ahead of it (``max_jump``), is never
 shed: the flow stage refuses it or confirms a new numbering with it (then :meth:`restart`), and a
-stray seq never enters the in-flight account. Pure logic: the caller feeds it the stages'
-progress, the services' liveliness and the clock.
+stray seq never enters the in-flight account. Names not yet sent when the flow stage confirms a
+lower numbering are of the old one: they are dropped (:func:`split_named`), never read against the
+new numbering's frames (those frames of the old numbering go out uncorrected and flagged, as any
+frame whose correction never came). Pure logic: the caller feeds it the stages' progress, the
+services' liveliness and the clock.
 """
 from __future__ import annotations
 
@@ -40,6 +48,17 @@ from .shedding import ShedLimits, Shedder
 FLOW_LIMITS = {"motion": ShedLimits(soft=20, hard=30, needs=("flow", "motion")),
                "stabilized": ShedLimits(soft=110, hard=140, needs=("flow", "motion", "render"))}
 MAX_NAMED = 10_000  # shed frames named on one message at most (the wire's bound, codec.MAX_SEQ_LIST)
+CAPTURE = "capture"  # the service of ours that publishes a stream's frames (its liveliness token)
+
+
+def split_named(shed: list[int], seq: int, seq_next: int) -> tuple[list[int], list[int], int]:
+    """The shed frames a flow from ``seq`` to ``seq_next`` names (those before its end), the ones left
+    for a later message, and how many are dropped: a flow to a lower numbering (``seq_next < seq``)
+    names those before ``seq`` and drops the rest, which belong to the old numbering."""
+    if seq_next < seq:
+        named = [s for s in shed if s < seq]
+        return named, [], len(shed) - len(named)
+    return [s for s in shed if s < seq_next], [s for s in shed if s >= seq_next], 0
 
 
 class FlowAdmission:
@@ -75,6 +94,9 @@ class FlowAdmission:
         if not self._in_order(seq):
             return True  # for the flow stage to refuse, or to confirm as a new numbering
         self.newest = seq
+        if CAPTURE in self.shedder.up:
+            self.shedder.sent(seq)  # our capture paces or sheds itself: counted in flight, never shed here
+            return True
         return self.shedder.admit(seq, now) or self._shed(seq)
 
     def take(self, seq: int, waiting: int) -> bool:
@@ -92,9 +114,12 @@ class FlowAdmission:
 
     def taken(self, seq: int) -> None:
         """The flow stage took frame ``seq``. One at or behind the last it took (a new numbering it
-        confirmed) or beyond every frame offered in order (a jump it confirmed) starts the downstream
-        account afresh there."""
-        if (self._taken is not None and seq <= self._taken) or (self.newest is not None and seq > self.newest):
+        confirmed: the names not yet sent are dropped) or beyond every frame offered in order (a jump
+        it confirmed: they are kept) starts the downstream account afresh there."""
+        if self._taken is not None and seq <= self._taken:  # a lower numbering: the names are of the old one
+            self.restart()
+            self.newest = seq
+        elif self.newest is not None and seq > self.newest:  # a jump ahead: the same numbering
             self.restart(keep_named=True)
             self.newest = seq
         self._taken = seq

@@ -120,6 +120,12 @@ class Shedder:
         """Frames sent that ``stage`` has not reached yet."""
         return len(self._sent) - bisect.bisect_right(self._sent, self.done[stage])
 
+    def sent(self, seq: int) -> None:
+        """Frame ``seq`` went out without asking :meth:`admit` (counted in flight only)."""
+        if self.limits and (not self._sent or seq > self._sent[-1]):
+            del self._sent[:bisect.bisect_right(self._sent, min(self.done.values()))]  # every stage has them
+            self._sent.append(seq)
+
     def admit(self, seq: int, now: float) -> bool:
         """Send frame ``seq`` (True: counted in flight) or shed it (False: counted in ``shed``)."""
         if not self.limits:

@@ -27,8 +27,10 @@ from quick_stream.stream.wire.codec import peek
 
 OLD, NEW = 40, 45
 FIRST = ContinuityParams().resync - 1  # the new numbering's first frame taken (0..13 are refused)
-# paced by the pipeline, as `capture --pace fast` is: at most AHEAD frames sent and not yet out of flow
-# (flow's queue, 30, never overflows) and WINDOW not yet stabilized (the planner's window and a release)
+# paced by the pipeline, as `capture --pace fast` is: at most AHEAD frames sent and not yet through the
+# motion stage (flow's queue, 30, never overflows, and flow's admission, which sheds for a foreign
+# publisher that runs ahead of the motion stage, never sheds) and WINDOW not yet stabilized (the
+# planner's window and a release)
 AHEAD, WINDOW = 10, 45
 
 
@@ -39,7 +41,7 @@ def inject(ep: str) -> None:
     add_zenoh_args(p)
     conf = config_from_args(p.parse_args(["-e", ep, "--no-multicast-scouting"]))
     out = threading.Condition()
-    got = {"flow": 0, "stabilized": 0}
+    got = {"motion": 0, "stabilized": 0}
 
     def came(sample) -> None:
         mtype = peek(sample.payload.to_bytes())[0]
@@ -49,20 +51,20 @@ def inject(ep: str) -> None:
                 out.notify_all()
 
     with ServiceRuntime("injector", "cam0", conf, install_signals=False) as rt:
-        rt.subscribe(keys.key("cam0", "flow"), came)
+        rt.subscribe(keys.key("cam0", "motion"), came)
         rt.subscribe(keys.key("cam0", "stabilized"), came)
         pub = rt.publisher("frame", lossless=True)
         missing = rt.wait_for(["recorder", "flow", "motion", "render"], 60)
         assert not missing, missing
-        owed = {"flow": 0, "stabilized": 0}  # what the frames sent so far make (the refused ones: nothing)
+        owed = {"motion": 0, "stabilized": 0}  # what the frames sent so far make (the refused ones: nothing)
         for i, f in enumerate(frames):
             seq = i if i < OLD else i - OLD
             pub.put(encode_frame(f.with_(seq=seq), "cam0", color="raw", pub_ns=time.time_ns()))
             refused = OLD <= i < OLD + FIRST
-            owed["flow"] += 0 < i and not refused
+            owed["motion"] += 0 < i and not refused
             owed["stabilized"] += not refused
             with out:
-                assert out.wait_for(lambda: got["flow"] >= owed["flow"] - AHEAD
+                assert out.wait_for(lambda: got["motion"] >= owed["motion"] - AHEAD
                                     and got["stabilized"] >= owed["stabilized"] - WINDOW, 60), (got, owed)
         # as the capture does before its end: every service that receives frames has the last one
         # (their cursors follow the new numbering)
@@ -93,7 +95,7 @@ def test_a_capture_renumbered_mid_stream_keeps_the_output_going(run):
     restarts = [m for m in by_type["correction"] if m.obj.motion == "restart"]  # the break: the path restarts
     assert [m.seq for m in restarts] == [FIRST] and RENUMBERED in restarts[0].obj.reason
     f, m, r, rec = stats["flow"], stats["motion"], stats["render"], stats["recorder"]
-    assert (f["renumberings"], f["out_of_order_frames"], f["refused_frames"]) == (1, FIRST, FIRST)
+    assert (f["renumberings"], f["out_of_order_frames"], f["refused_frames"], f["shed"]) == (1, FIRST, FIRST, 0)
     assert (m["renumberings"], m["refused_flows"]) == (1, 0)
     assert (r["renumberings"], r["refused_frames"], r["orphans"], r["missing"]) == (1, FIRST, 0, 0)
     assert f["internal_errors"] == m["internal_errors"] == r["internal_errors"] == 0

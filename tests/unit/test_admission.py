@@ -6,7 +6,7 @@ from collections import deque
 import numpy as np
 import pytest
 
-from quick_stream.core.admission import FLOW_LIMITS, FlowAdmission
+from quick_stream.core.admission import FLOW_LIMITS, FlowAdmission, split_named
 from quick_stream.core.shedding import DEFAULT_LIMITS, Shedder
 
 TICK = 0.001  # s
@@ -154,3 +154,47 @@ def test_progress_of_an_earlier_stream_says_nothing_and_a_restart_keeps_the_serv
 def test_a_negative_backlog_is_refused(backlog):
     with pytest.raises(ValueError, match="backlog"):
         FlowAdmission(backlog)
+
+
+def _stalled_motion(adm: FlowAdmission) -> list[bool]:
+    """Frames 0..59 offered while the motion stage, up, has reached frame 1 only (a slow start)."""
+    for service in ("flow", "motion", "render"):
+        adm.set_up(service, True, 0.0)
+    first = [adm.offer(s, 0.0) for s in range(3)]
+    adm.progressed("motion", 1, 0.1)
+    return first + [adm.offer(s, 0.2 + s / 1000) for s in range(3, 60)]
+
+
+def test_while_a_capture_of_ours_is_up_nothing_is_shed_on_arrival_and_the_queue_bound_still_holds():
+    """Our capture paces or sheds itself: flow does not second-guess it (its bounds, raised by a slow
+    start's backlog, need not agree with flow's); without it the same offers are shed. A frame taken
+    behind too many waiting is shed either way."""
+    alone = FlowAdmission(backlog=30)
+    assert not all(_stalled_motion(alone)) and alone.shed > 0
+    ours = FlowAdmission(backlog=30)
+    ours.set_up("capture", True, 0.0)
+    assert all(_stalled_motion(ours)) and ours.shed == 0
+    assert ours.shedder.in_flight("motion") == 58  # still counted in flight: the account holds if it goes
+    assert not ours.take(59, 31) and ours.take_shed() == [59]
+    ours.set_up("capture", False, 1.0)  # gone (a foreign publisher goes on): the policy applies again
+    assert not all(ours.offer(s, 1.0 + s / 1000) for s in range(60, 80))
+
+
+def test_names_not_sent_at_a_lower_numbering_are_dropped_and_kept_across_a_jump():
+    """Shed frames of the old numbering never name the new numbering's frames of the same seqs."""
+    adm = FlowAdmission(backlog=0)
+    adm.offer(35, 0.0)
+    adm.taken(35)
+    adm.dropped(36)
+    adm.taken(14)  # the flow stage confirmed a lower numbering
+    assert adm.take_shed() == []
+    adm.dropped(15)
+    adm.taken(500)  # a jump ahead it confirmed: the same numbering
+    assert adm.take_shed() == [15]
+
+
+def test_a_flow_names_the_frames_shed_before_its_end_and_a_renumbering_drops_the_old_ones():
+    assert split_named([3, 7, 12], 5, 10) == ([3, 7], [12], 0)
+    assert split_named([36, 37, 38, 39], 35, 14) == ([], [], 4)
+    assert split_named([20, 36], 35, 14) == ([20], [], 1)
+    assert split_named([], 0, 1) == ([], [], 0)
