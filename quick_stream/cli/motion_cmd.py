@@ -22,6 +22,7 @@ from ..core.lie import GROUPS
 from ..core.motion import ESTIMATORS, KINDS, MotionParams, integrate_path
 from ..core.motion_pipeline import MotionPipeline, run_motion, true_motion
 from ..core.sceneflow import DIS_PRESETS, SceneFlowParams
+from ..core.stabilizer import STABILIZER_TRANSLATION_PRIOR_MM
 from ..io.sources import SourceError, open_source
 from ..io.sources.trajectory import write_tum_trajectory
 from ..quality.evaluation.opencv_odometry import OpenCVOdometry
@@ -53,6 +54,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-fb-check", action="store_true", help="skip the forward-backward occlusion test")
     p.add_argument("--max-points", type=at.int_in(3), default=SceneFlowParams.max_points,
                    help=f"scene-flow pairs kept per frame pair (default: {SceneFlowParams.max_points})")
+    p.add_argument("--translation-prior", type=at.float_in(0.0, 1e3), default=STABILIZER_TRANSLATION_PRIOR_MM,
+                   metavar="MM", help="the fit's translation prior, std per frame step in mm (docs/method.md (3n); "
+                   f"default {STABILIZER_TRANSLATION_PRIOR_MM:g}, the stabilizer's; 0: the free fit)")
     p.add_argument("--threads", type=at.positive_int, default=1,
                    help="OpenCV threads (default: 1, one core, as each service runs)")
     p.add_argument("--compare-opencv", action="store_true",
@@ -104,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
             max_points=args.max_points,
         )
         flow_params.validate()
-        motion_params = MotionParams(group=args.group, estimator=args.estimator)
+        motion_params = MotionParams(group=args.group, estimator=args.estimator,
+                                     translation_prior_mm=args.translation_prior)
         pipeline = MotionPipeline(flow_params, motion_params)
     except (SourceError, ValueError) as e:
         print(f"quick-stream motion: {e}", file=sys.stderr)

@@ -36,11 +36,20 @@ from .timing import StageTimer
 __all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]
 
 
+STABILIZER_TRANSLATION_PRIOR_MM = 0.2  # the stabilizer's fit takes hand-held jitter as rotation (docs/method.md (3n))
+
+
+def stabilizer_motion_params() -> MotionParams:
+    """The motion estimator as the stabilizer runs it: the exact fit with the translation prior (3n). The
+    estimator's own default is the free fit, which recovers any motion of its group."""
+    return MotionParams(translation_prior_mm=STABILIZER_TRANSLATION_PRIOR_MM)
+
+
 @dataclass
 class StabilizerParams:
     flow: SceneFlowParams = field(default_factory=SceneFlowParams)
     continuity: ContinuityParams = field(default_factory=ContinuityParams)
-    motion: MotionParams = field(default_factory=MotionParams)
+    motion: MotionParams = field(default_factory=stabilizer_motion_params)
     planner: PlannerParams = field(default_factory=PlannerParams)
     warp: WarpParams = field(default_factory=WarpParams)
     framing: FramingParams = field(default_factory=FramingParams)

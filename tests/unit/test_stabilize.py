@@ -123,4 +123,4 @@ def test_path_weights_reach_the_solver(tmp_path, capsys):
         reports.append(json.loads(rep.read_text()))
     a = np.array([f["correction"] for f in reports[0]["frames"]])
     b = np.array([f["correction"] for f in reports[1]["frames"]])
-    assert np.abs(a - b).max() > 1e-7  # weights act at second order here; the report keeps 1e-9
+    assert np.abs(a - b).max() > 1e-8  # weights act at second order here; the report keeps 1e-9

@@ -36,7 +36,7 @@ covariance, which the path uses to weight it.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -64,6 +64,8 @@ class MotionParams:
     min_rotation_inliers: float = 0.1  # ... which needs this share of the pairs to agree with it
     min_rotation_points: int = 8  # ... and at least this many pairs (fewer than min_points: no group fit)
     max_rotation_sigma: float = 0.01  # ... and its rotation determined to this (rad, RMS over the axes)
+    translation_prior_mm: float = 0.0  # exact: a fit's translation is drawn towards 0 with this std per frame
+    # step (mm), along what the flow cannot tell from a rotation (docs/method.md (3n)); 0: off
     bridge_frames: int = 3  # a flow with nothing in it is bridged at constant velocity for up to this many
     # consecutive frames before the path restarts (0: never; docs/method.md 2.4, the motion stage's MotionBridge)
     exact: ExactParams = field(default_factory=ExactParams)
@@ -78,6 +80,8 @@ class MotionParams:
         get_group(self.group)
         if self.estimator not in ESTIMATORS:
             raise ValueError(f"motion estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        if not self.translation_prior_mm >= 0:
+            raise ValueError(f"motion translation_prior_mm must be >= 0, got {self.translation_prior_mm}")
         if self.bridge_frames < 0:
             raise ValueError(f"motion bridge_frames must be >= 0, got {self.bridge_frames}")
         if self.min_rotation_points < 3:
@@ -133,6 +137,21 @@ def rotation_projector(group: LieGroup) -> np.ndarray:
         L = group.basis[k, :3, :3]
         P[:, k] = 0.5 * np.array([L[2, 1] - L[1, 2], L[0, 2] - L[2, 0], L[1, 0] - L[0, 1]])
     return P
+
+
+def with_translation_prior(m: MotionEstimate, group: LieGroup, sigma_m: float) -> MotionEstimate:
+    """``m`` with the prior t ~ N(0, sigma_m² I) on its camera translation (docs/method.md (3n)): the
+    conditional update of the twist and its covariance. A translation the flow determines well (its
+    variance far below sigma_m²) keeps its value; the part it cannot tell from a rotation (pitch against
+    a sideways step, yaw against a vertical one, when parallax is small) goes to the rotation."""
+    S = m.covariance
+    K = S[:, :3] @ np.linalg.inv(S[:3, :3] + np.eye(3) * sigma_m ** 2)
+    twist = m.twist - K @ m.twist[:3]
+    g = group.exp(twist)
+    if not np.all(np.isfinite(g)):
+        return m
+    cov = S - K @ S[:3, :]
+    return replace(m, matrix=g, twist=twist, zeta_bar=group.log(group.inverse(g)), covariance=0.5 * (cov + cov.T))
 
 
 def invalid_motion(seq: int, seq_next: int, group: str, estimator: str, reason: str) -> MotionEstimate:
@@ -210,7 +229,11 @@ class MotionEstimator:
             return self._rotation_or_invalid(flow, "fit is not finite")
         if inliers < p.min_inlier_ratio:
             return self._rotation_or_invalid(flow, f"only {inliers:.0%} of scene-flow pairs agree with one motion")
-        return self._motion(flow, M, inliers, rms, why, fallback, self._twist_covariance(M, cov, fit_group))
+        m = self._motion(flow, M, inliers, rms, why, fallback, self._twist_covariance(M, cov, fit_group))
+        if p.translation_prior_mm > 0 and m.valid and m.covariance is not None:
+            sigma = p.translation_prior_mm * 1e-3 * max(flow.seq_next - flow.seq, 1)
+            m = with_translation_prior(m, self.group, sigma)
+        return m
 
     def _rotation_or_invalid(self, flow: SceneFlowResult, why: str) -> MotionEstimate:
         """The rotation-only fit of the flow's pixel pairs when it holds (docs/method.md (3j)), else invalid."""
