@@ -190,8 +190,8 @@ def stabilizer_params(args: argparse.Namespace, recorded: StabilizerParams | Non
     params = apply_flags(params, flags)
     _flag_error("--group/--estimator", params.motion.validate)
     _flag_error("--keyframe-interval", params.planner.keyframes.validate)
+    _flag_error("--max-zoom/--fill-band", params.planner.budget.validate)  # before the planner's, which checks it too
     _flag_error("--lookahead/--smoothness", params.planner.validate)
-    _flag_error("--max-zoom/--fill-band", params.planner.budget.validate)
     _flag_error("--path-weights", lambda: params.planner.path.weight_vector(GROUPS[params.planner.group].dim))
     _flag_error("--crop-zoom/--fill-frames", params.framing.validate)
     return params  # the rest (flow, continuity, warp, one group) is the base's, checked when it was made

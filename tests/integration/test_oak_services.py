@@ -37,8 +37,9 @@ def test_real_backend_without_a_camera_says_no_device_found():
 
     assert list_devices() == []  # no OAK on these machines
     src = open_source("depthai:,retries=0")
-    with pytest.raises(NoDevice, match="no OAK device found"):
+    with pytest.raises(NoDevice, match="no OAK device found") as e:
         next(iter(src))
+    assert "`quick-stream-capture --list-devices`" in str(e.value)  # a command that exists (checked below)
     r = subprocess.run([sys.executable, "-m", "quick_stream.services.capture", "--list-devices"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 1 and "no OAK device found" in r.stdout
@@ -50,6 +51,7 @@ def test_up_refuses_a_camera_that_is_not_connected_before_starting_anything(tmp_
     r = subprocess.run([sys.executable, "-m", "quick_stream", "up", "--quiet", "--out", str(tmp_path / "o"),
                         "--source", "depthai"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "no OAK device found" in r.stderr, r.stdout + r.stderr
+    assert "`quick-stream-capture --list-devices`" in r.stderr
     assert not (tmp_path / "o" / "logs").exists()  # no process was started
     monkeypatch.setattr(oak_device, "list_devices", lambda: [{"id": "184430101153051300", "name": "oak-d"}])
     check_source("depthai")  # one is connected: fine

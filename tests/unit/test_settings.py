@@ -205,3 +205,12 @@ def test_the_environment_names_the_file_when_no_flag_does(tmp_path: Path, monkey
     a.write_text("[warp]\nalpha = 'x'\n")
     with pytest.raises(SettingsError, match=f"QUICK_STREAM_SETTINGS={a}: warp.alpha: expected a number"):
         stabilizer_params(flags())
+
+
+@pytest.mark.parametrize("argv, named", [(("--max-zoom", "0.5"), "--max-zoom/--fill-band: max zoom"),
+                                         (("--smoothness", "-1"), "--lookahead/--smoothness: smoothness")])
+def test_a_bad_flag_value_is_blamed_on_its_own_flag(argv, named):
+    """The planner's check also checks the crop budget: a bad --max-zoom was blamed on --lookahead/--smoothness."""
+    with pytest.raises(ValueError) as e:
+        stabilizer_params(flags(*argv))
+    assert str(e.value).startswith(named), e.value

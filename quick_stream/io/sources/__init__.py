@@ -116,7 +116,7 @@ def _check_oak_connected(spec: str, device: str) -> None:
         raise SourceError(f"source {spec!r}: cannot list OAK devices: {type(e).__name__}: {e}") from None
     if not found:
         raise SourceError(f"source {spec!r}: no OAK device found (check the USB cable, the udev rule, or Docker's "
-                          "/dev/bus/usb mapping; `quick-stream capture --list-devices` lists what is connected)")
+                          "/dev/bus/usb mapping; `quick-stream-capture --list-devices` lists what is connected)")
     if device and device not in {d["id"] for d in found}:
         raise SourceError(f"source {spec!r}: no OAK device {device!r}; connected: "
                           + ", ".join(f"{d['id']} ({d['name']})" for d in found))

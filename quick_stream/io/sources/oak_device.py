@@ -205,7 +205,7 @@ class DepthaiBackend(PipelineBackend):
         found = dai.Device.getAllAvailableDevices()
         if not found:
             raise NoDevice("no OAK device found (check the USB cable, the udev rule, or Docker's "
-                           "/dev/bus/usb mapping; `capture --list-devices` lists what is visible)")
+                           "/dev/bus/usb mapping; `quick-stream-capture --list-devices` lists what is visible)")
         if self._want is None:
             return found[0]
         for info in found:

@@ -139,6 +139,9 @@ class TumSource:
         self.path = Path(path)
         self.name = f"tum:{path}"
         self.max_dt = float(max_dt)
+        if self.path.exists() and not self.path.is_dir():
+            raise SourceError(f"tum: takes a folder in TUM layout (rgb.txt, depth.txt and the images they name), "
+                              f"and {self.path} is a file (a recording: mcap:FILE)")
         if not self.path.is_dir():
             raise SourceError(f"TUM folder not found: {self.path}")
         for fname in ("rgb.txt", "depth.txt"):
