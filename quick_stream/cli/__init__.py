@@ -52,9 +52,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _chosen_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The innermost sub-command's parser that ``args`` came through (``bench pipeline``: the pipeline's)."""
+    while True:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        chosen = getattr(args, subs[0].dest, None) if subs else None
+        if chosen not in (subs[0].choices if subs else {}):
+            return parser
+        parser = subs[0].choices[chosen]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # said by the sub-command's own parser, with its usage (not the top level's)
+        _chosen_parser(parser, args).error(f"unrecognized arguments: {' '.join(extra)}")
     keep_freed_buffers()  # the in-process stages allocate frame-sized buffers as the services do
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.WARNING,

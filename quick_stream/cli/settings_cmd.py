@@ -58,5 +58,8 @@ def run(args: argparse.Namespace) -> int:
         Path(args.output).write_text(text)
     if args.json:
         write_json(args.json, {"digest": settings_digest(params), "settings": settings_dict(params)}, default=None)
-    print(text, end="", file=text_out(args))
+    if args.output:  # the file holds the text: only say where it went
+        print(f"wrote {args.output}", file=sys.stderr)
+    else:
+        print(text, end="", file=text_out(args))
     return 0

@@ -64,7 +64,18 @@ def check_case(r: dict, case: str, out) -> None:
         assert r["not_recorded_no_copy"] == 0, r["not_recorded_examples"]
         assert r["not_recorded"] <= r["kills"], r["not_recorded_examples"]
     # no frame lost: a restarted flow, motion or render takes over from its inputs' history
-    assert r["lost"] == 0 and r["stabilized_unique"] == r["frames_sent"], r
+    assert r["lost"] == 0, r
+    # every frame stabilized was seen sent, except one a killed capture was sending as it died (it can
+    # reach flow and render and not the monitor or the recorder): at most one per kill, right after the
+    # last frame seen before it
+    extra = r["stabilized_not_seen_sent"]
+    if "capture" in victims:
+        after_kill = {row["capture_last_seq_before"] + 1 for row in r["per_event"]
+                      if row.get("capture_last_seq_before") is not None}
+        assert len(extra) <= r["kills"] and set(extra) <= after_kill, r
+    else:
+        assert extra == [], r
+    assert r["stabilized_unique"] == r["frames_sent"] + len(extra), r
     if "capture" in victims:  # the restarted capture continued the stream's numbering
         for row in r["per_event"]:
             assert row["capture_first_seq_after"] > row["capture_last_seq_before"], r

@@ -458,6 +458,9 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
               "up_exit": code, "clean_stop": code == 0 and "exit codes" not in text,
               "frames_sent": len(sent), "stabilized": len(stab), "stabilized_unique": len(out_seqs),
               "flagged": sum(m.flagged for m in stab), "lost": len(set(sent) - out_seqs),
+              # stabilized, yet sent as far as neither the monitor nor the recording knows: a frame a killed
+              # capture was sending can reach flow and render and not them
+              "stabilized_not_seen_sent": sorted(out_seqs - set(sent)),
               "path_restarts": len({m.seq for m in seen if m.restart}),
               "monitor_missed": len(monitor_missed), "monitor_missed_examples": monitor_missed[:5],
               "render": {k: render.get(k) for k in ("missing", "dropped", "orphans", "refused_frames")},

@@ -14,6 +14,8 @@ literal name. ``python -m tests.tools.layers [ROOT]`` prints each violation and 
 """
 from __future__ import annotations
 
+import argparse
+
 import ast
 import sys
 from dataclasses import dataclass
@@ -130,8 +132,13 @@ def check_tree(root: Path) -> list[Violation]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    root = Path(argv[0]) if argv else Path(__file__).resolve().parents[2]
+    p = argparse.ArgumentParser(prog="python -m tests.tools.layers", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("root", nargs="?", type=Path, default=Path(__file__).resolve().parents[2],
+                   help="the repository to check (default: this one)")
+    root = p.parse_args(argv).root
+    if not (root / "quick_stream").is_dir():
+        p.error(f"{root}: no quick_stream package there (give the repository's folder)")
     found = check_tree(root)
     for v in found:
         print(v)

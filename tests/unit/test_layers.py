@@ -89,3 +89,16 @@ def test_pyproject_installs_every_package_and_the_services_inside_the_package():
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
     for s in ("capture", "flow", "motion", "render", "recorder"):
         assert scripts[f"quick-stream-{s}"] == f"quick_stream.services.{s}:main"
+
+
+def test_the_tool_refuses_a_folder_that_is_not_a_repository_and_has_help(tmp_path: Path, capsys):
+    """`/nonexistent` and `-h` were taken for the repository to check: "0 layer violation(s)", exit 0."""
+    from tests.tools.layers import main
+
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "nonexistent")])
+    assert e.value.code == 2 and "no quick_stream package there" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["-h"])
+    assert e.value.code == 0 and "usage: python -m tests.tools.layers" in capsys.readouterr().out
+    assert main([]) == 0  # this repository

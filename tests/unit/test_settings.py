@@ -181,9 +181,10 @@ def test_a_recording_without_the_record_has_none_and_a_damaged_record_is_named(t
 
 
 def test_settings_show_prints_a_settings_file_and_names_a_bad_one(tmp_path: Path, capsys):
-    assert cli_main(["settings", "show", "--output", str(tmp_path / "s.toml"), "--group", "sa3"]) == 0
+    assert cli_main(["settings", "show", "--group", "sa3"]) == 0
     printed = capsys.readouterr().out
-    assert printed == (tmp_path / "s.toml").read_text()
+    assert cli_main(["settings", "show", "--output", str(tmp_path / "s.toml"), "--group", "sa3"]) == 0
+    assert capsys.readouterr().out == "" and printed == (tmp_path / "s.toml").read_text()
     assert load_settings_file(tmp_path / "s.toml") == stabilizer_params(flags("--group", "sa3"))
     assert cli_main(["config", "show", "--settings", str(tmp_path / "s.toml"), "--json", "-"]) == 0
     doc = json.loads(capsys.readouterr().out)
@@ -214,3 +215,21 @@ def test_a_bad_flag_value_is_blamed_on_its_own_flag(argv, named):
     with pytest.raises(ValueError) as e:
         stabilizer_params(flags(*argv))
     assert str(e.value).startswith(named), e.value
+
+
+def test_settings_show_output_writes_the_file_and_says_only_where(tmp_path, capsys):
+    out = tmp_path / "s.toml"
+    assert cli_main(["settings", "show", "--output", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.strip() == f"wrote {out}"
+    assert out.read_text().startswith("# quick-stream settings ")
+
+
+@pytest.mark.parametrize("argv, usage", [(["stabilize", "--bogus"], "usage: quick-stream stabilize"),
+                                         (["bench", "pipeline", "--bogus"], "usage: quick-stream bench pipeline"),
+                                         (["settings", "show", "--bogus"], "usage: quick-stream settings show")])
+def test_a_mistyped_flag_is_refused_with_its_commands_usage(argv, usage, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli_main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.startswith(usage) and "unrecognized arguments: --bogus" in err, err
