@@ -120,10 +120,14 @@ class Shedder:
         """Frames sent that ``stage`` has not reached yet."""
         return len(self._sent) - bisect.bisect_right(self._sent, self.done[stage])
 
+    def _forget_reached(self) -> None:
+        """Drop the frames sent that every stage has reached (no longer in flight anywhere)."""
+        del self._sent[:bisect.bisect_right(self._sent, min(self.done.values()))]
+
     def sent(self, seq: int) -> None:
         """Frame ``seq`` went out without asking :meth:`admit` (counted in flight only)."""
         if self.limits and (not self._sent or seq > self._sent[-1]):
-            del self._sent[:bisect.bisect_right(self._sent, min(self.done.values()))]  # every stage has them
+            self._forget_reached()
             self._sent.append(seq)
 
     def admit(self, seq: int, now: float) -> bool:
@@ -134,7 +138,7 @@ class Shedder:
         horizon = now - self.rate_s
         if self._offered[0] < horizon:
             del self._offered[:bisect.bisect_left(self._offered, horizon)]
-        del self._sent[:bisect.bisect_right(self._sent, min(self.done.values()))]
+        self._forget_reached()
         share = 1.0
         for stage, lim in self.limits.items():
             done = self._completed[stage]
