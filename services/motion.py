@@ -21,7 +21,7 @@ import time
 
 import zenoh
 
-from quick_stream.core.release import Tag
+from quick_stream.core.release_tags import Tag
 from quick_stream.core.path.planner import Correction
 from quick_stream.core.settings import settings_digest
 from quick_stream.core.stages import MotionDriver

@@ -65,7 +65,7 @@ import shutil
 import subprocess
 import tempfile
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -91,11 +91,6 @@ class BaselineParams:
     deshake_edge: str = "mirror"  # deshake: blank | original | clamp | mirror
     deshake_rx: int = 16  # deshake: search range in px (max 64)
     deshake_ry: int = 16
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        """Parameter name -> default, for CLIs and reports."""
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     def filters(self) -> dict[str, str]:
         """The -vf strings: vidstab detect, vidstab transform, deshake."""

@@ -250,7 +250,7 @@ def run(cfg: QualityConfig, progress: Progress | None = None) -> dict:
         "ours": {"argv": [], "flags": ours.flags, "params": dataclasses.asdict(ours.params)},
         "variants": {v.name: {"argv": v.argv, "flags": v.flags, "params": dataclasses.asdict(v.params)}
                      for v in cfg.variants},
-        "ffmpeg_params": ffmpeg_baselines.BaselineParams.describe(),
+        "ffmpeg_params": dataclasses.asdict(ffmpeg_baselines.BaselineParams()),
         "versions": versions(),
         "clips": [],
     }

@@ -7,7 +7,7 @@ import re
 import shlex
 from dataclasses import dataclass
 
-from ..core.stabilizer import StabilizerParams
+from ..core.params import StabilizerParams
 
 GROUPS = ("se3", "sim3", "sa3", "ga3")
 ENDS = ("identity", "smoothed")

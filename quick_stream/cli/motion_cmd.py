@@ -22,7 +22,7 @@ from ..core.lie import GROUPS
 from ..core.motion import ESTIMATORS, KINDS, MotionParams, integrate_path
 from ..core.motion_pipeline import MotionPipeline, run_motion, true_motion
 from ..core.sceneflow import DIS_PRESETS, SceneFlowParams
-from ..core.stabilizer import STABILIZER_TRANSLATION_PRIOR_MM
+from ..core.params import STABILIZER_TRANSLATION_PRIOR_MM
 from ..io.sources import SourceError, open_source
 from ..io.sources.trajectory import write_tum_trajectory
 from ..quality.evaluation.opencv_odometry import OpenCVOdometry

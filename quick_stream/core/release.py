@@ -20,43 +20,15 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, NamedTuple
+from typing import Any, Callable, Iterator
 
 from .continuity import AheadHold, starts_numbering
 from .frame import RGBDFrame
+from .logs import log_or_quiet
 from .path.planner import Correction
+from .release_tags import Tag
 from .render import FramingParams, WarpParams
 from .render_stage import FrameLoader, RenderStage, StabilizedFrame
-
-
-class Tag(NamedTuple):
-    """A correction's place in its planner release: the release, its index in it, the release's size
-    and the newest frame the motion stage had taken when it released (``closed_by``: the frame whose
-    arrival closed the release, what the latency stamps measure from; None: the end of the stream
-    closed it, or a sender that does not say)."""
-
-    release: int
-    index: int
-    size: int
-    closed_by: int | None = None
-
-
-class ReleaseNumbering:
-    """Correction batches tagged as the motion service publishes them: each batch one release,
-    numbered from 0 for the service's life (not reset at the end of a stream)."""
-
-    def __init__(self) -> None:
-        self.release = 0
-        self.sent = 0  # corrections tagged
-
-    def number(self, batches: list[list[Correction]], closed_by: int | None = None) -> list[tuple[Correction, Tag]]:
-        """Tag each batch as one release; ``closed_by``: the newest frame taken when they were released."""
-        out: list[tuple[Correction, Tag]] = []
-        for b in batches:
-            out += [(c, Tag(self.release, i, len(b), closed_by)) for i, c in enumerate(b)]
-            self.sent += len(b)
-            self.release += 1
-        return out
 
 
 class ReleaseGroups:
@@ -177,17 +149,13 @@ class RenderDriver:
         self.releases = ReleaseGroups(clock)  # one for the service's life: a restarted motion renumbers from 0
         self.ahead: AheadHold[tuple[Correction, Tag | None]] = AheadHold()  # far-ahead corrections
         self.max_frames, self.frame_wait, self.resume_after = max_frames, frame_wait, resume_after
-        self.log, self.clock = log, clock
+        self.log, self.clock = log_or_quiet(log), clock
         self._pub_ns: dict[tuple[int, int], int] = {}  # (numbering, seq) -> when the capture published the frame
         self.refused = self.taken_over = self.flagged = self.ended = 0
         self._done = dict.fromkeys(CARRIED, 0)  # counts of the streams already ended
         self.ending = False  # the corrections' end came: the stream ends once its frames are in
         self.end_marker: Any = None  # what came with it (forwarded by the service)
         self._deadline: float | None = None
-
-    def _say(self, level: int, msg: str, *args: Any) -> None:
-        if self.log is not None:
-            self.log.log(level, msg, *args)
 
     def add_correction(self, c: Correction, tag: Tag | None) -> None:
         """One correction as it arrives, with its release tag (None: a sender without tags). One more
@@ -205,10 +173,10 @@ class RenderDriver:
         else:
             taken = self.ahead.offer(newest, c.seq, (c, tag))
         if self.ahead.dropped > dropped:
-            self._say(logging.ERROR, "%d corrections held far ahead dropped: no run confirmed a new numbering",
+            self.log.log(logging.ERROR, "%d corrections held far ahead dropped: no run confirmed a new numbering",
                       self.ahead.dropped - dropped)
         if not taken:
-            self._say(logging.WARNING, "correction %d is %d frames beyond frame %d (more than %d): held until %d in "
+            self.log.log(logging.WARNING, "correction %d is %d frames beyond frame %d (more than %d): held until %d in "
                       "a row continue from it", c.seq, c.seq - newest, newest, self.ahead.guard.max_jump,
                       self.ahead.guard.confirm)
         for c, tag in taken:
@@ -231,10 +199,10 @@ class RenderDriver:
                 return False
         except ValueError as e:
             self.refused += 1
-            self._say(logging.ERROR, "frame %d: %s", seq, e)
+            self.log.log(logging.ERROR, "frame %d: %s", seq, e)
             return False
         if st.renumberings > renumberings:
-            self._say(logging.WARNING, "frame %d: the stream's numbering restarts (confirmed by %d frames in a row); "
+            self.log.log(logging.WARNING, "frame %d: the stream's numbering restarts (confirmed by %d frames in a row); "
                       "%d frames of the old numbering held for their corrections", seq, st.jumps.resync,
                       st.buffered - 1)
             self.resume_after = None  # the predecessor's cursor says nothing of the new numbering
@@ -274,7 +242,7 @@ class RenderDriver:
                 yield self._stamped(sf, ready)
         finally:
             for b in st.bad[nbad:]:
-                self._say(logging.ERROR, "frame %d cannot be rendered: %s", b["seq"], b["error"])
+                self.log.log(logging.ERROR, "frame %d cannot be rendered: %s", b["seq"], b["error"])
 
     def _stamped(self, sf: StabilizedFrame, ready: tuple[int, int] | None) -> Rendered:
         src = self._pub_ns.pop((sf.numbering, sf.seq), None)
@@ -300,11 +268,11 @@ class RenderDriver:
         a release (``abandoned``), and the frames the end overtook get ``frame_wait`` (:meth:`end_due`)."""
         self.ending, self.end_marker, self._deadline = True, marker, None
         if self.ahead.drop():
-            self._say(logging.ERROR, "end of stream with corrections held far ahead: dropped, no run confirmed them")
+            self.log.log(logging.ERROR, "end of stream with corrections held far ahead: dropped, no run confirmed them")
         self.stage.let_go(getattr(marker, "shed", ()))  # shed after the last flow: never corrected
         n = self.releases.flush_incomplete()
         if n:
-            self._say(logging.WARNING, "end of stream with %d incomplete releases", n)
+            self.log.log(logging.WARNING, "end of stream with %d incomplete releases", n)
 
     def end_due(self, stopping: bool = False) -> bool:
         """After :meth:`end`: whether the stream ends now (:meth:`finish`): every release rendered,

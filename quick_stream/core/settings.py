@@ -1,6 +1,6 @@
 """The stabilizer's settings as plain data: one tree, read from and written to dicts.
 
-:class:`~quick_stream.core.stabilizer.StabilizerParams` is the settings tree (flow, continuity,
+:class:`~quick_stream.core.params.StabilizerParams` is the settings tree (flow, continuity,
 motion, planner, warp, framing; each a dataclass of numbers, strings and flags). This module
 turns it into plain data (TOML/JSON-ready dicts, the form a settings file and a recording's
 metadata record hold) and back, strictly: an unknown key, a value of the wrong type or a value
@@ -20,11 +20,9 @@ import typing
 from typing import Any
 
 from .lie import GROUPS
-from .stabilizer import StabilizerParams
+from .params import StabilizerParams
 
-__all__ = ["Settings", "SettingsError", "settings_dict", "settings_from_dict", "check_settings", "settings_digest"]
-
-Settings = StabilizerParams  # the settings tree's name where it is handled as data
+__all__ = ["SettingsError", "settings_dict", "settings_from_dict", "check_settings", "settings_digest"]
 
 
 class SettingsError(ValueError):

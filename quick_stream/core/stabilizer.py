@@ -19,44 +19,17 @@ motion, solver failure, failed warp) are still rendered, flagged in their record
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
-
-from .continuity import ContinuityParams
 from .frame import BadFrame, RGBDFrame
-from .motion import MotionParams
-from .path.planner import Correction, PathPlanner, PlannerParams
-from .release import RenderDriver, Tag
-from .render import FramingParams, WarpParams
+from .params import StabilizerParams
+from .path.planner import Correction, PathPlanner
+from .release import RenderDriver
+from .release_tags import Tag
 from .render_stage import RenderStage, StabilizedFrame
-from .sceneflow import SceneFlowParams
 from .stages import FlowStage, MotionDriver, MotionStage
 from .timing import StageTimer
 
 __all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]
-
-
-STABILIZER_TRANSLATION_PRIOR_MM = 0.2  # the stabilizer's fit takes hand-held jitter as rotation (docs/method.md (3n))
-
-
-def stabilizer_motion_params() -> MotionParams:
-    """The motion estimator as the stabilizer runs it: the exact fit with the translation prior (3n). The
-    estimator's own default is the free fit, which recovers any motion of its group."""
-    return MotionParams(translation_prior_mm=STABILIZER_TRANSLATION_PRIOR_MM)
-
-
-@dataclass
-class StabilizerParams:
-    flow: SceneFlowParams = field(default_factory=SceneFlowParams)
-    continuity: ContinuityParams = field(default_factory=ContinuityParams)
-    motion: MotionParams = field(default_factory=stabilizer_motion_params)
-    planner: PlannerParams = field(default_factory=PlannerParams)
-    warp: WarpParams = field(default_factory=WarpParams)
-    framing: FramingParams = field(default_factory=FramingParams)
-
-    def __post_init__(self) -> None:
-        if self.planner.group != self.motion.group:
-            raise ValueError(f"motion group {self.motion.group!r} and path group {self.planner.group!r} differ")
 
 
 class Stabilizer:

@@ -34,16 +34,18 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Any, Collection
+from typing import Collection
 
 from .continuity import AheadHold, ContinuityCheck, ContinuityParams, breaks_stream, published_after, restarts_numbering
 from .frame import RGBDFrame
+from .logs import log_or_quiet
 from .motion import KINDS, MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .motion.chain import MotionBridge
+from .params import check_groups
 from .path.frame_model import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
-from .release import ReleaseNumbering, Tag
-from .render import WarpParams
+from .release_tags import ReleaseNumbering, Tag
+from .render.warp import WarpParams
 from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
 from .timing import StageTimer
 
@@ -100,9 +102,7 @@ class MotionStage:
         self.estimator = MotionEstimator(motion)
         self.bridge = MotionBridge(self.estimator.params.bridge_frames)
         self.planner = PathPlanner(planner, warp)
-        if self.planner.params.group != self.estimator.params.group:
-            raise ValueError(f"motion group {self.estimator.params.group!r} and path group "
-                             f"{self.planner.params.group!r} differ")
+        check_groups(self.estimator.params, self.planner.params)
         self._last: int | None = None  # seq of the newest frame the path has reached
         self.gaps = 0
         self.renumberings = 0  # breaks to a new numbering taken (the path restarted at a lower seq)
@@ -247,13 +247,9 @@ class FlowDriver:
     def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None,
                  log: logging.Logger | None = None) -> None:
         self.stage = FlowStage(params, continuity)
-        self.log = log
+        self.log = log_or_quiet(log)
         self.refused = self.empty = 0
         self.taken: int | None = None  # the seq of the frame the last push took (None: it was refused)
-
-    def _say(self, level: int, msg: str, *args: Any) -> None:
-        if self.log is not None:
-            self.log.log(level, msg, *args)
 
     def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> SceneFlowResult | None:
         """The flow from the previous good frame to ``frame`` (:meth:`FlowStage.push`; ``shed``: the
@@ -263,14 +259,14 @@ class FlowDriver:
             flow = self.stage.push(frame, pub_ns, shed)
         except ValueError as e:
             self.refused += 1
-            self._say(logging.ERROR, "refused: %s", e)
+            self.log.log(logging.ERROR, "refused: %s", e)
             return None
         self.taken = frame.seq
         for note in self.stage.notes:
-            self._say(logging.WARNING, "%s", note)
+            self.log.log(logging.WARNING, "%s", note)
         if flow is not None and flow.problem:
             self.empty += 1
-            self._say(logging.WARNING, "flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
+            self.log.log(logging.WARNING, "flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
         return flow
 
     def restart(self) -> None:
@@ -283,7 +279,7 @@ class FlowDriver:
 
 class MotionDriver:
     """The motion stage over a service's life: flows in; motions and the correction batches released,
-    tagged with their release (:class:`~quick_stream.core.release.ReleaseNumbering`), out.
+    tagged with their release (:class:`~quick_stream.core.release_tags.ReleaseNumbering`), out.
 
     ``resume_after``: a restarted motion service starts a new path after the last correction its
     predecessor released (flows up to it are skipped, ``taken_over``, until a renumbering or the
@@ -299,16 +295,12 @@ class MotionDriver:
         self._make = lambda: MotionStage(motion, planner, warp)
         self.stage = self._make()
         self.releases = ReleaseNumbering()
-        self.resume_after, self.log = resume_after, log
+        self.resume_after, self.log = resume_after, log_or_quiet(log)
         self.refused = self.invalid = self.taken_over = 0
         self.kinds = dict.fromkeys(KINDS, 0)  # motions by how they were known (docs/method.md 2.4)
         self._renumberings = 0  # of the streams already ended
         self._jumped = 0  # flows held far ahead and dropped, of the streams already ended
         self._shed: dict[int, tuple[int, ...]] = {}  # frame -> the frames the flow stage shed before it
-
-    def _say(self, level: int, msg: str, *args: Any) -> None:
-        if self.log is not None:
-            self.log.log(level, msg, *args)
 
     def start(self, seq: int) -> list[tuple[Correction, Tag]]:
         """The stream's first frame, before any flow (in-process): its correction, released at once."""
@@ -335,13 +327,13 @@ class MotionDriver:
             motions, batches = self.stage.push(flow)
         except ValueError as e:
             self.refused += 1
-            self._say(logging.ERROR, "flow %d->%d refused: %s", flow.seq, flow.seq_next, e)
+            self.log.log(logging.ERROR, "flow %d->%d refused: %s", flow.seq, flow.seq_next, e)
             return None
         if ahead.dropped > dropped:
-            self._say(logging.ERROR, "%d flows held far ahead dropped: no run of flows confirmed a new numbering "
+            self.log.log(logging.ERROR, "%d flows held far ahead dropped: no run of flows confirmed a new numbering "
                       "(the stream went on from frame %s)", ahead.dropped - dropped, last)
         if not motions:  # held: far ahead of the path, until a run confirms it
-            self._say(logging.WARNING, "flow %d->%d reaches %d frames beyond frame %d (more than %d): held until %d "
+            self.log.log(logging.WARNING, "flow %d->%d reaches %d frames beyond frame %d (more than %d): held until %d "
                       "flows in a row continue from it", flow.seq, flow.seq_next,
                       max(flow.seq, flow.seq_next) - last, last, ahead.guard.max_jump, ahead.guard.confirm)
             return [], []
@@ -356,16 +348,16 @@ class MotionDriver:
             self.kinds[m.kind] = self.kinds.get(m.kind, 0) + 1
             if not m.valid:
                 self.invalid += 1
-                self._say(logging.WARNING, "motion %d->%d not known, the path restarts: %s", m.seq, m.seq_next,
+                self.log.log(logging.WARNING, "motion %d->%d not known, the path restarts: %s", m.seq, m.seq_next,
                           m.reason)
             elif m.kind != "fit":
-                self._say(logging.INFO, "motion %d->%d by %s: %s", m.seq, m.seq_next, m.kind, m.reason)
+                self.log.log(logging.INFO, "motion %d->%d by %s: %s", m.seq, m.seq_next, m.kind, m.reason)
         return motions, self.releases.number(batches, closed_by=flow.seq_next)
 
     def finish(self) -> list[tuple[Correction, Tag]]:
         """End of stream: the last segment's corrections, tagged."""
         out = self.releases.number(self._named(self.stage.finish()))
-        self._say(logging.INFO, "end of stream: %d segments, %d corrections", len(self.stage.planner.segments),
+        self.log.log(logging.INFO, "end of stream: %d segments, %d corrections", len(self.stage.planner.segments),
                   self.releases.sent)
         return out
 

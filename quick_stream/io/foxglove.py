@@ -26,7 +26,7 @@ Foxglove pose has only a position and a unit quaternion.
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import cv2
 import numpy as np
@@ -42,7 +42,6 @@ from ..core.frame import Intrinsics
 from ..core.lie import so3
 from ..stream.keys import key
 from ..stream.wire.codec import unpack
-from .recording import Recorder
 from .sources.trajectory import matrix_to_quat, quat_to_matrix
 
 MESSAGE_ENCODING = "protobuf"
@@ -98,7 +97,14 @@ def schema_bytes(name: str) -> bytes:
     return fds.SerializeToString(deterministic=True)
 
 
-def register_channels(recorder: Recorder, stream: str,
+class ChannelRegistry(Protocol):
+    """What :func:`register_channels` needs of a recorder (:class:`~quick_stream.io.recording.Recorder`)."""
+
+    def channel(self, topic: str, encoding: str = "msgpack", schema_name: str = "", schema: bytes = b"",
+                schema_encoding: str = "", metadata: dict[str, str] | None = None) -> int: ...
+
+
+def register_channels(recorder: ChannelRegistry, stream: str,
                       msgpack_stages: tuple[str, ...] = MSGPACK_STAGES) -> dict[str, str]:
     """Register a stream's Foxglove protobuf channels and its msgpack channels.
 

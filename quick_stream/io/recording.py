@@ -36,6 +36,8 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from .recording_images import Rejoiner
+
 PROFILE = "quick-stream"
 
 
@@ -348,8 +350,6 @@ def read_messages(path: str | os.PathLike, topics: list[str] | None = None) -> I
     The error names the file and the problem: no intact footer/summary (a killed writer; the
     message says to run ``quick-stream recover``), or a damaged record after the n-th message read.
     """
-    from .recording_images import Rejoiner  # it imports the Foxglove schemas, which import this module
-
     path = Path(path)
     rejoin = Rejoiner(topics)
     n = 0

@@ -21,7 +21,7 @@ from mcap.records import Message, Metadata
 from mcap.stream_reader import StreamReader
 
 from ..core.settings import SettingsError, settings_dict, settings_digest, settings_from_dict
-from ..core.stabilizer import StabilizerParams
+from ..core.params import StabilizerParams
 from .recording import RecordingError, describe_damage, open_recording
 
 RECORD_NAME = "quick-stream.settings"

@@ -10,37 +10,21 @@ from __future__ import annotations
 import argparse
 import math
 import os
-from dataclasses import replace
 from typing import Callable
 
 from ..core.lie import GROUPS
 from ..core.motion import ESTIMATORS
-from ..core.path.budget import BudgetParams
+from ..core.params import LATENCY_PRESETS, USER_SETTINGS, StabilizerParams, user_defaults, with_user_settings
 from ..core.path.constraints import END_MODES
-from ..core.path.keyframes import KeyframeParams
 from ..core.path.planner import PATH_MODES, PlannerParams
-from ..core.render import FramingParams
 from ..core.settings import SettingsError
-from ..core.stabilizer import StabilizerParams
 from .settings_file import load_settings_file
-
-
-# --latency presets: (keyframe interval, look-ahead, smoothness); the interval is the longest wait
-# (frames) a frame has before its correction is released (docs/method.md 4.3). A shorter window
-# sees less of the future, so it smooths less (measured: docs/method.md 4.3).
-LATENCY_PRESETS = {"normal": (KeyframeParams.interval, PlannerParams.lookahead, PlannerParams.smoothness),
-                   "low": (15, 10, 3000.0)}
 
 
 SETTINGS_ENV = "QUICK_STREAM_SETTINGS"  # the settings file when --settings is not given (a host's services)
 
-# the flags' values when not given: with them, StabilizerParams() becomes the product's defaults
-FLAG_DEFAULTS = {"group": "se3", "estimator": "exact", "latency": "normal", "end": PlannerParams.end,
-                 "lowpass_sigma": PlannerParams.lowpass_sigma, "path": PlannerParams.mode,
-                 "max_zoom": BudgetParams.max_zoom, "fill_frames": FramingParams.fill_frames,
-                 "fill_band": BudgetParams.fill, "framing": "auto", "crop_zoom": FramingParams.crop_zoom}
-FLAGS = ("group", "estimator", "latency", "keyframe_interval", "lookahead", "end", "lowpass_sigma", "path_weights",
-         "path", "max_zoom", "smoothness", "fill_frames", "fill_band", "framing", "crop_zoom")
+FLAGS = USER_SETTINGS  # a flag per user-facing setting (--max-zoom for max_zoom)
+FLAG_DEFAULTS = user_defaults()  # the flags' values when not given: StabilizerParams()'s
 
 
 def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
@@ -119,56 +103,17 @@ def _path_weights(text: str) -> tuple[float, ...]:
         raise ValueError(f"--path-weights: expected comma-separated numbers, got {text!r}") from None
 
 
-def _min_interval(interval: int) -> int:
-    return max(1, min(10, interval - 1))
-
-
 def apply_flags(params: StabilizerParams, flags: dict[str, object]) -> StabilizerParams:
-    """``params`` with the given flags' settings (``flags``: :func:`given_flags`). One flag may set
-    several fields: --group the motion's and the path's, --max-zoom the budget's and the framing's."""
-    f = flags
-    motion, planner, framing = params.motion, params.planner, params.framing
-    kf, budget, path = planner.keyframes, planner.budget, planner.path
-    if "group" in f:
-        motion, planner = replace(motion, group=f["group"]), replace(planner, group=f["group"])
-    if "estimator" in f:
-        motion = replace(motion, estimator=f["estimator"])
-    if "latency" in f:
-        interval, lookahead, smoothness = LATENCY_PRESETS[f["latency"]]
-        kf = replace(kf, interval=interval, min_interval=_min_interval(interval))
-        planner = replace(planner, lookahead=lookahead, smoothness=smoothness)
-    if "keyframe_interval" in f:
-        interval = int(f["keyframe_interval"])
-        if "lookahead" not in f and kf.interval > 0:  # keep the share of the window re-planned
-            planner = replace(planner, lookahead=(interval * planner.lookahead) // kf.interval)
-        kf = replace(kf, interval=interval, min_interval=_min_interval(interval))
-    for flag, fld in (("lookahead", "lookahead"), ("smoothness", "smoothness"), ("end", "end"),
-                      ("lowpass_sigma", "lowpass_sigma"), ("path", "mode")):
-        if flag in f:
-            planner = replace(planner, **{fld: f[flag]})
-    if "path_weights" in f:
-        path = replace(path, weights=_path_weights(str(f["path_weights"])))
-    if "max_zoom" in f:
-        z = float(f["max_zoom"])
-        budget = replace(budget, max_zoom=z)
-        framing = replace(framing, max_zoom=z if z > 0 else FramingParams.max_zoom)
-    if "fill_frames" in f:
-        n = int(f["fill_frames"])
-        fill = 0.0 if n <= 0 else (budget.fill or BudgetParams.fill)
-        framing, budget = replace(framing, fill_frames=n), replace(budget, fill=fill, fill_reach=max(n, 0))
-    if "fill_band" in f:
-        budget = replace(budget, fill=float(f["fill_band"]) if framing.fill_frames > 0 else 0.0)
-    if "framing" in f:
-        framing = replace(framing, mode=f["framing"])
-    if "crop_zoom" in f:
-        framing = replace(framing, crop_zoom=float(f["crop_zoom"]))
-    planner = replace(planner, keyframes=kf, budget=budget, path=path)
-    return replace(params, motion=motion, planner=planner, framing=framing)
+    """``params`` with the given flags' settings (``flags``: :func:`given_flags`; the couplings are
+    :func:`~quick_stream.core.params.with_user_settings`'); ``--path-weights`` as typed."""
+    if isinstance(flags.get("path_weights"), str):
+        flags = {**flags, "path_weights": _path_weights(str(flags["path_weights"]))}
+    return with_user_settings(params, flags)
 
 
 def default_settings() -> StabilizerParams:
-    """The product's defaults: every flag at its default (what ``quick-stream stabilize`` runs with no flags)."""
-    return apply_flags(StabilizerParams(), FLAG_DEFAULTS)
+    """The product's defaults: what ``quick-stream stabilize`` runs with no flags, ``StabilizerParams()``."""
+    return StabilizerParams()
 
 
 def stabilizer_params(args: argparse.Namespace, recorded: StabilizerParams | None = None) -> StabilizerParams:

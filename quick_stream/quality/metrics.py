@@ -97,7 +97,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 
 import cv2
 import numpy as np
@@ -122,11 +122,6 @@ class MetricParams:
     max_black_fraction: float = 0.9  # output frame blacker than this: "mapped out of view" (failure)
     low_bins: int = 5  # stability: bins 2..(low_bins+1) of the spectrum (DC excluded)
     jitter_sigma_frames: float | None = None  # Gaussian sigma of the jitter high-pass; None: fps / 6
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        """Parameter name -> default, for CLIs and reports."""
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     def validate(self) -> None:
         if self.n_features < 10 or not 0 < self.ratio < 1:

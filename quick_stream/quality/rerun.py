@@ -25,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from ..core.release import RenderDriver, Tag
+from ..core.release import RenderDriver
+from ..core.release_tags import Tag
 from ..core.path.planner import Correction
 from ..core.render_stage import StabilizedFrame
 from ..core.sceneflow import SceneFlow
-from ..core.stabilizer import StabilizerParams
+from ..core.params import StabilizerParams
 from ..core.stages import MotionDriver
 from ..core.settings import settings_digest
 from ..io.recording import RecordingError, read_messages

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from quick_stream.io.sources import SourceError, open_source
-from quick_stream.io.sources.oak import NoDevice
+from quick_stream.io.sources.oak_options import NoDevice
 
 
 def test_fake_device_through_the_services_and_replay_gives_the_same_output(tmp_path):

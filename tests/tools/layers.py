@@ -10,7 +10,9 @@ argparse, files, processes, sockets). Every module lives in a layer's folder; on
 
 Every ``import`` and ``from ... import`` counts, absolute or relative, at module level or inside a
 function (``TYPE_CHECKING`` blocks included), and so does ``importlib.import_module("...")`` with a
-literal name. ``python -m tests.tools.layers [ROOT]`` prints each violation and exits 1 if any.
+literal name. And no import cycle between modules (:func:`find_cycles`: the same imports, a function's
+deferred import included, which is how a cycle hides). ``python -m tests.tools.layers [ROOT]`` prints
+each violation and each cycle and exits 1 if any.
 """
 from __future__ import annotations
 
@@ -131,6 +133,64 @@ def check_tree(root: Path) -> list[Violation]:
     return found
 
 
+def _module_files(root: Path) -> dict[str, tuple[Path, bool]]:
+    files = sorted([*(root / PACKAGE).rglob("*.py"), *(root / "services").rglob("*.py")])
+    return {m: (path, pkg) for path in files for m, pkg in [module_of(path.relative_to(root))]}
+
+
+def import_graph(root: Path) -> dict[str, set[str]]:
+    """Module -> the modules of the package it imports (``from X import name``: X.name when that is a
+    module, else X)."""
+    mods = _module_files(root)
+    graph: dict[str, set[str]] = {}
+    for module, (path, is_pkg) in mods.items():
+        tree = ast.parse(path.read_text(), str(path))
+        edges = set()
+        for _, imported in imported_modules(tree, module, is_pkg):
+            target = imported if imported in mods else imported.rpartition(".")[0]
+            if target in mods and target != module:
+                edges.add(target)
+        graph[module] = edges
+    return graph
+
+
+def find_cycles(root: Path) -> list[list[str]]:
+    """Every set of modules that import each other, directly or around a loop (the strongly connected
+    components of :func:`import_graph` with more than one module), each sorted."""
+    graph = import_graph(root)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan's algorithm
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tests.tools.layers", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -142,8 +202,11 @@ def main(argv: list[str] | None = None) -> int:
     found = check_tree(root)
     for v in found:
         print(v)
-    print(f"{len(found)} layer violation(s) in {root}")
-    return 1 if found else 0
+    cycles = find_cycles(root)
+    for c in cycles:
+        print("import cycle among: " + ", ".join(c))
+    print(f"{len(found)} layer violation(s), {len(cycles)} import cycle(s) in {root}")
+    return 1 if found or cycles else 0
 
 
 if __name__ == "__main__":

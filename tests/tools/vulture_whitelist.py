@@ -31,3 +31,7 @@ _.process
 
 # tests/unit/test_oak_source.py: mock reads side_effect when the stand-in node's method is called
 _.side_effect
+
+# core/__init__.py, core/render/__init__.py: a module's __getattr__ is called by Python for a name the
+# module does not hold (the package's names load their module on first use)
+__getattr__

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.tools.layers import check_tree
+from tests.tools.layers import check_tree, find_cycles
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -78,6 +78,17 @@ def test_same_and_lower_layers_pass(copy: Path):
     plant(copy, "quick_stream/io/extra.py", "from ..stream.wire import decode\nfrom . import sinks\n")
     plant(copy, "services/extra.py", "from quick_stream.io.sources import open_source\nfrom . import flow\n")
     assert check_tree(copy) == []
+
+
+def test_no_import_cycle():
+    assert find_cycles(REPO) == []
+
+
+def test_a_planted_cycle_is_found_even_through_a_deferred_import(copy: Path):
+    """io/foxglove <-> recording <-> recording_images was one, through a function's import."""
+    plant(copy, "quick_stream/core/lie/so3.py", "def f():\n    from ..frame import Intrinsics\n")
+    plant(copy, "quick_stream/core/frame.py", "from .lie import so3\n")
+    assert find_cycles(copy) == [["quick_stream.core.frame", "quick_stream.core.lie.so3"]]
 
 
 def test_pyproject_installs_every_package_and_the_services_inside_the_package():

@@ -241,8 +241,7 @@ def test_low_frequency_ratio_and_jitter_signals():
     assert trajectory_jitter(alt, 5.0)[0] == pytest.approx(0.5, abs=0.05)
 
 
-def test_params_validate_and_describe():
-    assert "max_side" in MetricParams.describe()
+def test_params_validate():
     with pytest.raises(ValueError):
         MetricParams(min_inliers=2).validate()
 

@@ -16,7 +16,8 @@ import pytest
 
 from quick_stream.core.frame import BadFrame, RGBDFrame, dequantize_depth, quantize_depth
 from quick_stream.io.sources import SourceError, open_source
-from quick_stream.io.sources.oak import DeviceGone, FramePairer, NoDevice, OakSource
+from quick_stream.io.sources.oak import FramePairer, OakSource
+from quick_stream.io.sources.oak_options import DeviceGone, NoDevice
 from quick_stream.io.sources.oak_fake import FakeImgFrame, FakeOakBackend, parse_script
 from quick_stream.io.sources.synthetic import SyntheticSource
 from quick_stream.stream.wire import decode, encode_frame
@@ -218,7 +219,7 @@ def test_adapter_on_real_depthai_imgframes_from_a_host_only_pipeline(tmp_path):
 from unittest import mock  # noqa: E402
 
 from quick_stream.io.sources import check_source  # noqa: E402
-from quick_stream.io.sources.oak import PRESETS, StereoSettings, oak_settings  # noqa: E402
+from quick_stream.io.sources.oak_options import PRESETS, StereoSettings, oak_settings  # noqa: E402
 from quick_stream.io.sources.oak_device import DepthaiBackend, preset_mode, stereo_config  # noqa: E402
 
 

@@ -382,7 +382,6 @@ def test_framing_modes_and_validation():
         FramingParams(mode="zoom").validate()
     with pytest.raises(ValueError):
         FramingParams(crop_zoom=0.9).validate()
-    assert "crop_zoom" in FramingParams.describe() and "alpha" in WarpParams.describe()
     meshes = [MeshWarp.identity(W, H), solve_warp(make_frame(11), rigid((0, 0, 0.03)))]
     assert np.all(segment_zooms(meshes, FramingParams(mode="black")) == 1.0)
     assert np.all(segment_zooms(meshes, FramingParams(mode="crop", crop_zoom=1.2)) == 1.2)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import msgpack
 import numpy as np
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from quick_stream.core.frame import Intrinsics, RGBDFrame
 from quick_stream.core.motion import MotionEstimate, invalid_motion
 from quick_stream.core.path.planner import Correction
-from quick_stream.core.release import Tag
+from quick_stream.core.release_tags import Tag
 from quick_stream.core.sceneflow import SceneFlowResult
 from quick_stream.stream.wire import (
     FORMAT_VERSION,
@@ -79,7 +80,7 @@ def small_messages() -> list[bytes]:
         encode_frame(f, "cam0", color="jpeg", depth="zstd"),
         encode_flow(make_flow(4), "cam0"),
         encode_motion(make_motion(), "cam0"),
-        encode_correction(make_correction(), "cam0", zoom=1.1),
+        encode_correction(replace(make_correction(), zoom=1.1), "cam0"),
         encode_stabilized(StabilizedImage(5, 99, f.color, 1.2, ["late"]), "cam0", color="raw"),
         encode_stats(Stats("flow", {"fps": 29.9, "drops": 0, "state": "ok"}), "cam0", 3),
     ]
@@ -209,7 +210,7 @@ def test_correction_motion_round_trips_and_is_optional():
 
 def test_correction_round_trip():
     c = make_correction()
-    m = decode(encode_correction(c, "cam0", zoom=1.25))
+    m = decode(encode_correction(replace(c, zoom=1.25), "cam0"))
     g = m.obj
     assert isinstance(g, Correction) and np.array_equal(g.matrix, c.matrix)
     assert (g.seq, g.segment, g.keyframe, g.valid, g.reason) == (11, 2, True, True, "")

@@ -36,7 +36,7 @@ covariance, which the path uses to weight it.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -69,12 +69,6 @@ class MotionParams:
     bridge_frames: int = 3  # a flow with nothing in it is bridged at constant velocity for up to this many
     # consecutive frames before the path restarts (0: never; docs/method.md 2.4, the motion stage's MotionBridge)
     exact: ExactParams = field(default_factory=ExactParams)
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        d = {f.name: repr(f.default) for f in fields(cls) if f.name != "exact"}
-        d.update({f"exact.{k}": v for k, v in ExactParams.describe().items()})
-        return d
 
     def validate(self) -> None:
         get_group(self.group)

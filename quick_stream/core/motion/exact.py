@@ -44,7 +44,7 @@ object moving in front of a wall cannot lend the affine fit the out-of-plane spr
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -72,9 +72,6 @@ class ExactParams:
     max_depth_scale: float = 1000.0  # ... and its depth noise at most this x depth_noise: depth that lags or is
     # garbage is weighted down until it decides nothing (depth only ever adds information), docs/method.md (3i)
 
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        return {f.name: repr(f.default) for f in fields(cls)}
 
 
 def cauchy_weights(r: np.ndarray, c: float, max_scale: float = np.inf) -> tuple[np.ndarray, float]:

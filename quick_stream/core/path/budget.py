@@ -16,7 +16,7 @@ back unchanged, with only its zoom track planned.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -46,10 +46,6 @@ class BudgetParams:
     fill: float = 0.08  # share of half the short side the mesh may leave uncovered inside the crop: the
     # renderer fills it from neighbouring frames (docs/method.md 5.4); 0 when the renderer does not fill
     fill_reach: int = 8  # frames on each side the renderer's fill reads (the zoom track plans with them)
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     @property
     def enabled(self) -> bool:

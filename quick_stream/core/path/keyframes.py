@@ -10,7 +10,7 @@ detector is causal: it decides when each motion arrives.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -22,10 +22,6 @@ class KeyframeParams:
     turn_deg: float = 60.0  # velocity-direction change that forces a keyframe
     window: int = 5  # frames averaged for a velocity direction
     min_speed_m: float = 0.002  # mean speed (m per frame) below which direction is undefined
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     def validate(self) -> None:
         if self.interval < 2:

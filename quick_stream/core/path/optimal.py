@@ -31,7 +31,7 @@ end-constraint (docs/method.md 4.1).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -47,10 +47,6 @@ class PathParams:
     tol: float = 1e-10  # max |stationarity residual of (6)| / W and |end-constraint residual| that count as met
     fd_step: float = 1e-7  # finite-difference step on the twist for the derivative of J_r (6a)
     init_iters: int = 30  # Newton iterations of the commuting closed form (6b) (start and fallback)
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     def weight_vector(self, n: int) -> np.ndarray:
         if not self.weights:

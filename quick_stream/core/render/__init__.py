@@ -12,13 +12,22 @@
 Typical use per frame: ``mesh = solve_warp(frame, T)`` with ``T`` the 4x4 map from
 real-camera to stabilised-camera coordinates, then ``render(frame.color, mesh, zoom)``.
 """
-from .framing import Framing, FramingParams, ZoomSmoother, border_free_zoom, segment_zooms
-from .inverse_bilinear import map_points
-from .mapping import coverage, inverse_map, remap, render, valid_mask
-from .warp import MeshWarp, WarpParams, control_pixels, solve_mesh, solve_warp
+from __future__ import annotations
 
-__all__ = [
-    "Framing", "FramingParams", "MeshWarp", "WarpParams", "ZoomSmoother", "border_free_zoom",
-    "control_pixels", "coverage", "inverse_map", "map_points", "remap",
-    "render", "segment_zooms", "solve_mesh", "solve_warp", "valid_mask",
-]
+import importlib
+from typing import Any
+
+_WHERE = {"Framing": "framing", "FramingParams": "framing", "ZoomSmoother": "framing", "border_free_zoom": "framing",
+          "segment_zooms": "framing", "map_points": "inverse_bilinear", "coverage": "mapping",
+          "inverse_map": "mapping", "remap": "mapping", "render": "mapping", "valid_mask": "mapping",
+          "MeshWarp": "warp", "WarpParams": "warp", "control_pixels": "warp", "solve_mesh": "warp",
+          "solve_warp": "warp"}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str) -> Any:
+    """The package's names load their module on first use: a stage that needs only the warp's
+    parameters or the mesh model (the motion stage's crop budget) does not load the renderer."""
+    if name in _WHERE:
+        return getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

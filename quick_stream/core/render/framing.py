@@ -12,7 +12,7 @@ zoomed output rectangle first touches that polygon, a closed form per polygon ed
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from enum import Enum
 from typing import Callable, Iterator, Sequence
 
@@ -55,11 +55,6 @@ class FramingParams:
     fill_zoom_max: float = 1.6  # border fill: what fill leaves uncovered is zoomed away, up to this zoom
     fill_lift_rate: float = 0.002  # border fill: largest change per frame of that extra zoom (rises start early)
     fill_lookahead: int = 8  # border fill: frames ahead a rise of that extra zoom is started from (docs/method.md (14a))
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        """Parameter name -> default, for CLIs and reports."""
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     def validate(self) -> None:
         Framing.parse(self.mode)

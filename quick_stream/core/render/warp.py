@@ -43,7 +43,7 @@ identity mesh with ``ok = False`` and a ``reason``, so callers can flag the fram
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -77,11 +77,6 @@ class WarpParams:
     # this (or below the reference's own, a large rotation's perspective), alpha is raised until it does not.
     min_cell_ratio: float = 0.975
     max_alpha_steps: int = 12  # at most this many raises of alpha, each x2 (alpha up to 4096 x its value)
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        """Parameter name -> default, for CLIs and reports."""
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     def validate(self) -> None:
         gx, gy = self.grid

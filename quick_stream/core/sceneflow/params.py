@@ -1,7 +1,7 @@
 """The scene flow's parameters (:class:`SceneFlowParams`) and the DIS presets it chooses from."""
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import cv2
 
@@ -41,11 +41,6 @@ class SceneFlowParams:
     lk_eps_px: float = 0.03  # LK stops once an iteration moves the sample less than this (px)
     lk_max_shift_px: float = 2.0  # LK moving a sample further than this from DIS: sample dropped
     lk_budget: float = 1.25  # LK refines at most lk_budget x max_points samples, evenly spaced (0: all)
-
-    @classmethod
-    def describe(cls) -> dict[str, str]:
-        """Parameter name -> default, for CLIs and reports."""
-        return {f.name: repr(f.default) for f in fields(cls)}
 
     def validate(self) -> None:
         if self.preset not in DIS_PRESETS:

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from .base import FrameOrGap, Source, SourceError
 
 if TYPE_CHECKING:
-    from ...core.stabilizer import StabilizerParams
+    from ...core.params import StabilizerParams
 
 SOURCE_KINDS = ("synthetic", "tum", "mcap", "depthai")
 
@@ -91,7 +91,7 @@ def check_source(spec: str) -> None:
     if kind.strip().lower() == "depthai":
         positional, options = _split_options(rest)
         if not options.get("fake"):
-            from .oak import oak_settings
+            from .oak_options import oak_settings
 
             if len(positional) > 1:
                 raise SourceError(f"depthai source takes one device id, got {positional}")

@@ -8,7 +8,7 @@ entry point raises an ImportError naming the extra. Pipeline (depthai v3):
     Camera CAM_B/CAM_C --requestOutput--> StereoDepth.left/right --depth (uint16 mm)--> Sync.inputs["depth"]
     Sync (threshold: the source's tolerance_ms) --MessageGroup--> one output queue
 
-The StereoDepth node gets the source's :class:`~quick_stream.io.sources.oak.StereoSettings`
+The StereoDepth node gets the source's :class:`~quick_stream.io.sources.oak_options.StereoSettings`
 (:func:`configure_stereo`): its preset first, then every setting on the node's ``initialConfig``
 (in depthai v3 the node's own ``setLeftRightCheck``/``setSubpixel``/... write to that same config),
 so nothing is left to defaults that differ between depthai versions and presets (depthai 3.12's
@@ -29,7 +29,7 @@ import datetime
 import logging
 from typing import Any
 
-from .oak import DeviceGone, EXTRA_HINT, NoDevice, StereoSettings
+from .oak_options import DeviceGone, EXTRA_HINT, NoDevice, StereoSettings
 
 log = logging.getLogger("quick_stream.io.sources.oak_device")
 

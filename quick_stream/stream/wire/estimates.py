@@ -8,7 +8,7 @@ import numpy as np
 
 from ...core.motion import KINDS as MOTION_KINDS, MotionEstimate
 from ...core.path.planner import CORRECTION_MOTIONS, Correction
-from ...core.release import Tag
+from ...core.release_tags import Tag
 from ...core.sceneflow import SceneFlowResult
 from . import ranges
 from .codec import Reader, WireError, encode_array, float_list, pack, seq_list
@@ -124,13 +124,11 @@ def _decode_motion(r: Reader) -> Decoded:
 
 # --- correction ---------------------------------------------------------------------------------
 
-def encode_correction(c: Correction, stream: str, zoom: float | None = None,
-                      batch: Tag | tuple[int, int, int] | None = None) -> bytes:
-    """A Correction as a ``correction`` message, with the optional framing ``zoom`` (default: the
-    zoom planned with the path, ``c.zoom``) and ``batch`` = (release id, index in it, release
-    size[, closed by]): the planner's release it belongs to (:class:`~quick_stream.core.release.Tag`)."""
-    if zoom is None:
-        zoom = c.zoom
+def encode_correction(c: Correction, stream: str, batch: Tag | tuple[int, int, int] | None = None) -> bytes:
+    """A Correction as a ``correction`` message, with the framing zoom planned with the path (``c.zoom``)
+    and ``batch`` = (release id, index in it, release size[, closed by]): the planner's release it
+    belongs to (:class:`~quick_stream.core.release_tags.Tag`)."""
+    zoom = c.zoom
     if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
         raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
     if batch is not None and not (len(batch) in (3, 4) and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
