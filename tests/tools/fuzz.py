@@ -55,12 +55,12 @@ def seeds() -> list[bytes]:
     compact = quantized_flow(7, 8, grid, rng.uniform(0.5, 3, n).astype(np.float32), grid + rng.normal(0, 0.7, (n, 2)),
                              rng.uniform(0.5, 3, n), k, k, {"kept": n})
     m = MotionEstimate(7, 8, "se3", "exact", np.eye(4), np.zeros(6), True, "", n, 0.9, 0.3, np.zeros(6))
-    c = Correction(7, np.eye(4), 2, False, True, "")
+    c = Correction(7, np.eye(4), 2, False, True, "", zoom=1.1)
     s = StabilizedImage(7, 1_000, color, 1.05, ["flag"])
     return [
         encode_frame(f, "cam0", color="jpeg"), encode_frame(f, "cam0", color="raw", depth="zstd"),
         encode_frame(f, "cam0", color="raw", depth="raw", pub_ns=12),
-        encode(flow, "cam0"), encode(compact, "cam0"), encode(m, "cam0"), encode(c, "cam0", zoom=1.1, batch=(3, 0, 2)),
+        encode(flow, "cam0"), encode(compact, "cam0"), encode(m, "cam0"), encode(c, "cam0", batch=(3, 0, 2)),
         encode_stabilized(s, "cam0"), encode_stabilized(s, "cam0", color="raw", src_pub_ns=1, ready_pub_ns=2),
         encode(Stats("flow", {"fps": 30.0, "n": 3, "ok": True, "why": None}), "cam0", seq=4),
         encode(EndOfStream(7, "done"), "cam0"),

@@ -267,7 +267,7 @@ def test_stabilized_and_stats_round_trip():
 
 def test_encode_dispatch():
     assert decode(encode(make_motion(), "a")).type == "motion"
-    assert decode(encode(make_correction(), stream="b", zoom=1.5)).extra["zoom"] == 1.5
+    assert decode(encode(replace(make_correction(), zoom=1.5), stream="b")).extra["zoom"] == 1.5
     assert decode(encode(make_frame(), "c", color="raw")).type == "frame"
     with pytest.raises(WireError):
         encode(object(), "x")
