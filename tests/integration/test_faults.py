@@ -48,7 +48,7 @@ def check_case(r: dict, case: str, out) -> None:
         # the hole is the recorder's downtime: nothing a recorder was recording around (inside the
         # seq range it holds of that stage) is missing (the hole's size, messages per second of
         # downtime, is a benchmark number)
-        assert r["lost_while_recording"] == 0, r
+        assert r["lost_while_recording"] == 0, r["lost_while_recording_examples"]
         # and the successor says so: it continues its predecessor's account (the side file of what
         # that one flushed), logs the hole per stage and counts it
         assert r["recorder_restart_hole"] > 0, r

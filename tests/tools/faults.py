@@ -480,6 +480,11 @@ def _report(out: Path, case: str, victims: list[str], events: list[tuple[float, 
                                          "s_from_kill": round(min((m.t - k for k in kills), key=abs, default=0.0), 3),
                                          "copy_recorded": (m.stage, m.type, m.seq) in ids} for m in missing[:5]],
               "lost_accepted_before_kill": len(early), "lost_while_recording": len(late),
+              "lost_while_recording_examples": [
+                  {"stage": m.stage, "type": m.type, "seq": m.seq, "in_logged_gap": _inside(m.stage, m.seq, gaps),
+                   "copy_recorded": (m.stage, m.type, m.seq) in ids,
+                   "s_from_kill": round(min((m.t - k for k in kills), key=abs, default=0.0), 3),
+                   "spans": [f["seq_span"].get(m.stage) for f in files]} for m in late[:5]],
               # every message published (the monitor saw it) is recorded or in a hole a successor logged
               "published": len(published), "recorded_of_published": len(published & ids),
               "recorder_holes": holes, "in_logged_hole": sum(_inside(st, q, holes) for st, _, q in published - ids),
