@@ -1,4 +1,4 @@
-"""The depthai (OAK) source: adapter, pairing, faults and reconnection (README, "Live OAK (depthai) cameras").
+"""The depthai (OAK) source: adapter, pairing, faults and reconnection (docs/usage.md, "Live OAK (depthai) cameras").
 
 No camera is attached here, so the adapter runs on (a) the scripted fake device
 (quick_stream/io/sources/oak_fake.py) and (b) real ``depthai.ImgFrame`` objects coming
