@@ -18,9 +18,10 @@ import sys
 import zenoh
 
 from quick_stream.io.sources import SourceError, open_source
+from quick_stream.io.sources.base import LiveSource, ReplaySource, open_live
 from quick_stream.io.sources.oak_device import print_devices
 from quick_stream.stream import argtypes as at
-from quick_stream.stream.capture import Capture, log, open_live
+from quick_stream.stream.capture import Capture, log
 from quick_stream.stream.process import service_main, service_parser
 from quick_stream.stream.runtime import ServiceRuntime
 
@@ -74,16 +75,16 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     if (code := open_live(source, args.source)) is not None:
         return code
     with ServiceRuntime("capture", args.stream, conf) as rt:
-        if callable(getattr(source, "open", None)):  # a live device (a file source's ``stop`` is its last frame)
+        if isinstance(source, LiveSource):
             source.stop = rt.stop  # reconnection retries end when the service is asked to stop
         pub = rt.publisher("frame", lossless=True, cache=args.history)  # lost only where counted (inboxes)
         rt.ready()
-        capture = Capture(rt, pub, args, depth_scale=float(getattr(source, "depth_scale", 1000.0)))
+        capture = Capture(rt, pub, args, depth_scale=float(source.depth_scale))
         if (code := capture.start()) is not None:
             return code
-        replay = getattr(source, "iter_with_messages", None)
         # an exact replay sends the recorded bytes: their pixels are decoded (and checked) by the receivers
-        items = replay(pixels=False) if replay is not None and not args.reencode else ((f, None) for f in source)
+        exact = isinstance(source, ReplaySource) and not args.reencode
+        items = source.iter_with_messages(pixels=False) if exact else ((f, None) for f in source)
         reason = capture.send_all(items)
         capture.end(reason)
     return 1 if reason.startswith("source failed") else 0

@@ -52,10 +52,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     driver = FlowDriver(params.flow, params.continuity, log=log)
     with ServiceRuntime("flow", args.stream, conf, settings=settings_digest(params)) as rt:
-        resume_after = rt.stream_cursor("flow")  # not None: a restarted flow; take over after the last flow out
-        if resume_after is not None:
-            log.warning("stream %s under way (flows out up to frame %d): taking over from the frames' history",
-                        args.stream, resume_after)
+        resume_after = rt.take_over("flow", "frames", log)  # not None: a restarted flow
         taking_over = resume_after is not None
         inbox = rt.inbox(keys.key(args.stream, "frame"), 2 * args.queue, history=taking_over, publisher="capture",
                          skip_through=resume_after, catch_up=args.catch_up if taking_over else 0)

@@ -47,10 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     with ServiceRuntime("motion", args.stream, conf, settings=settings_digest(params)) as rt:
-        resume_after = rt.stream_cursor("correction")  # not None: a restarted motion; take over after it
-        if resume_after is not None:
-            log.warning("stream %s under way (corrections out up to frame %d): the path restarts after it, "
-                        "from the flows' history", args.stream, resume_after)
+        resume_after = rt.take_over("correction", "flows", log)  # not None: a restarted motion (the path restarts)
         driver = MotionDriver(params.motion, params.planner, params.warp, resume_after=resume_after, log=log)
         inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue, history=resume_after is not None,
                          publisher="flow", skip_through=resume_after)

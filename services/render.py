@@ -78,10 +78,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
 
 
 def serve(args: argparse.Namespace, params: StabilizerParams, rt: ServiceRuntime, sink: FileOutput) -> None:
-    resume_after = rt.stream_cursor("stabilized")  # not None: a restarted render; take over after it
-    if resume_after is not None:
-        log.warning("stream %s under way (stabilized out up to frame %d): taking over from the frames' and "
-                    "corrections' history", args.stream, resume_after)
+    resume_after = rt.take_over("stabilized", "frames' and corrections", log)  # not None: a restarted render
     driver = RenderDriver(params.warp, params.framing, max_frames=args.max_frames, frame_wait=args.frame_wait,
                           resume_after=resume_after, log=log, max_bytes=int(args.max_held_mb * 2**20))
     # frames wait there as their messages while a release renders (8 s at 120 frames/s, not 2)

@@ -16,7 +16,7 @@ every file it imports, as Foxglove and the ``mcap`` protobuf readers expect). Pe
 
 Images are the JPEG bytes themselves (a protobuf ``bytes`` field; the JSON encoding needed
 base64, a third more). The schemas come from the ``foxglove-schemas-protobuf`` package
-(README, Dependencies). The exact-replay channels stay msgpack (topic = the zenoh key).
+(docs/dependencies.md, "Runtime"). The exact-replay channels stay msgpack (topic = the zenoh key).
 
 Poses are 4x4 matrices. Motions of the larger groups (SIM3, SA3, GA3) have a
 linear part that is not a rotation; :func:`nearest_rotation` projects it onto the

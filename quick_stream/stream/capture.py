@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import signal
 import threading
 import time
 from typing import Any, Iterable
@@ -239,25 +238,3 @@ class Capture:
                         ", ".join(sorted(behind)), wait_s)
         rt.publish_stats({**self.values(), "state": "ended"})
         log.info("sent %d frames (%d bad); %s", self.sent, self.bad, reason)
-
-
-def open_live(source: Any, spec: str) -> int | None:
-    """A live device (a source with ``open()``): there, or a clear error before the stream. Returns
-    an exit code to stop with (0: stopped while opening; 2: it cannot be opened, not restarted by the
-    supervisor), None to go on. SIGTERM while it opens ends its retries at once."""
-    if not callable(getattr(source, "open", None)):
-        return None
-    stopping = threading.Event()
-    source.stop = stopping
-    prev = signal.signal(signal.SIGTERM, lambda *_: stopping.set())
-    try:
-        source.open()
-    except Exception as e:  # noqa: BLE001 - NoDevice, depthai's errors: the camera cannot be used
-        if stopping.is_set():
-            log.info("stopped while opening %s", spec)
-            return 0
-        log.error("source %s cannot be opened: %s", spec, e)
-        return 2  # a configuration problem: the supervisor does not restart it
-    finally:
-        signal.signal(signal.SIGTERM, prev)
-    return 0 if stopping.is_set() else None

@@ -62,6 +62,16 @@ class Cursors:
         key = keys.cursor_key("*" if all_streams else self.stream, self.service)
         self._subs.append(self.session.declare_queryable(key, on_query))
 
+    def take_over(self, output: str, inputs: str, log: logging.Logger) -> int | None:
+        """Where this service starts in a stream under way: the newest ``output`` seq any running
+        service received (:meth:`stream_cursor`; None: a new stream, start from its first message),
+        said in ``log`` with the ``inputs`` whose history the service reads from there."""
+        after = self.stream_cursor(output)
+        if after is not None:
+            log.warning("stream %s under way (%s out up to frame %d): taking over after it, from the %s' history",
+                        self.stream, output, after, inputs)
+        return after
+
     def stream_cursor(self, stage: str, timeout_s: float = 3.0, settle_s: float = 1.0) -> int | None:
         """The newest seq of ``stage`` in this stream that any running service has received, or None
         (nothing yet: a new stream, or nobody who receives that stage is up).

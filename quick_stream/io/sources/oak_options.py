@@ -48,8 +48,8 @@ PRESETS = ("fast_accuracy", "fast_density", "default", "face", "high_detail", "r
 
 @dataclass(frozen=True)
 class StereoSettings:
-    """The StereoDepth settings of a real OAK (spec options of the same names; README, "Live OAK
-    (depthai) cameras", has the table). Stereo depth noise is sigma_z = k z^2 with k = sigma_d / (f B);
+    """The StereoDepth settings of a real OAK (spec options of the same names; docs/usage.md,
+    "Live OAK (depthai) cameras", has the table). Stereo depth noise is sigma_z = k z^2 with k = sigma_d / (f B);
     at 640x400 on an OAK-D f = 441 px and B = 7.5 cm, so f B = 33 px m. Measured with the degrade
     tool's depth noise (its ``--stereo-k`` K) on a known-shake 7-Scenes clip: K = 0.003, 0.006 and
     0.012 left the stabilizer as on clean depth (shake removed 96.2-96.3 %, output jitter
