@@ -68,7 +68,7 @@ class Cursors:
         said in ``log`` with the ``inputs`` whose history the service reads from there."""
         after = self.stream_cursor(output)
         if after is not None:
-            log.warning("stream %s under way (%s out up to frame %d): taking over after it, from the %s' history",
+            log.warning("stream %s under way (%s out up to frame %d): taking over from the %s' history",
                         self.stream, output, after, inputs)
         return after
 
