@@ -77,7 +77,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     with ServiceRuntime("capture", args.stream, conf) as rt:
         if isinstance(source, LiveSource):
             source.stop = rt.stop  # reconnection retries end when the service is asked to stop
-        pub = rt.publisher("frame", lossless=True, cache=args.history)  # lost only where counted (inboxes)
+        pub = rt.publisher("frame", cache=args.history)  # lossless: lost only where counted (inboxes)
         rt.ready()
         capture = Capture(rt, pub, args, depth_scale=float(source.depth_scale))
         if (code := capture.start()) is not None:

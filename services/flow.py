@@ -56,7 +56,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
         taking_over = resume_after is not None
         inbox = rt.inbox(keys.key(args.stream, "frame"), 2 * args.queue, history=taking_over, publisher="capture",
                          skip_through=resume_after, catch_up=args.catch_up if taking_over else 0)
-        pub = rt.publisher("flow", lossless=True, cache=args.history)
+        pub = rt.publisher("flow", cache=args.history)
         gate = FrameGate(rt, args.stream, inbox, FlowAdmission(args.queue, max_jump=params.continuity.max_jump))
         rt.serve_cursor()
         rt.ready()

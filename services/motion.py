@@ -51,8 +51,8 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
         driver = MotionDriver(params.motion, params.planner, params.warp, resume_after=resume_after, log=log)
         inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue, history=resume_after is not None,
                          publisher="flow", skip_through=resume_after)
-        motion_pub = rt.publisher("motion", lossless=True)
-        corr_pub = rt.publisher("correction", lossless=True, cache=args.history)
+        motion_pub = rt.publisher("motion")
+        corr_pub = rt.publisher("correction", cache=args.history)
         rt.serve_cursor()
         rt.ready()
         meter = RateMeter()

@@ -85,7 +85,7 @@ def serve(args: argparse.Namespace, params: StabilizerParams, rt: ServiceRuntime
     frames_in = rt.inbox(keys.key(args.stream, "frame"), 1024, history=resume_after is not None, publisher="capture")
     corr_in = rt.inbox(keys.key(args.stream, "correction"), 100_000, history=resume_after is not None,
                        publisher="motion")
-    pub = rt.publisher("stabilized", lossless=True)  # the recorder recovers what its link dropped
+    pub = rt.publisher("stabilized")  # lossless (stream/topology.py): the recorder recovers what its link dropped
     rt.serve_cursor()
     rt.ready()
     meter, latency = RateMeter(), Latency()

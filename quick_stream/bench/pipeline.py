@@ -44,7 +44,7 @@ import numpy as np
 import zenoh
 
 from ..io.recording import RecordingError
-from ..stream import keys
+from ..stream import keys, topology
 from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, router_spec
 from ..stream.wire import WireError
 from ..stream.wire.codec import unpack
@@ -168,7 +168,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
                   ServiceSpec(_name("render", cam, streams), ["-m", "quick_stream.services.render", *z, *s,
                                                                 "--output", str(out / f"stabilized-{cam}.mp4")])]
         # the recorder's liveliness token is under its own stream (cam0), even when it records all
-        wait = ",".join(["recorder"] * (record and cam == "cam0") + ["flow", "motion", "render"])
+        wait = ",".join([topology.RECORDER] * (record and cam == "cam0") + list(topology.STAGES))
         cap = ["-m", "quick_stream.services.capture", *z, *s, "--source", src, "--wait-for", wait]
         cap += ["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)]
         specs.append(ServiceSpec(_name("capture", cam, streams), cap, may_finish=True))

@@ -29,7 +29,7 @@ from ..io.recording import fresh_path
 from ..io.sinks import VIDEO_CODECS
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
-from ..stream import argtypes as at
+from ..stream import argtypes as at, topology
 from ..stream.launcher import (ServiceSpec, StatusBoard, Supervisor, close_within, free_port, open_when_up,
                                router_spec)
 from .up_report import SERVICES, child_failure, frame_account, log_tail, outputs, status_lines, write_status
@@ -261,7 +261,7 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
         # everything stopped, then the board from the services' last stats: the same counts as the
         # final account (a board taken before could miss flow's last stats, and drops with them)
         final: list[str] = []
-        order = [n for n in ("capture", "flow", "motion", "render", "recorder", "router") if n in sup.children]
+        order = [n for n in (*topology.SERVICES, "router") if n in sup.children]  # as the data flows
         try:
             codes = sup.stop(order)
             if board is not None:

@@ -31,9 +31,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..io.file_checks import incomplete
+from ..stream import topology
 from ..stream.launcher import StatusBoard, Supervisor
 
-SERVICES = ("recorder", "flow", "motion", "render", "capture")
+SERVICES = topology.START_ORDER  # the receivers up before the frames come
 COLUMNS = (("fps", ("send_fps", "flow_fps", "motion_fps", "render_fps", "log_fps")),
            ("ms p50", ("send_ms_p50", "flow_ms_p50", "motion_ms_p50", "render_ms_p50", "log_ms_p50")),
            ("ms p99", ("send_ms_p99", "flow_ms_p99", "motion_ms_p99", "render_ms_p99", "log_ms_p99")))

@@ -26,19 +26,19 @@ from __future__ import annotations
 
 import json
 
-from . import keys
+from . import keys, topology
 
-SERVICES = ("capture", "flow", "motion", "render", "recorder")
-PUBLISHES = {"capture": ("frame",), "flow": ("flow",), "motion": ("motion", "correction"),
-             "render": ("stabilized",), "recorder": ()}
+# all from the pipeline's table (stream/topology.py)
+SERVICES = topology.SERVICES
+PUBLISHES = {s.name: s.publishes for s in topology.PIPELINE}
 # the caches each publisher keeps (every lossless key: docs/deployment.md, "Delivery guarantees per key"),
 # whose heartbeats it sends on <key>/@adv/**
-CACHE = {"capture": ("frame",), "flow": ("flow",), "motion": ("motion", "correction")}
-LOSSLESS = tuple(st for sts in CACHE.values() for st in sts)
+CACHE = {s.name: tuple(k for k in s.publishes if k in topology.LOSSLESS_KEYS) for s in topology.PIPELINE if s.publishes}
+LOSSLESS = topology.LOSSLESS_KEYS
 # the caches each service queries: to take over (a restarted one) and to recover what its link dropped
-READS_HISTORY = {"flow": ("frame",), "motion": ("flow",), "render": ("frame", "correction"), "recorder": LOSSLESS}
-ASKS_CURSOR = ("capture", "flow", "motion", "render")  # a restarted service; capture also before its end marker
-SERVES_CURSOR = ("flow", "motion", "render", "recorder")
+READS_HISTORY = {s.name: s.history for s in topology.PIPELINE if s.history}
+ASKS_CURSOR = tuple(s.name for s in topology.PIPELINE if s.asks)  # a restarted service; capture before its end marker
+SERVES_CURSOR = tuple(s.name for s in topology.PIPELINE if s.serves_cursor)
 MONITOR = "monitor"
 ALL_STREAMS_RECORDER = "recorder"
 SUBSCRIBE = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]

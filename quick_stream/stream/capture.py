@@ -30,7 +30,7 @@ import zenoh
 from ..core.frame import BadFrame, RGBDFrame
 from ..core.pacing import CREDIT_STAGES, CreditWindow, Numbering, Pacer
 from ..core.shedding import DEFAULT_LIMITS, ShedLimits, Shedder
-from . import keys
+from . import keys, topology
 from .inbox import TimedPublisher
 from .meters import RateMeter
 from .runtime import ServiceRuntime
@@ -40,7 +40,7 @@ from .wire.messages import restamp_frame
 
 log = logging.getLogger(__name__)
 
-FRAME_RECEIVERS = frozenset({"flow", "render", "recorder"})  # the services that subscribe to frames
+FRAME_RECEIVERS = frozenset(topology.receivers("frame"))  # the services that subscribe to frames
 
 
 class OutputCredit:

@@ -92,7 +92,7 @@ class ServiceRuntime(Cursors, Loop):
 
     # --- endpoints -------------------------------------------------------------------------------
 
-    def publisher(self, stage: str, lossless: bool = False, stream: str | None = None,
+    def publisher(self, stage: str, lossless: bool | None = None, stream: str | None = None,
                   cache: int = 0) -> TimedPublisher:
         """Publisher on ``quick/@v1/<stream>/<stage>``. Every publisher drops for a congested link
         instead of waiting for it (``CongestionControl.DROP``: at most zenoh's ``wait_before_drop``,
@@ -102,7 +102,10 @@ class ServiceRuntime(Cursors, Loop):
         heartbeat, so a receiver whose own link dropped some fetches them back from the cache, in
         order (:meth:`inbox`); only what fell out of the cache is lost, and counted there. ``cache``
         > 0 also keeps the last ``cache`` messages for a restarted consumer's history query. Its puts
-        are timed (:class:`TimedPublisher`, in the stats)."""
+        are timed (:class:`TimedPublisher`, in the stats). ``lossless`` None: as the pipeline's table
+        says (stream/topology.py: every data key)."""
+        if lossless is None:
+            lossless = stage in LOSSLESS_STAGES
         pub = TimedPublisher(self._declare_publisher(stage, lossless, stream, cache), stage)
         self._timed.append(pub)
         return pub
