@@ -166,7 +166,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         specs += [ServiceSpec(_name("flow", cam, streams), ["-m", "quick_stream.services.flow", *z, *s]),
                   ServiceSpec(_name("motion", cam, streams), ["-m", "quick_stream.services.motion", *z, *s]),
                   ServiceSpec(_name("render", cam, streams), ["-m", "quick_stream.services.render", *z, *s,
-                                                                "--output", str(out / f"stabilized-{cam}.mp4")])]
+                                                                "--output", str(out / f"stabilized-{cam}.avi")])]
         # the recorder's liveliness token is under its own stream (cam0), even when it records all
         wait = ",".join(["recorder"] * (record and cam == "cam0") + ["flow", "motion", "render"])
         cap = ["-m", "quick_stream.services.capture", *z, *s, "--source", src, "--wait-for", wait]

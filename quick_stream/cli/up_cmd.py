@@ -10,8 +10,9 @@ everything cleanly when the source is exhausted and the last frame is rendered,
 after ``--duration`` seconds, or on Ctrl-C. The stabilizer settings (the defaults, a replayed
 recording's, ``--settings`` and the flags) go into one file, ``<out>/logs/settings.toml``, which
 every service reads (``--settings``). Leaves in ``--out`` the MCAP recording
-and the stabilized MP4, never overwriting an earlier run's (``recording-1.mcap``,
-``stabilized-1.mp4``, ...), and the services' logs (``<out>/logs``).
+and the stabilized video (``stabilized.avi``: Motion JPEG; ``stabilized.mp4`` with ``--video-codec
+mp4v``), never overwriting an earlier run's (``recording-1.mcap``, ``stabilized-1.avi``, ...), and
+the services' logs (``<out>/logs``).
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ from pathlib import Path
 import zenoh
 
 from ..io.recording import fresh_path
-from ..io.sinks import VIDEO_CODECS
+from ..io.sinks import VIDEO_CODECS, VIDEO_SUFFIX
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at
@@ -62,8 +63,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="frame colour encoding on the wire (default: jpeg)")
     p.add_argument("--video-codec", choices=VIDEO_CODECS, default="mjpeg",
                    help="the stabilized video's codec: mjpeg stores the JPEGs the render publishes, with no second "
-                   "encode; mp4v encodes each frame again (~2.5 ms a 640x480 frame), files a third of the size "
-                   "(default mjpeg)")
+                   "encode, in <out>/stabilized.avi; mp4v encodes each frame again (~2.5 ms a 640x480 frame), files "
+                   "a third of the size, in <out>/stabilized.mp4 (default mjpeg)")
     p.add_argument("--png", type=at.output_dir("--png", files="*.png"), default=None, metavar="DIR",
                    help="render also writes every frame as PNG here (default: none)")
     p.add_argument("--force", action="store_true",
@@ -131,7 +132,7 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
         ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
         ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
         ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
-                               "--output", str(getattr(args, "video", out / "stabilized.mp4")),
+                               "--output", str(getattr(args, "video", out / f"stabilized{VIDEO_SUFFIX[args.video_codec]}")),
                                "--video-codec", args.video_codec]
                     + (["--png", args.png] if args.png else [])),
     ]
@@ -201,7 +202,7 @@ def _prepare(args: argparse.Namespace, params, out: Path) -> None:
     # never overwrite a recording or a video: an earlier run's stays, this one gets recording-1.mcap,
     # stabilized-1.mp4, ...
     args.recording = fresh_path(out / "recording.mcap")
-    args.video = fresh_path(out / "stabilized.mp4")
+    args.video = fresh_path(out / f"stabilized{VIDEO_SUFFIX[args.video_codec]}")  # the codec's own container
     # one settings file for every service (and the recording's settings record)
     (out / "logs").mkdir(exist_ok=True)
     args.settings_file = fresh_path(out / "logs" / "settings.toml")

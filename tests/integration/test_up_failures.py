@@ -165,7 +165,7 @@ def test_frames_lost_before_flow_show_in_the_drops_and_the_summary(tmp_path):
     assert "flow missed 10 of the frames sent" in summary
     flow_row = next(x for x in text.splitlines() if x.startswith("flow "))
     assert flow_row.split()[5] == "10", flow_row  # the drops column
-    assert f"wrote {out / 'stabilized.mp4'}, {out / 'recording.mcap'}" in text
+    assert f"wrote {out / 'stabilized.avi'}, {out / 'recording.mcap'}" in text
 
 
 def test_a_run_that_produced_nothing_exits_non_zero(tmp_path):
@@ -177,4 +177,4 @@ def test_a_run_that_produced_nothing_exits_non_zero(tmp_path):
     code, text, err = finish(start_up(out, port, "--source", f"tum:{clip}", "--pace", "fast"), out, port)
     assert code == 1, text + err
     assert "stabilized 0 of 10 frames" in err and "10 the source could not deliver: nothing was produced" in err
-    assert "stabilized.mp4" not in text  # not said to be written
+    assert "stabilized.avi" not in text  # not said to be written

@@ -94,9 +94,12 @@ def test_png_folder_holding_frames_is_refused_unless_force(tmp_path, capsys):
     assert run(capsys, *argv, "--force")[0] == 0 and len(list(png.glob("*.png"))) == 12
 
 
-def test_up_numbers_its_video_like_its_recording(tmp_path, capsys, monkeypatch):
-    """A second ``up`` in the same folder hands render out/stabilized-1.mp4 (and the recorder
-    recording-1.mcap); the earlier run's files stay."""
+@pytest.mark.parametrize("codec,video", [("mjpeg", "stabilized.avi"), ("mp4v", "stabilized.mp4")])
+def test_up_numbers_its_video_like_its_recording(tmp_path, capsys, monkeypatch, codec, video):
+    """A second ``up`` in the same folder hands render out/stabilized-1.avi (and the recorder
+    recording-1.mcap); the earlier run's files stay. The video's container is its codec's: Motion
+    JPEG in .avi (its own tag, no OpenCV notice), mp4v in .mp4 (it was .mp4 for both: Motion JPEG under
+    the tag 'mp4v' after OpenCV's "tag 'MJPG' is not supported" on every run)."""
     from quick_stream.stream import launcher
 
     class Started(BaseException):
@@ -111,14 +114,16 @@ def test_up_numbers_its_video_like_its_recording(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(launcher.Supervisor, "__init__", capture)
     out = tmp_path / "out"
     out.mkdir()
-    (out / "stabilized.mp4").write_bytes(b"earlier")
+    stem, suffix = video.split(".")
+    (out / video).write_bytes(b"earlier")
     (out / "recording.mcap").write_bytes(b"earlier")
     with pytest.raises(Started):
-        main(["up", "--out", str(out)])
+        main(["up", "--out", str(out), "--video-codec", codec])
     render, recorder = specs["render"], specs["recorder"]
-    assert render[render.index("--output") + 1] == str(out / "stabilized-1.mp4")
+    assert render[render.index("--output") + 1] == str(out / f"{stem}-1.{suffix}")
+    assert render[render.index("--video-codec") + 1] == codec
     assert recorder[recorder.index("--output") + 1] == str(out / "recording-1.mcap")
-    assert (out / "stabilized.mp4").read_bytes() == b"earlier"
+    assert (out / video).read_bytes() == b"earlier"
 
 
 # ---------------------------------------------------------------- outputs that cannot be created
