@@ -7,7 +7,9 @@ requires mutual TLS and enforces its access control, and every service is a TLS
 client of it with its own certificate (deploy/tls/make-certs.sh; docs/deployment.md). Shows fps, ms per item, drops and
 restarts per service once a second; restarts a service that dies; stops
 everything cleanly when the source is exhausted and the last frame is rendered,
-after ``--duration`` seconds, or on Ctrl-C. The stabilizer settings (the defaults, a replayed
+after ``--duration`` seconds, or on Ctrl-C (then the capture stops first, and the frames it
+sent get ``--stop-wait`` seconds to reach the video and the recording; a second Ctrl-C stops
+at once). The stabilizer settings (the defaults, a replayed
 recording's, ``--settings`` and the flags) go into one file, ``<out>/logs/settings.toml``, which
 every service reads (``--settings``). Leaves in ``--out`` the MCAP recording
 and the stabilized video (``stabilized.avi``: Motion JPEG; ``stabilized.mp4`` with ``--video-codec
@@ -69,6 +71,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="render also writes every frame as PNG here (default: none)")
     p.add_argument("--force", action="store_true",
                    help="overwrite PNG frames already in --png DIR (default: refuse)")
+    p.add_argument("--stop-wait", type=at.nonneg_float, default=10.0, metavar="S",
+                   help="stopped before the stream's end (--duration, Ctrl-C): the capture stops first and ends the "
+                   "stream, and the frames it sent get this many seconds to reach the video and the recording "
+                   "before the other services stop; a second Ctrl-C stops at once (default 10)")
     p.add_argument("--quiet", action="store_true", help="no live status")
     p.add_argument("--tls-dir", default=None, metavar="DIR",
                    help="mutual TLS and access control: the folder deploy/tls/make-certs.sh wrote (router/, "
@@ -161,6 +167,8 @@ class Outcome:
     reason: str = "?"
     error: str | None = None  # what failed, in words (None: nothing)
     failed: list[str] = field(default_factory=list)  # services that failed and were not restarted
+    drained: bool = False  # stopped before the stream's end, every frame sent reached the render's end
+    cut: str | None = None  # why the frames sent did not all get to the outputs (None: they did, or no stop wait)
 
 
 def say(text: str, err: bool = False) -> None:
@@ -249,6 +257,8 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
                 sup.start(name)
         board = StatusBoard(session)
         _loop(args, sup, board, stop, status_path, t0, o)
+        if o.reason != ENDED and not o.error and not o.failed:
+            _drain(args, sup, board, stop, status_path, o)
     except Abort as e:
         o.reason = o.error = str(e)
     except zenoh.ZError as e:
@@ -315,6 +325,50 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
             shown = len(lines)
 
 
+def _drain(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: list[str], status_path: Path,
+           o: Outcome, clock=time.monotonic, sleep=time.sleep) -> None:
+    """Stopped before the stream's end (``--duration``, Ctrl-C, a signal): the capture is stopped first (it
+    ends the stream after its last frame), then the frames it sent get ``--stop-wait`` seconds to reach
+    the render's end (the video, and the recording, which stops after the render) before the other
+    services are stopped. Stopping everything at once left the frames in flight out of the video (90
+    sent, 60 in it). A second signal or a service that fails ends the wait; ``o.cut`` says why the
+    frames sent did not all get there."""
+    signals = len(stop)
+    ended = board.get(args.stream, "render").get("ended", 0)
+    if "capture" in sup.children and not sup.children["capture"].finished:
+        sup.stop(["capture"])  # SIGTERM: it sends no more frames and ends the stream
+    board.drain()
+    sent = int(board.totals(args.stream, "capture").get("sent", 0) or 0)
+    if sent == 0 or args.stop_wait <= 0 or not sup.running("render"):
+        if sent and args.stop_wait <= 0:
+            o.cut = "--stop-wait 0: the services stopped with the capture"
+        return
+    say(f"quick-stream up: stopping ({o.reason}): the capture has ended the stream; the frames it sent get up to "
+        f"{args.stop_wait:g} s to reach the outputs (Ctrl-C again: stop now)", err=True)
+    deadline = clock() + args.stop_wait
+    while True:
+        if board.get(args.stream, "render").get("ended", 0) > ended:
+            o.drained = True
+            return
+        if len(stop) > signals:
+            o.cut = f"{stop[-1]} while the frames sent were on their way to the outputs"
+            return
+        if clock() >= deadline:
+            o.cut = f"the frames sent were not all through the render within --stop-wait {args.stop_wait:g} s"
+            return
+        for name in sup.poll():
+            board.restarted(args.stream, name)
+        failed = [n for n, c in sup.children.items() if n != "capture" and c.finished
+                  and c.exit_code not in (0, None)]
+        if failed:
+            o.failed = failed
+            o.error = "; ".join(child_failure(sup, n, Path(args.out)) for n in failed)
+            o.cut = f"{failed[0]} failed while the frames sent were on their way to the outputs"
+            return
+        write_status(status_path, board, sup, args.stream, None)
+        sleep(0.1)
+
+
 def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusBoard | None, o: Outcome,
             codes: dict[str, int | None], before: set[Path], status_path: Path, final: list[str],
             closing: str | None) -> int:
@@ -328,7 +382,8 @@ def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusB
     code = 1 if (o.error or o.failed or nothing) else 0
     summary = None  # no account without the services' stats (the run never got that far)
     if board is not None:
-        summary = account.line(args.pace, o.reason == ENDED) + (": nothing was produced" if nothing else "")
+        summary = account.line(args.pace, o.reason == ENDED or o.drained) + (
+            ": nothing was produced" if nothing else "") + (f" ({o.cut})" if o.cut and account.lost else "")
     end = {"error": o.error, "exit_code": code, "frames": account.as_dict() if board is not None else None,
            "summary": summary,
            "outputs": {"whole": [str(f) for f in whole], "incomplete": {str(f): why for f, why in broken}}}

@@ -168,6 +168,24 @@ def test_frames_lost_before_flow_show_in_the_drops_and_the_summary(tmp_path):
     assert f"wrote {out / 'stabilized.avi'}, {out / 'recording.mcap'}" in text
 
 
+def test_a_run_stopped_by_duration_lets_every_frame_sent_reach_the_video(tmp_path):
+    # `up --duration 6` sent 90 frames and the video held 60: every service was stopped at once, the
+    # frames in flight (flow behind the capture) with them (a 640x480 run: 174 sent, 135 in the video)
+    from quick_stream.io.video_check import video_frames
+
+    out, port = tmp_path / "out", free_port()
+    p = start_up(out, port, "--source", "synthetic:frames=100000,width=160,height=120", "--pace", "fast",
+                 "--duration", "8", "--quiet", fault="flow:slow=40")
+    code, text, err = finish(p, out, port)
+    no_leftovers(out, port)
+    assert code == 0, text + err
+    frames = json.loads((out / "logs" / "status.json").read_text())["frames"]
+    assert frames["sent"] > 0 and frames["rendered"] == frames["sent"] and frames["lost"] == 0, frames
+    assert video_frames(out / "stabilized.avi") == frames["sent"]
+    assert "the capture has ended the stream; the frames it sent get up to 10 s to reach the outputs" in err
+    assert "stopped: --duration 8 s" in text and "0 lost in transit" in text
+
+
 def test_a_run_that_produced_nothing_exits_non_zero(tmp_path):
     clip = tmp_path / "clip"
     write_tum_clip(clip, n=10)
