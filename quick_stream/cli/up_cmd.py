@@ -13,8 +13,10 @@ at once). The stabilizer settings (the defaults, a replayed
 recording's, ``--settings`` and the flags) go into one file, ``<out>/logs/settings.toml``, which
 every service reads (``--settings``). Leaves in ``--out`` the MCAP recording
 and the stabilized video (``stabilized.avi``: Motion JPEG; ``stabilized.mp4`` with ``--video-codec
-mp4v``), never overwriting an earlier run's (``recording-1.mcap``, ``stabilized-1.avi``, ...), and
-the services' logs (``<out>/logs``).
+mp4v``) and the services' logs and ``status.json`` (``<out>/logs``). A folder that holds an earlier
+run's files keeps them: this run's files all get the next number free for every one of them
+(``stabilized-1.avi``, ``recording-1.mcap`` and fresh logs in ``<out>/logs-1``), nothing is
+overwritten or appended to.
 """
 from __future__ import annotations
 
@@ -28,7 +30,6 @@ from pathlib import Path
 
 import zenoh
 
-from ..io.recording import fresh_path
 from ..io.sinks import VIDEO_CODECS, VIDEO_SUFFIX
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
@@ -57,8 +58,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stream", type=at.stream_id, default="cam0",
                    help="stream id, 1-64 of [A-Za-z0-9_-] (default: cam0)")
     p.add_argument("--out", type=at.output_dir("--out"), default="out", metavar="DIR",
-                   help="folder for the recording, the stabilized video and logs; an earlier run's files are "
-                   "kept, this run's numbered after them (default: out)")
+                   help="folder for the recording, the stabilized video and the logs; an earlier run's files are "
+                   "kept, this run's all numbered after them (stabilized-1.avi, recording-1.mcap, logs-1/) "
+                   "(default: out)")
     p.add_argument("--no-record", action="store_true", help="do not run the recorder")
     p.add_argument("--port", type=at.port, default=0, help="router port on 127.0.0.1 (default: a free one)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg",
@@ -138,7 +140,7 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
         ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
         ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
         ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
-                               "--output", str(getattr(args, "video", out / f"stabilized{VIDEO_SUFFIX[args.video_codec]}")),
+                               "--output", str(getattr(args, "video", video_name(out, args.video_codec))),
                                "--video-codec", args.video_codec]
                     + (["--png", args.png] if args.png else [])),
     ]
@@ -204,21 +206,32 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(s, h)
 
 
+def video_name(out: Path, codec: str) -> Path:
+    return out / f"stabilized{VIDEO_SUFFIX[codec]}"  # the codec's own container
+
+
+def run_paths(out: Path, codec: str) -> tuple[Path, Path, Path]:
+    """This run's video, recording and logs folder in ``out``: never an earlier run's, all with the first
+    number free for every one of them (``stabilized-1.avi``, ``recording-1.mcap``, ``logs-1``), so a run's
+    files go together and its logs and status.json are its own (they were appended to and overwritten)."""
+    paths = [video_name(out, codec), out / "recording.mcap", out / "logs"]
+    n = at.first_free(paths)
+    video, recording, logs = (Path(at.numbered_path(p, n)) for p in paths)
+    return video, recording, logs
+
+
 def _prepare(args: argparse.Namespace, params, out: Path) -> None:
     """The output folder, this run's fresh file names, the settings file (and the router's TLS config)."""
     out.mkdir(parents=True, exist_ok=True)
-    # never overwrite a recording or a video: an earlier run's stays, this one gets recording-1.mcap,
-    # stabilized-1.mp4, ...
-    args.recording = fresh_path(out / "recording.mcap")
-    args.video = fresh_path(out / f"stabilized{VIDEO_SUFFIX[args.video_codec]}")  # the codec's own container
+    args.video, args.recording, args.logs = run_paths(out, args.video_codec)
     # one settings file for every service (and the recording's settings record)
-    (out / "logs").mkdir(exist_ok=True)
-    args.settings_file = fresh_path(out / "logs" / "settings.toml")
+    args.logs.mkdir()
+    args.settings_file = args.logs / "settings.toml"
     args.settings_file.write_text(settings_toml(params, f"settings of {args.recording.name} (quick-stream up)"))
     if args.tls_dir and not args.router_config:
         from ..stream.acl import router_config_text
 
-        args.router_config = str(out / "logs" / "router-tls.json5")
+        args.router_config = str(args.logs / "router-tls.json5")
         Path(args.router_config).write_text(router_config_text([args.stream]))
 
 
@@ -235,8 +248,8 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
         return 2
     before = set(out.glob("recording*.mcap"))
     endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
-    sup = Supervisor(service_specs(args, endpoint, out), out / "logs")
-    status_path = out / "logs" / "status.json"
+    sup = Supervisor(service_specs(args, endpoint, out), args.logs)
+    status_path = args.logs / "status.json"
     o = Outcome()
     session = board = None
     t0 = time.monotonic()
@@ -262,7 +275,7 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
     except Abort as e:
         o.reason = o.error = str(e)
     except zenoh.ZError as e:
-        o.reason = o.error = f"router did not come up on {endpoint}: {e} (see {out / 'logs' / 'router.log'})"
+        o.reason = o.error = f"router did not come up on {endpoint}: {e} (see {args.logs / 'router.log'})"
     except OSError as e:  # a write of up's own: the status file, a service's log
         o.reason = o.error = cannot_write(e)
     except Exception as e:  # noqa: BLE001 - a bug of up's own: said, and the run still stopped and closed
@@ -310,7 +323,7 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
             return
         o.failed = [n for n, c in sup.children.items() if c.finished and c.exit_code not in (0, None)]
         if o.failed:  # not restarted: cannot go on (exit 2: no camera, a bad flag, a full disk) or crashes
-            o.reason = f"{o.failed[0]} failed (see logs/{o.failed[0]}.log)"
+            o.reason = f"{o.failed[0]} failed (see {Path(args.logs).name}/{o.failed[0]}.log)"
             o.error = "; ".join(child_failure(sup, n, Path(args.out)) for n in o.failed)
             return
         if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
@@ -408,5 +421,5 @@ def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusB
         say(summary, err=nothing)
     for f, why in broken:
         say(f"quick-stream up: {f} is incomplete: {why}", err=True)
-    say(("wrote " + ", ".join(str(f) for f in whole) if whole else "wrote nothing") + f" (logs in {out / 'logs'})")
+    say(("wrote " + ", ".join(str(f) for f in whole) if whole else "wrote nothing") + f" (logs in {args.logs})")
     return code
