@@ -5,7 +5,9 @@ separate processes, all on loopback: recorder, flow, motion, render, then
 capture (which waits until the others are up). With ``--tls-dir`` the router
 requires mutual TLS and enforces its access control, and every service is a TLS
 client of it with its own certificate (deploy/tls/make-certs.sh; docs/deployment.md). Shows fps, ms per item, drops and
-restarts per service once a second; restarts a service that dies; stops
+restarts per service once a second (on stderr, a terminal's in place; ``--quiet``: none), and at
+the end on stdout why it stopped, the services' last status, the account of every frame and the
+files written; restarts a service that dies; stops
 everything cleanly when the source is exhausted and the last frame is rendered,
 after ``--duration`` seconds, or on Ctrl-C (then the capture stops first, and the frames it
 sent get ``--stop-wait`` seconds to reach the video and the recording; a second Ctrl-C stops
@@ -77,7 +79,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="stopped before the stream's end (--duration, Ctrl-C): the capture stops first and ends the "
                    "stream, and the frames it sent get this many seconds to reach the video and the recording "
                    "before the other services stop; a second Ctrl-C stops at once (default 10)")
-    p.add_argument("--quiet", action="store_true", help="no live status")
+    p.add_argument("--quiet", action="store_true", help="no live status board (on stderr); the end is still said")
     p.add_argument("--tls-dir", default=None, metavar="DIR",
                    help="mutual TLS and access control: the folder deploy/tls/make-certs.sh wrote (router/, "
                    "monitor/: this command's own session, <stream>/<service>/); the services are TLS clients "
@@ -304,7 +306,8 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
           t0: float, o: Outcome) -> None:
     """Until the stream is done, a signal, ``--duration``, or a failure (``o`` says which); OSError when
     the status file cannot be written."""
-    tty = sys.stdout.isatty() and not args.quiet
+    board_out = sys.stderr  # the live status is progress, on stderr; stdout is for the run's result (its end)
+    tty = board_out.isatty() and not args.quiet
     shown = 0
     while True:
         time.sleep(0.25)
@@ -330,10 +333,10 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
             lines = status_lines(board, sup, args.stream, t0)
             try:
                 if tty and shown:
-                    sys.stdout.write(f"\x1b[{shown}F")
-                sys.stdout.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
-                sys.stdout.flush()
-            except OSError:  # stdout closed (a pipe's reader went away): the run goes on, status.json has it
+                    board_out.write(f"\x1b[{shown}F")
+                board_out.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
+                board_out.flush()
+            except OSError:  # stderr closed (a pipe's reader went away): the run goes on, status.json has it
                 args.quiet = True
             shown = len(lines)
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 from quick_stream.cli import up_cmd
 from quick_stream.cli.up_cmd import Outcome
 
@@ -88,3 +90,33 @@ def test_nothing_sent_no_wait(tmp_path, monkeypatch, capsys):
     sup, o, took = drain(tmp_path, Board(sent=0, render_after=None), [])
     assert sup.events == ["stop capture"] and took == 0 and o.cut is None and not o.drained
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_the_live_status_board_goes_to_stderr(tmp_path, monkeypatch, capsys, quiet):
+    """The board went to stdout, where the results go (``up | tee`` and ``up > result.txt`` got it)."""
+    now = [100.0]
+    monkeypatch.setattr(up_cmd, "time", SimpleNamespace(sleep=lambda s: None, monotonic=lambda: now[0]))
+    monkeypatch.setattr(up_cmd, "write_status", lambda *a, **k: None)
+    stop: list[str] = []
+
+    def lines(*a):
+        stop.append("Ctrl-C")  # one board, then the loop ends
+        return ["quick-stream up:    5.0 s   stream cam0", "render    up   30.0"]
+
+    monkeypatch.setattr(up_cmd, "status_lines", lines)
+    sup, board = Sup(), Board(sent=1, render_after=None)
+    args = SimpleNamespace(stream="cam0", quiet=quiet, duration=None, out=str(tmp_path))
+    o = Outcome()
+    sleeps = []
+
+    def sleep(s):  # quiet: no board to end the loop; the second pass's signal does
+        sleeps.append(s)
+        if len(sleeps) == 2:
+            stop.append("Ctrl-C")
+
+    monkeypatch.setattr(up_cmd, "time", SimpleNamespace(sleep=sleep, monotonic=lambda: now[0]))
+    up_cmd._loop(args, sup, board, stop, tmp_path / "status.json", now[0] - 5.0, o)
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert ("render    up   30.0" in err) != quiet and o.reason == "Ctrl-C"
