@@ -85,8 +85,16 @@ def test_a_status_file_that_cannot_be_written_stops_up_at_once_and_says_so(tmp_p
     # row 1: the first write of status.json that failed (a full disk) raised out of `up`, which
     # stopped its children, then hung in zenoh's threads at exit and ignored SIGTERM
     out, port = tmp_path / "out", free_port()
-    (out / "logs" / "status.tmp").mkdir(parents=True)  # where status.json is written first: not a file
     p = start_up(out, port, "--source", "synthetic:frames=100000,width=160,height=120")
+    # where status.json is written first, made not a file once the run has its logs folder (made before it:
+    # the run would take logs-1, an earlier run's folder being left alone)
+    wait_for(lambda: (out / "logs" / "settings.toml").exists() or p.poll() is not None, "the run's logs folder")
+    while True:
+        try:
+            (out / "logs" / "status.tmp").mkdir()
+            break
+        except FileExistsError:  # a write of status.json under way, between its temporary file and the rename
+            time.sleep(0.01)
     code, text, err = finish(p, out, port)
     no_leftovers(out, port)
     assert code == 1 and "Traceback" not in err, err
