@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--end-wait", type=at.nonneg_float, default=10.0,
                    help="at the end, seconds to wait until every consumer has received the last frame before "
                         "sending the end marker, and again until they have the end marker before closing "
-                        "(default 10)")
+                        "(default 10; stopped by a signal: 2 s at most each, a second signal ends them)")
     return p
 
 

@@ -27,7 +27,9 @@ and measures from a monitor session:
   a rate whose sum is near that budget is limited by the CPU, not by a stage waiting on another.
 
 Prints a table and writes JSON (``--json FILE``, ``-``: standard output); progress on stderr
-once a second. Numbers are for the machine it runs on.
+once a second. Numbers are for the machine it runs on. The run's recordings and videos (about 1 GB
+for the 120 s default at 640x480) are scratch: deleted once measured unless ``--keep``, the logs
+kept; the last line says where they were and how much (:func:`scratch_files`).
 """
 from __future__ import annotations
 
@@ -43,7 +45,7 @@ from typing import Callable
 import numpy as np
 import zenoh
 
-from ..io.recording import RecordingError
+from ..io.recording import RecordingError, fresh_path
 from ..stream import keys, topology
 from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, router_spec
 from ..stream.wire import WireError
@@ -153,9 +155,10 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     frames = int((fps or 120) * (seconds + warmup_s)) + 1
     cams = [f"cam{i}" for i in range(streams)]
     specs = [router_spec(["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
+    recording = fresh_path(out / "recording.mcap")  # measured below: this run's, not a kept earlier one
     if record:
         specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z,
-                                              "--output", str(out / "recording.mcap")]
+                                              "--output", str(recording)]
                                  + (["--all-streams"] if streams > 1 else [])))
     for i, cam in enumerate(cams):
         # a camera at the rate offered (its frames' capture times follow it), 30 fps for 'fast'
@@ -166,7 +169,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         specs += [ServiceSpec(_name("flow", cam, streams), ["-m", "quick_stream.services.flow", *z, *s]),
                   ServiceSpec(_name("motion", cam, streams), ["-m", "quick_stream.services.motion", *z, *s]),
                   ServiceSpec(_name("render", cam, streams), ["-m", "quick_stream.services.render", *z, *s,
-                                                                "--output", str(out / f"stabilized-{cam}.mp4")])]
+                                                                "--output", str(out / f"stabilized-{cam}.avi")])]
         # the recorder's liveliness token is under its own stream (cam0), even when it records all
         wait = ",".join([topology.RECORDER] * (record and cam == "cam0") + list(topology.STAGES))
         cap = ["-m", "quick_stream.services.capture", *z, *s, "--source", src, "--wait-for", wait]
@@ -226,7 +229,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
             seqs = mons[cam].seqs
             skip = _warmup_frames(fps, warmup_s, len(seqs))
             try:
-                per[cam]["release_steps_ms"] = release_steps(out / "recording.mcap", cam,
+                per[cam]["release_steps_ms"] = release_steps(recording, cam,
                                                              seqs[skip] if skip < len(seqs) else 0)
             except (RecordingError, WireError) as e:
                 per[cam]["release_steps_ms"] = {"error": str(e)}
@@ -361,19 +364,57 @@ def format_report(r: dict) -> str:
     return "\n".join(lines)
 
 
+def _files(folder: Path) -> dict[Path, int]:
+    """Every file under ``folder`` and its size."""
+    out = {}
+    for p in folder.rglob("*") if folder.is_dir() else ():
+        try:
+            if p.is_file():
+                out[p] = p.stat().st_size
+        except OSError:
+            pass
+    return out
+
+
+def scratch_files(folder: Path, before: dict[Path, int]) -> dict[Path, int]:
+    """The files a run wrote in ``folder`` (not there, or another size, ``before``), its logs left out:
+    recordings, videos, pre-encoded sources."""
+    return {p: n for p, n in _files(folder).items()
+            if before.get(p) != n and "logs" not in p.relative_to(folder).parts}
+
+
+def _size(n: int) -> str:
+    return f"{n / 1e9:.2f} GB" if n >= 1e8 else f"{n / 1e6:.1f} MB"
+
+
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
          record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480",
-         progress: Callable[[str], None] | None = None) -> int:
+         progress: Callable[[str], None] | None = None, keep: bool = False) -> int:
     """Run each rate and print its report; ``json_path``: also the reports as JSON there (``-``: on
-    standard output, the reports then going to stderr)."""
+    standard output, the reports then going to stderr). Each rate's recordings and videos are deleted
+    once measured (scratch: ~1 GB a 120 s run) unless ``keep``; either way the last line says where
+    they were and how much."""
     reports = []
     w, h = (int(x) for x in size.split("x"))
     text = sys.stderr if json_path == "-" else sys.stdout
     for fps in fps_list:
-        r = run_pipeline(Path(out) / f"fps-{fps or 'fast'}", fps, seconds, width=w, height=h, record=record,
-                         replay=replay, streams=streams, progress=progress)
+        folder = Path(out) / f"fps-{fps or 'fast'}"
+        before = _files(folder)
+        try:
+            r = run_pipeline(folder, fps, seconds, width=w, height=h, record=record, replay=replay, streams=streams,
+                             progress=progress)
+        finally:
+            scratch = scratch_files(folder, before)
+            total = sum(scratch.values())
+            if not keep:
+                for p in scratch:
+                    p.unlink(missing_ok=True)
+            what = ", ".join(sorted({p.suffix.lstrip('.') for p in scratch})) or "nothing"
+            note = (f"wrote {_size(total)} in {folder} ({what}; kept: delete {folder} when done)" if keep else
+                    f"deleted {_size(total)} of scratch files ({what}) from {folder} (--keep keeps them)")
         reports.append(r)
         print(format_report(r), file=text, flush=True)
+        print(f"{note}; logs in {folder / 'logs'}", file=text, flush=True)
     if json_path == "-":
         print(json.dumps(reports, indent=1), flush=True)
     elif json_path:

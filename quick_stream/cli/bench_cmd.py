@@ -91,7 +91,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--replay", action="store_true",
                     help="capture replays a pre-encoded recording (camera-like cost) instead of rendering live")
     pl.add_argument("--out", type=at.output_dir("--out"), default="out/bench-pipeline", metavar="DIR",
-                    help="folder for recordings and logs (default: out/bench-pipeline)")
+                    help="folder for the logs, and the recordings and videos while it runs (default: "
+                    "out/bench-pipeline)")
+    pl.add_argument("--keep", action="store_true",
+                    help="keep the recordings and videos (about 1 GB a 120 s run at 640x480; default: deleted once "
+                    "measured, the logs kept; the last line says where and how much)")
     add_json(pl, "the reports")
     at.add_force(pl)
 
@@ -129,7 +133,8 @@ def _run(args: argparse.Namespace) -> int:
 
         with progress:
             return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
-                                 streams=args.streams, size=args.size, replay=args.replay, progress=progress)
+                                 streams=args.streams, size=args.size, replay=args.replay, progress=progress,
+                                 keep=args.keep)
     if args.bench == "quality":
         return bench_quality_cmd.run(args)
     with progress:

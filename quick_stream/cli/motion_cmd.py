@@ -13,6 +13,7 @@ import itertools
 import logging
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -62,9 +63,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--compare-opencv", action="store_true",
                    help="also run OpenCV RGB-D odometry (cv2.Odometry, RGB_DEPTH) on the same pairs")
     add_json(p, "the report")
-    p.add_argument("--trajectory", type=at.output_file("--trajectory"), metavar="FILE", default=None,
+    p.add_argument("--trajectory", type=at.output_file("--trajectory"), metavar="FILE", default=None, nargs="?",
+                   const=at.default_name("out/trajectory.txt"),
                    help="write the estimated camera path in TUM format, anchored at the first ground-truth pose "
-                        "when the source has one (default: none)")
+                        "when the source has one; without FILE to out/trajectory.txt (then -1, ...: never "
+                        "overwritten), like stabilize's outputs (default: none)")
     at.add_force(p)
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
@@ -193,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
         path = integrate_path(result.camera_motions)
         if result.first_pose is not None:
             path = result.first_pose @ path
+        Path(args.trajectory).parent.mkdir(parents=True, exist_ok=True)
         write_tum_trajectory(args.trajectory, np.asarray(result.timestamps_ns) / 1e9, path)
         report["trajectory"] = args.trajectory
 
@@ -235,4 +239,6 @@ def run(args: argparse.Namespace) -> int:
         say(f"invalid motion {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
     if len(invalid) > 10:
         say(f"... {len(invalid) - 10} more invalid motions")
+    if args.trajectory:
+        say(f"wrote {args.trajectory}")
     return 0

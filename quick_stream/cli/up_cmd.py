@@ -5,13 +5,20 @@ separate processes, all on loopback: recorder, flow, motion, render, then
 capture (which waits until the others are up). With ``--tls-dir`` the router
 requires mutual TLS and enforces its access control, and every service is a TLS
 client of it with its own certificate (deploy/tls/make-certs.sh; docs/deployment.md). Shows fps, ms per item, drops and
-restarts per service once a second; restarts a service that dies; stops
+restarts per service once a second (on stderr, a terminal's in place; ``--quiet``: none), and at
+the end on stdout why it stopped, the services' last status, the account of every frame and the
+files written; restarts a service that dies; stops
 everything cleanly when the source is exhausted and the last frame is rendered,
-after ``--duration`` seconds, or on Ctrl-C. The stabilizer settings (the defaults, a replayed
+after ``--duration`` seconds, or on Ctrl-C (then the capture stops first, and the frames it
+sent get ``--stop-wait`` seconds to reach the video and the recording; a second Ctrl-C stops
+at once). The stabilizer settings (the defaults, a replayed
 recording's, ``--settings`` and the flags) go into one file, ``<out>/logs/settings.toml``, which
 every service reads (``--settings``). Leaves in ``--out`` the MCAP recording
-and the stabilized MP4, never overwriting an earlier run's (``recording-1.mcap``,
-``stabilized-1.mp4``, ...), and the services' logs (``<out>/logs``).
+and the stabilized video (``stabilized.avi``: Motion JPEG; ``stabilized.mp4`` with ``--video-codec
+mp4v``) and the services' logs and ``status.json`` (``<out>/logs``). A folder that holds an earlier
+run's files keeps them: this run's files all get the next number free for every one of them
+(``stabilized-1.avi``, ``recording-1.mcap`` and fresh logs in ``<out>/logs-1``), nothing is
+overwritten or appended to.
 """
 from __future__ import annotations
 
@@ -25,8 +32,7 @@ from pathlib import Path
 
 import zenoh
 
-from ..io.recording import fresh_path
-from ..io.sinks import VIDEO_CODECS
+from ..io.sinks import VIDEO_CODECS, VIDEO_SUFFIX
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at, topology
@@ -54,21 +60,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stream", type=at.stream_id, default="cam0",
                    help="stream id, 1-64 of [A-Za-z0-9_-] (default: cam0)")
     p.add_argument("--out", type=at.output_dir("--out"), default="out", metavar="DIR",
-                   help="folder for the recording, the stabilized video and logs; an earlier run's files are "
-                   "kept, this run's numbered after them (default: out)")
+                   help="folder for the recording, the stabilized video and the logs; an earlier run's files are "
+                   "kept, this run's all numbered after them (stabilized-1.avi, recording-1.mcap, logs-1/) "
+                   "(default: out)")
     p.add_argument("--no-record", action="store_true", help="do not run the recorder")
     p.add_argument("--port", type=at.port, default=0, help="router port on 127.0.0.1 (default: a free one)")
     p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg",
                    help="frame colour encoding on the wire (default: jpeg)")
     p.add_argument("--video-codec", choices=VIDEO_CODECS, default="mjpeg",
                    help="the stabilized video's codec: mjpeg stores the JPEGs the render publishes, with no second "
-                   "encode; mp4v encodes each frame again (~2.5 ms a 640x480 frame), files a third of the size "
-                   "(default mjpeg)")
+                   "encode, in <out>/stabilized.avi; mp4v encodes each frame again (~2.5 ms a 640x480 frame), files "
+                   "a third of the size, in <out>/stabilized.mp4 (default mjpeg)")
     p.add_argument("--png", type=at.output_dir("--png", files="*.png"), default=None, metavar="DIR",
                    help="render also writes every frame as PNG here (default: none)")
     p.add_argument("--force", action="store_true",
                    help="overwrite PNG frames already in --png DIR (default: refuse)")
-    p.add_argument("--quiet", action="store_true", help="no live status")
+    p.add_argument("--stop-wait", type=at.nonneg_float, default=10.0, metavar="S",
+                   help="stopped before the stream's end (--duration, Ctrl-C): the capture stops first and ends the "
+                   "stream, and the frames it sent get this many seconds to reach the video and the recording "
+                   "before the other services stop; a second Ctrl-C stops at once (default 10)")
+    p.add_argument("--quiet", action="store_true", help="no live status board (on stderr); the end is still said")
     p.add_argument("--tls-dir", default=None, metavar="DIR",
                    help="mutual TLS and access control: the folder deploy/tls/make-certs.sh wrote (router/, "
                    "monitor/: this command's own session, <stream>/<service>/); the services are TLS clients "
@@ -131,7 +142,7 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
         ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
         ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
         ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
-                               "--output", str(getattr(args, "video", out / "stabilized.mp4")),
+                               "--output", str(getattr(args, "video", video_name(out, args.video_codec))),
                                "--video-codec", args.video_codec]
                     + (["--png", args.png] if args.png else [])),
     ]
@@ -160,6 +171,8 @@ class Outcome:
     reason: str = "?"
     error: str | None = None  # what failed, in words (None: nothing)
     failed: list[str] = field(default_factory=list)  # services that failed and were not restarted
+    drained: bool = False  # stopped before the stream's end, every frame sent reached the render's end
+    cut: str | None = None  # why the frames sent did not all get to the outputs (None: they did, or no stop wait)
 
 
 def say(text: str, err: bool = False) -> None:
@@ -195,21 +208,32 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(s, h)
 
 
+def video_name(out: Path, codec: str) -> Path:
+    return out / f"stabilized{VIDEO_SUFFIX[codec]}"  # the codec's own container
+
+
+def run_paths(out: Path, codec: str) -> tuple[Path, Path, Path]:
+    """This run's video, recording and logs folder in ``out``: never an earlier run's, all with the first
+    number free for every one of them (``stabilized-1.avi``, ``recording-1.mcap``, ``logs-1``), so a run's
+    files go together and its logs and status.json are its own (they were appended to and overwritten)."""
+    paths = [video_name(out, codec), out / "recording.mcap", out / "logs"]
+    n = at.first_free(paths)
+    video, recording, logs = (Path(at.numbered_path(p, n)) for p in paths)
+    return video, recording, logs
+
+
 def _prepare(args: argparse.Namespace, params, out: Path) -> None:
     """The output folder, this run's fresh file names, the settings file (and the router's TLS config)."""
     out.mkdir(parents=True, exist_ok=True)
-    # never overwrite a recording or a video: an earlier run's stays, this one gets recording-1.mcap,
-    # stabilized-1.mp4, ...
-    args.recording = fresh_path(out / "recording.mcap")
-    args.video = fresh_path(out / "stabilized.mp4")
+    args.video, args.recording, args.logs = run_paths(out, args.video_codec)
     # one settings file for every service (and the recording's settings record)
-    (out / "logs").mkdir(exist_ok=True)
-    args.settings_file = fresh_path(out / "logs" / "settings.toml")
+    args.logs.mkdir()
+    args.settings_file = args.logs / "settings.toml"
     args.settings_file.write_text(settings_toml(params, f"settings of {args.recording.name} (quick-stream up)"))
     if args.tls_dir and not args.router_config:
         from ..stream.acl import router_config_text
 
-        args.router_config = str(out / "logs" / "router-tls.json5")
+        args.router_config = str(args.logs / "router-tls.json5")
         Path(args.router_config).write_text(router_config_text([args.stream]))
 
 
@@ -226,8 +250,8 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
         return 2
     before = set(out.glob("recording*.mcap"))
     endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
-    sup = Supervisor(service_specs(args, endpoint, out), out / "logs")
-    status_path = out / "logs" / "status.json"
+    sup = Supervisor(service_specs(args, endpoint, out), args.logs)
+    status_path = args.logs / "status.json"
     o = Outcome()
     session = board = None
     t0 = time.monotonic()
@@ -248,10 +272,12 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
                 sup.start(name)
         board = StatusBoard(session)
         _loop(args, sup, board, stop, status_path, t0, o)
+        if o.reason != ENDED and not o.error and not o.failed:
+            _drain(args, sup, board, stop, status_path, o)
     except Abort as e:
         o.reason = o.error = str(e)
     except zenoh.ZError as e:
-        o.reason = o.error = f"router did not come up on {endpoint}: {e} (see {out / 'logs' / 'router.log'})"
+        o.reason = o.error = f"router did not come up on {endpoint}: {e} (see {args.logs / 'router.log'})"
     except OSError as e:  # a write of up's own: the status file, a service's log
         o.reason = o.error = cannot_write(e)
     except Exception as e:  # noqa: BLE001 - a bug of up's own: said, and the run still stopped and closed
@@ -280,7 +306,8 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
           t0: float, o: Outcome) -> None:
     """Until the stream is done, a signal, ``--duration``, or a failure (``o`` says which); OSError when
     the status file cannot be written."""
-    tty = sys.stdout.isatty() and not args.quiet
+    board_out = sys.stderr  # the live status is progress, on stderr; stdout is for the run's result (its end)
+    tty = board_out.isatty() and not args.quiet
     shown = 0
     while True:
         time.sleep(0.25)
@@ -299,19 +326,63 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
             return
         o.failed = [n for n, c in sup.children.items() if c.finished and c.exit_code not in (0, None)]
         if o.failed:  # not restarted: cannot go on (exit 2: no camera, a bad flag, a full disk) or crashes
-            o.reason = f"{o.failed[0]} failed (see logs/{o.failed[0]}.log)"
+            o.reason = f"{o.failed[0]} failed (see {Path(args.logs).name}/{o.failed[0]}.log)"
             o.error = "; ".join(child_failure(sup, n, Path(args.out)) for n in o.failed)
             return
         if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
             lines = status_lines(board, sup, args.stream, t0)
             try:
                 if tty and shown:
-                    sys.stdout.write(f"\x1b[{shown}F")
-                sys.stdout.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
-                sys.stdout.flush()
-            except OSError:  # stdout closed (a pipe's reader went away): the run goes on, status.json has it
+                    board_out.write(f"\x1b[{shown}F")
+                board_out.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
+                board_out.flush()
+            except OSError:  # stderr closed (a pipe's reader went away): the run goes on, status.json has it
                 args.quiet = True
             shown = len(lines)
+
+
+def _drain(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: list[str], status_path: Path,
+           o: Outcome, clock=time.monotonic, sleep=time.sleep) -> None:
+    """Stopped before the stream's end (``--duration``, Ctrl-C, a signal): the capture is stopped first (it
+    ends the stream after its last frame), then the frames it sent get ``--stop-wait`` seconds to reach
+    the render's end (the video, and the recording, which stops after the render) before the other
+    services are stopped. Stopping everything at once left the frames in flight out of the video (90
+    sent, 60 in it). A second signal or a service that fails ends the wait; ``o.cut`` says why the
+    frames sent did not all get there."""
+    signals = len(stop)
+    ended = board.get(args.stream, "render").get("ended", 0)
+    if "capture" in sup.children and not sup.children["capture"].finished:
+        sup.stop(["capture"])  # SIGTERM: it sends no more frames and ends the stream
+    board.drain()
+    sent = int(board.totals(args.stream, "capture").get("sent", 0) or 0)
+    if sent == 0 or args.stop_wait <= 0 or not sup.running("render"):
+        if sent and args.stop_wait <= 0:
+            o.cut = "--stop-wait 0: the services stopped with the capture"
+        return
+    say(f"quick-stream up: stopping ({o.reason}): the capture has ended the stream; the frames it sent get up to "
+        f"{args.stop_wait:g} s to reach the outputs (Ctrl-C again: stop now)", err=True)
+    deadline = clock() + args.stop_wait
+    while True:
+        if board.get(args.stream, "render").get("ended", 0) > ended:
+            o.drained = True
+            return
+        if len(stop) > signals:
+            o.cut = f"{stop[-1]} while the frames sent were on their way to the outputs"
+            return
+        if clock() >= deadline:
+            o.cut = f"the frames sent were not all through the render within --stop-wait {args.stop_wait:g} s"
+            return
+        for name in sup.poll():
+            board.restarted(args.stream, name)
+        failed = [n for n, c in sup.children.items() if n != "capture" and c.finished
+                  and c.exit_code not in (0, None)]
+        if failed:
+            o.failed = failed
+            o.error = "; ".join(child_failure(sup, n, Path(args.out)) for n in failed)
+            o.cut = f"{failed[0]} failed while the frames sent were on their way to the outputs"
+            return
+        write_status(status_path, board, sup, args.stream, None)
+        sleep(0.1)
 
 
 def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusBoard | None, o: Outcome,
@@ -327,7 +398,8 @@ def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusB
     code = 1 if (o.error or o.failed or nothing) else 0
     summary = None  # no account without the services' stats (the run never got that far)
     if board is not None:
-        summary = account.line(args.pace, o.reason == ENDED) + (": nothing was produced" if nothing else "")
+        summary = account.line(args.pace, o.reason == ENDED or o.drained) + (
+            ": nothing was produced" if nothing else "") + (f" ({o.cut})" if o.cut and account.lost else "")
     end = {"error": o.error, "exit_code": code, "frames": account.as_dict() if board is not None else None,
            "summary": summary,
            "outputs": {"whole": [str(f) for f in whole], "incomplete": {str(f): why for f, why in broken}}}
@@ -352,5 +424,5 @@ def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusB
         say(summary, err=nothing)
     for f, why in broken:
         say(f"quick-stream up: {f} is incomplete: {why}", err=True)
-    say(("wrote " + ", ".join(str(f) for f in whole) if whole else "wrote nothing") + f" (logs in {out / 'logs'})")
+    say(("wrote " + ", ".join(str(f) for f in whole) if whole else "wrote nothing") + f" (logs in {args.logs})")
     return code

@@ -6,8 +6,14 @@ a frame given with its JPEG (the render service's, the one it publishes) is stor
 with no second encode (about 0.03 ms). Measured on 7-Scenes frames at JPEG quality 90: mp4v
 files are a third of the size; mjpeg frames are 44 dB from the rendered frame (PSNR, decoded by
 FFmpeg) against 36 dB for mp4v. Both play in FFmpeg-based players (VLC, mpv); neither in a web
-browser. OpenCV names the MP4's Motion JPEG tag itself: it prints one notice on stderr when it
-opens the file ("tag ... 'MJPG' is not supported ... fallback to use tag 'mp4v'").
+browser.
+
+Each codec has its container (:data:`VIDEO_SUFFIX`, the name ``up`` gives its video): Motion JPEG
+goes under its own tag into ``.avi`` and ``.mkv`` (``MJPG``) and ``.mov`` (``jpeg``), with no
+notice from OpenCV. An ``.mp4`` has no Motion JPEG tag: FFmpeg stores it under MP4's generic
+``mp4v`` sample entry (object type JPEG, which FFmpeg-based players read), and OpenCV prints a
+notice on stderr when it opens the file ("tag ... 'MJPG' is not supported ... fallback to use tag
+'mp4v'"); mp4v is what an ``.mp4`` is for.
 
 A write that fails is an error naming the file and the frame, never a silent success. OpenCV's
 ``VideoWriter.write`` returns nothing (FFmpeg only warns "Failed to write frame" on stderr), so the
@@ -35,6 +41,9 @@ from .video_check import IncompleteVideo, video_frames
 
 VIDEO_CODECS = ("mjpeg", "mp4v")
 MJPEG_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")  # the video files FFmpeg writes Motion JPEG into (not .m4v)
+# Motion JPEG's own tag in each container (FFmpeg's tables); .mp4 has none (OpenCV's notice, then 'mp4v')
+MJPEG_TAGS = {".avi": "MJPG", ".mkv": "MJPG", ".mov": "jpeg", ".mp4": "MJPG"}
+VIDEO_SUFFIX = {"mjpeg": ".avi", "mp4v": ".mp4"}  # each codec's container, whose tag names it
 # The video stops when less room than this is left: FFmpeg's buffer (256 KiB) and the index it writes
 # on close (~16 B a frame) still fit, so the file closes complete with the frames before.
 RESERVE_BYTES = 512 * 1024
@@ -179,7 +188,8 @@ class VideoSink:
         if self.codec == "mp4v":
             self._writer = cv2.VideoWriter(str(self.mp4), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
         else:  # each frame an encoded JPEG, muxed as it is
-            self._writer = cv2.VideoWriter(str(self.mp4), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"MJPG"), self.fps,
+            tag = MJPEG_TAGS[self.mp4.suffix.lower()]
+            self._writer = cv2.VideoWriter(str(self.mp4), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*tag), self.fps,
                                            (w, h), [cv2.VIDEOWRITER_PROP_RAW_VIDEO, 1])
         if not self._writer.isOpened():
             self._writer = None

@@ -41,6 +41,20 @@ from .wire.messages import restamp_frame
 log = logging.getLogger(__name__)
 
 FRAME_RECEIVERS = frozenset(topology.receivers("frame"))  # the services that subscribe to frames
+# A stopped capture (SIGTERM: ``up``'s --duration or Ctrl-C) still ends its stream: each of the two end
+# waits lasts this long at most (the supervisor's SIGKILL comes 5 s after its SIGTERM); a second signal ends them.
+STOPPING_WAIT_S = 2.0
+
+
+def have(services: set[str]) -> str:
+    """``render has`` / ``flow, render have``."""
+    return f"{', '.join(sorted(services))} {'has' if len(services) == 1 else 'have'}"
+
+
+def waited(t0: float, timeout_s: float, cut_short: bool) -> str:
+    """How long a wait begun at ``t0`` lasted, in words (``0.1 s (a second signal ended the wait)``)."""
+    text = f"{time.monotonic() - t0:.1f} s"
+    return text + (" (a signal ended the wait)" if cut_short else f" (waits {timeout_s:g} s at most)")
 
 
 class OutputCredit:
@@ -208,9 +222,10 @@ class Capture:
                 # the stream's first frame reaches every receiver before the next one: a receiver's link may
                 # drop a frame under a burst (no put waits) and it recovers only what follows the first
                 # frame it got (the netns TLS test lost frame 0 at render that way, 2 runs in 7)
+                t_first = time.monotonic()
                 if behind := rt.lagging("frame", seq, a.start_wait, required=frozenset(receivers)):
-                    log.warning("%s have not received the first frame (%d) after %.0f s; going on",
-                                ", ".join(sorted(behind)), seq, a.start_wait)
+                    log.warning("%s not received the first frame (%d) after %.1f s; going on",
+                                have(behind), seq, time.monotonic() - t_first)
                 pacer.restart_at(i, fr.timestamp_ns)
             rt.maybe_stats(self.values)
         return "stopped" if rt.stop.is_set() else "source exhausted"
@@ -224,17 +239,28 @@ class Capture:
 
     def end(self, reason: str) -> None:
         """The end of the stream: the last frames reach every consumer before the end marker, and the
-        end marker every receiver before the session closes."""
+        end marker every receiver before the session closes. Stopped (a signal), it still waits for
+        both, :data:`STOPPING_WAIT_S` each at most, unless another signal comes."""
         rt, wait_s = self.rt, self.args.end_wait
-        if self.sent and (behind := rt.lagging("frame", self.last_seq, wait_s)):
-            log.warning("ending the stream although %s have not received frame %d after %.0f s",
-                        ", ".join(sorted(behind)), self.last_seq, wait_s)
+        interrupted = None  # the stop event
+        if rt.stop.is_set():
+            wait_s, signals = min(wait_s, STOPPING_WAIT_S), getattr(rt, "signals", 0)
+            interrupted = lambda: getattr(rt, "signals", 0) > signals  # noqa: E731
+
+        def cut_short() -> bool:
+            return interrupted() if interrupted is not None else rt.stop.is_set()
+
+        t0 = time.monotonic()
+        if self.sent and (behind := rt.lagging("frame", self.last_seq, wait_s, interrupted=interrupted)):
+            log.warning("ending the stream although %s not received frame %d after %s", have(behind),
+                        self.last_seq, waited(t0, wait_s, cut_short()))
         # through the frames' publisher: numbered after the last frame, so a receiver whose link dropped it
         # recovers it in order, and no subscriber can hold it (it was a BLOCK put of its own: a viewer that
         # stopped reading held it, and so the end of the stream, until zenoh closed the viewer's link, 5 s)
         self.pub.put(encode_end(EndOfStream(self.last_seq, reason), self.args.stream))
-        if self.sent and (behind := rt.until_ended("frame", wait_s)):
-            log.warning("closing although %s have not received the end of the stream after %.0f s",
-                        ", ".join(sorted(behind)), wait_s)
+        t0 = time.monotonic()
+        if self.sent and (behind := rt.until_ended("frame", wait_s, interrupted=interrupted)):
+            log.warning("closing although %s not received the end of the stream after %s", have(behind),
+                        waited(t0, wait_s, cut_short()))
         rt.publish_stats({**self.values(), "state": "ended"})
         log.info("sent %d frames (%d bad); %s", self.sent, self.bad, reason)

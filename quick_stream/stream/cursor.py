@@ -13,7 +13,7 @@ import logging
 import os
 import threading
 import time
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import zenoh
 
@@ -138,14 +138,18 @@ class Cursors:
                 best = seq
         return answered, under_way, best
 
-    def lagging(self, stage: str, seq: int, timeout_s: float, required: frozenset[str] = frozenset()) -> set[str]:
+    def lagging(self, stage: str, seq: int, timeout_s: float, required: frozenset[str] = frozenset(),
+                interrupted: Callable[[], bool] | None = None) -> set[str]:
         """Wait until every service that has received ``stage`` of this stream, and every service in
         ``required`` (received or not), reports ``seq`` or a newer one (its inbox's arrivals,
         :meth:`serve_cursor`), or ``timeout_s`` passes; returns the services still behind (empty:
         delivered). A publisher asks before it ends the stream and closes, so what it put last is not
         left in flight, and after its first message, so every consumer has its start (a receiver
-        recovers a message its link dropped only after the first one it got from that publisher)."""
+        recovers a message its link dropped only after the first one it got from that publisher).
+        ``interrupted()``: True ends the wait early (default: the stop event; a publisher ending its
+        stream because it was stopped still waits, until a second signal)."""
         deadline = time.monotonic() + timeout_s
+        interrupted = interrupted or self.stop.is_set
         while True:
             behind: set[str] = set()
             answered: set[str] = set()
@@ -158,19 +162,20 @@ class Cursors:
                     behind.add(service)
             # a busy service may not answer in time: one that is alive and silent is not known to be done
             behind |= (self.alive() | required) - answered - {self.service}
-            if not behind or time.monotonic() > deadline or self.stop.is_set():
+            if not behind or time.monotonic() > deadline or interrupted():
                 return behind
-            self.stop.wait(0.05)
+            time.sleep(0.05)
 
-    def until_ended(self, stage: str, timeout_s: float) -> set[str]:
+    def until_ended(self, stage: str, timeout_s: float, interrupted: Callable[[], bool] | None = None) -> set[str]:
         """After this publisher's ``end`` of ``stage``: wait until no running service of the stream
         reports ``stage`` in its cursor any more (a receiver's arrival ledger closes the stage on the
         ``end``), or ``timeout_s`` passes; returns the services still reporting it. The publisher's
         cache closes with its session, so a receiver whose link dropped the ``end`` for congestion
-        can recover it only while the publisher waits here."""
+        can recover it only while the publisher waits here. ``interrupted``: as :meth:`lagging`'s."""
         deadline = time.monotonic() + timeout_s
+        interrupted = interrupted or self.stop.is_set
         while True:
             still = {service for service, values in self._cursor_answers() if stage in values}
-            if not still or time.monotonic() > deadline or self.stop.is_set():
+            if not still or time.monotonic() > deadline or interrupted():
                 return still
-            self.stop.wait(0.05)
+            time.sleep(0.05)

@@ -64,6 +64,7 @@ class ServiceRuntime(Cursors, Loop):
         self.settings = settings
         self.stream = keys.check_stream(stream)
         self.stop = threading.Event()
+        self.signals = 0  # SIGTERM/SIGINT received (a second one ends the waits of a stream's end)
         self._cond = threading.Condition()
         self._inboxes: list[Inbox] = []
         self._subs: list[Any] = []  # keep references: a dropped subscriber is undeclared
@@ -86,6 +87,7 @@ class ServiceRuntime(Cursors, Loop):
 
     def _on_signal(self, signum: int, _frame: Any) -> None:
         log.info("%s/%s: signal %d, stopping", self.stream, self.service, signum)
+        self.signals += 1
         self.stop.set()
         with self._cond:
             self._cond.notify_all()

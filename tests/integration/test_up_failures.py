@@ -85,8 +85,16 @@ def test_a_status_file_that_cannot_be_written_stops_up_at_once_and_says_so(tmp_p
     # row 1: the first write of status.json that failed (a full disk) raised out of `up`, which
     # stopped its children, then hung in zenoh's threads at exit and ignored SIGTERM
     out, port = tmp_path / "out", free_port()
-    (out / "logs" / "status.tmp").mkdir(parents=True)  # where status.json is written first: not a file
     p = start_up(out, port, "--source", "synthetic:frames=100000,width=160,height=120")
+    # where status.json is written first, made not a file once the run has its logs folder (made before it:
+    # the run would take logs-1, an earlier run's folder being left alone)
+    wait_for(lambda: (out / "logs" / "settings.toml").exists() or p.poll() is not None, "the run's logs folder")
+    while True:
+        try:
+            (out / "logs" / "status.tmp").mkdir()
+            break
+        except FileExistsError:  # a write of status.json under way, between its temporary file and the rename
+            time.sleep(0.01)
     code, text, err = finish(p, out, port)
     no_leftovers(out, port)
     assert code == 1 and "Traceback" not in err, err
@@ -165,7 +173,25 @@ def test_frames_lost_before_flow_show_in_the_drops_and_the_summary(tmp_path):
     assert "flow missed 10 of the frames sent" in summary
     flow_row = next(x for x in text.splitlines() if x.startswith("flow "))
     assert flow_row.split()[5] == "10", flow_row  # the drops column
-    assert f"wrote {out / 'stabilized.mp4'}, {out / 'recording.mcap'}" in text
+    assert f"wrote {out / 'stabilized.avi'}, {out / 'recording.mcap'}" in text
+
+
+def test_a_run_stopped_by_duration_lets_every_frame_sent_reach_the_video(tmp_path):
+    # `up --duration 6` sent 90 frames and the video held 60: every service was stopped at once, the
+    # frames in flight (flow behind the capture) with them (a 640x480 run: 174 sent, 135 in the video)
+    from quick_stream.io.video_check import video_frames
+
+    out, port = tmp_path / "out", free_port()
+    p = start_up(out, port, "--source", "synthetic:frames=100000,width=160,height=120", "--pace", "fast",
+                 "--duration", "8", "--quiet", fault="flow:slow=40")
+    code, text, err = finish(p, out, port)
+    no_leftovers(out, port)
+    assert code == 0, text + err
+    frames = json.loads((out / "logs" / "status.json").read_text())["frames"]
+    assert frames["sent"] > 0 and frames["rendered"] == frames["sent"] and frames["lost"] == 0, frames
+    assert video_frames(out / "stabilized.avi") == frames["sent"]
+    assert "the capture has ended the stream; the frames it sent get up to 10 s to reach the outputs" in err
+    assert "stopped: --duration 8 s" in text and "0 lost in transit" in text
 
 
 def test_a_run_that_produced_nothing_exits_non_zero(tmp_path):
@@ -177,4 +203,4 @@ def test_a_run_that_produced_nothing_exits_non_zero(tmp_path):
     code, text, err = finish(start_up(out, port, "--source", f"tum:{clip}", "--pace", "fast"), out, port)
     assert code == 1, text + err
     assert "stabilized 0 of 10 frames" in err and "10 the source could not deliver: nothing was produced" in err
-    assert "stabilized.mp4" not in text  # not said to be written
+    assert "stabilized.avi" not in text  # not said to be written

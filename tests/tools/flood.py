@@ -232,7 +232,7 @@ def run(out: Path, fps: float, seconds: float, size: str, capacity_frames: int, 
                                               "--output", str(out / "recording.mcap")]))
     specs += [ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z]),
               ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z]),
-              ServiceSpec("render", ["-m", "quick_stream.services.render", *z, "--output", str(out / "stabilized.mp4")])]
+              ServiceSpec("render", ["-m", "quick_stream.services.render", *z, "--output", str(out / "stabilized.avi")])]
     waits = ",".join(s.name for s in specs[1:])
     for i in (1, 2):
         specs.append(ServiceSpec(f"capture{i}", ["-m", "quick_stream.services.capture", *z, "--source", f"mcap:{source}",

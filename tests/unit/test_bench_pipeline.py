@@ -1,6 +1,8 @@
 """``bench pipeline``'s report: the CPU each process spends per stabilized frame against what the cores give."""
 from __future__ import annotations
 
+import pytest
+
 from quick_stream.bench.pipeline import cpu_per_frame, format_report
 
 
@@ -29,3 +31,36 @@ def test_the_report_prints_cpu_per_frame_and_how_much_of_the_budget_it_uses():
     assert "CPU per stabilized frame: 35.0 ms of the 50.0 ms that 2 cores give per frame at 40 fps (70 % used)" in text
     del r["cpu_per_frame"]  # a report without it (nothing stabilized): no ms column values, no budget line
     assert "CPU per stabilized frame" not in format_report(r)
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_bench_pipeline_says_where_it_wrote_and_how_much_and_deletes_its_scratch(tmp_path, monkeypatch, capsys, keep):
+    """``bench pipeline`` left 0.8-1.3 GB in out/ without a word. Its recordings and videos are scratch now:
+    deleted once measured (the logs kept) unless --keep; the last line says where and how much."""
+    from quick_stream.bench import pipeline
+
+    out = tmp_path / "bench"
+    earlier = out / "fps-30.0" / "recording.mcap"  # an earlier run's, kept: not this run's to delete
+    earlier.parent.mkdir(parents=True)
+    earlier.write_bytes(b"x" * 10)
+
+    def run(folder, *a, **k):
+        (folder / "logs").mkdir(parents=True, exist_ok=True)
+        (folder / "logs" / "render.log").write_text("log")
+        (folder / "recording-1.mcap").write_bytes(b"r" * 2_000_000)
+        (folder / "stabilized-cam0.avi").write_bytes(b"v" * 500_000)
+        return {}
+
+    monkeypatch.setattr(pipeline, "run_pipeline", run)
+    monkeypatch.setattr(pipeline, "format_report", lambda r: "REPORT")
+    assert pipeline.main([30.0], 1.0, str(out), None, keep=keep) == 0
+    text = capsys.readouterr().out
+    folder = out / "fps-30.0"
+    left = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+    if keep:
+        assert f"wrote 2.5 MB in {folder} (avi, mcap; kept: delete {folder} when done); logs in {folder / 'logs'}" in text
+        assert left == ["logs/render.log", "recording-1.mcap", "recording.mcap", "stabilized-cam0.avi"]
+    else:
+        assert f"deleted 2.5 MB of scratch files (avi, mcap) from {folder} (--keep keeps them)" in text
+        assert left == ["logs/render.log", "recording.mcap"]
+    assert text.index("REPORT") < text.index(str(folder))

@@ -118,3 +118,17 @@ def test_timestamps_out_of_order_are_flagged(capsys, tmp_path):
     assert [b["seq"] for b in r["bad_frames"]] == [3]
     assert "out of order" in r["bad_frames"][0]["error"]
     assert r["valid_pairs"] == 4
+
+
+def test_trajectory_without_a_name_goes_under_out_numbered(capsys, tmp_path, monkeypatch):
+    """The README's `--trajectory estimated.txt` wrote into the folder it ran in (the repo root): a bare
+    --trajectory goes to out/trajectory.txt like stabilize's outputs, then -1, never overwritten."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["motion", "--source", "synthetic:width=160,height=120,frames=3", "--quiet", "--trajectory"]
+    assert main(argv) == 0
+    assert "wrote out/trajectory.txt" in capsys.readouterr().out
+    assert main(argv) == 0
+    assert "wrote out/trajectory-1.txt" in capsys.readouterr().out
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["trajectory-1.txt", "trajectory.txt"]
+    assert len(read_tum_trajectory(tmp_path / "out" / "trajectory.txt")[0]) == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

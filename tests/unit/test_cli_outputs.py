@@ -94,9 +94,13 @@ def test_png_folder_holding_frames_is_refused_unless_force(tmp_path, capsys):
     assert run(capsys, *argv, "--force")[0] == 0 and len(list(png.glob("*.png"))) == 12
 
 
-def test_up_numbers_its_video_like_its_recording(tmp_path, capsys, monkeypatch):
-    """A second ``up`` in the same folder hands render out/stabilized-1.mp4 (and the recorder
-    recording-1.mcap); the earlier run's files stay."""
+@pytest.mark.parametrize("codec,video", [("mjpeg", "stabilized.avi"), ("mp4v", "stabilized.mp4")])
+def test_up_numbers_its_video_like_its_recording(tmp_path, capsys, monkeypatch, codec, video):
+    """A second ``up`` in the same folder hands render out/stabilized-1.avi, the recorder
+    recording-1.mcap and the services fresh logs in out/logs-1 (they were appended to out/logs, whose
+    status.json was overwritten); the earlier run's files stay. The video's container is its codec's: Motion
+    JPEG in .avi (its own tag, no OpenCV notice), mp4v in .mp4 (it was .mp4 for both: Motion JPEG under
+    the tag 'mp4v' after OpenCV's "tag 'MJPG' is not supported" on every run)."""
     from quick_stream.stream import launcher
 
     class Started(BaseException):
@@ -105,20 +109,43 @@ def test_up_numbers_its_video_like_its_recording(tmp_path, capsys, monkeypatch):
     specs = {}
 
     def capture(self, children, logs):
-        specs.update({s.name: s.argv for s in children})
+        specs.update({s.name: s.argv for s in children}, logs=logs)
         raise Started
 
     monkeypatch.setattr(launcher.Supervisor, "__init__", capture)
     out = tmp_path / "out"
     out.mkdir()
-    (out / "stabilized.mp4").write_bytes(b"earlier")
+    stem, suffix = video.split(".")
+    (out / video).write_bytes(b"earlier")
     (out / "recording.mcap").write_bytes(b"earlier")
+    (out / "logs").mkdir()
+    for name in ("status.json", "capture.log", "settings.toml"):
+        (out / "logs" / name).write_text("earlier")
     with pytest.raises(Started):
-        main(["up", "--out", str(out)])
+        main(["up", "--out", str(out), "--video-codec", codec])
     render, recorder = specs["render"], specs["recorder"]
-    assert render[render.index("--output") + 1] == str(out / "stabilized-1.mp4")
+    assert render[render.index("--output") + 1] == str(out / f"{stem}-1.{suffix}")
+    assert render[render.index("--video-codec") + 1] == codec
     assert recorder[recorder.index("--output") + 1] == str(out / "recording-1.mcap")
-    assert (out / "stabilized.mp4").read_bytes() == b"earlier"
+    assert (out / video).read_bytes() == b"earlier"
+    assert specs["logs"] == out / "logs-1"
+    settings = render[render.index("--settings") + 1]
+    assert settings == str(out / "logs-1" / "settings.toml") and Path(settings).is_file()
+    assert all(f.read_text() == "earlier" for f in (out / "logs").iterdir())
+    assert sorted(f.name for f in (out / "logs").iterdir()) == ["capture.log", "settings.toml", "status.json"]
+
+
+def test_a_runs_files_share_one_number(tmp_path):
+    """The video, the recording and the logs of one run go together: a folder where only the recording
+    was numbered on (the video was .mp4 then, or a recording split) still gets one number for all."""
+    from quick_stream.cli.up_cmd import run_paths
+
+    assert run_paths(tmp_path, "mjpeg") == (tmp_path / "stabilized.avi", tmp_path / "recording.mcap",
+                                            tmp_path / "logs")
+    for name in ("stabilized.mp4", "recording.mcap", "recording-1.mcap", "logs"):
+        (tmp_path / name).touch()
+    assert run_paths(tmp_path, "mjpeg") == (tmp_path / "stabilized-2.avi", tmp_path / "recording-2.mcap",
+                                            tmp_path / "logs-2")
 
 
 # ---------------------------------------------------------------- outputs that cannot be created

@@ -89,6 +89,33 @@ def test_mjpeg_stores_the_jpegs_it_is_given_as_they_are(tmp_path):
         assert ok and img.shape == f.shape and cv2.PSNR(img, cv2.imdecode(np.frombuffer(jpeg, np.uint8), 1)) > 30
 
 
+@pytest.mark.parametrize("suffix,tag", [(".avi", "MJPG"), (".mkv", "[0][0][0][0]"), (".mov", "jpeg")])
+def test_mjpeg_goes_under_its_own_tag_with_no_notice(tmp_path, capfd, suffix, tag):
+    """Motion JPEG in its containers is tagged as such (Matroska names it by its codec id, no tag), with
+    no OpenCV notice: ``up`` logged "tag 'MJPG' is not supported ... fallback to use tag 'mp4v'" on every
+    run, its .mp4 holding Motion JPEG under 'mp4v' (now its video is .avi); the .mov got the notice too."""
+    import shutil
+    import subprocess
+
+    path = tmp_path / f"v{suffix}"
+    with VideoSink(path, None, 30.0, "mjpeg") as sink:
+        for seq, f in enumerate(_frames(3)):
+            sink.write(seq, f)
+    assert "OpenCV" not in capfd.readouterr().err
+    assert video_frames(path) == 3
+    if shutil.which("ffprobe"):
+        probe = subprocess.run(["ffprobe", "-v", "error", "-show_entries", "stream=codec_name,codec_tag_string",
+                                "-of", "csv=p=0", str(path)], capture_output=True, text=True, check=True)
+        assert probe.stdout.strip() == f"mjpeg,{tag}"
+
+
+def test_each_codec_has_a_container_named_by_its_tag():
+    from quick_stream.io.sinks import MJPEG_TAGS, VIDEO_SUFFIX
+
+    assert VIDEO_SUFFIX == {"mjpeg": ".avi", "mp4v": ".mp4"}
+    assert MJPEG_TAGS[VIDEO_SUFFIX["mjpeg"]] == "MJPG"
+
+
 def test_a_frame_of_another_size_is_letterboxed_into_the_video_whatever_its_codec(tmp_path):
     for codec in ("mjpeg", "mp4v"):
         big, small = _frames(1)[0], _frames(1, 24, 32)[0]

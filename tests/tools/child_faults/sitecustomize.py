@@ -8,7 +8,8 @@ runs with ``-I -S`` and ignores it, the service it execs does not):
 
 * ``hang``: ignores SIGTERM and never gets going (a process stuck before it answers anyone);
 * ``exit1``: exits 1 at once (a service that cannot start, a crash loop);
-* ``lose=A-B`` (flow): the frames numbered A to B never reach its stage, as if lost on the way.
+* ``lose=A-B`` (flow): the frames numbered A to B never reach its stage, as if lost on the way;
+* ``slow=MS`` (flow): every frame takes MS milliseconds longer (a pipeline behind the capture).
 """
 from __future__ import annotations
 
@@ -42,6 +43,20 @@ def _lose(first: int, last: int) -> None:
     stages.FlowDriver.push = lossy
 
 
+def _slow(ms: float) -> None:
+    import time
+
+    from quick_stream.core import stages
+
+    push = stages.FlowDriver.push
+
+    def slow(self, frame, *args, **kw):
+        time.sleep(ms / 1000)
+        return push(self, frame, *args, **kw)
+
+    stages.FlowDriver.push = slow
+
+
 def _apply(spec: str) -> None:
     name, _, fault = spec.partition(":")
     if _target() != name:
@@ -58,6 +73,8 @@ def _apply(spec: str) -> None:
     elif fault.startswith("lose="):
         a, _, b = fault[len("lose="):].partition("-")
         _lose(int(a), int(b))
+    elif fault.startswith("slow="):
+        _slow(float(fault[len("slow="):]))
 
 
 if os.environ.get("QUICK_STREAM_TEST_FAULT"):
