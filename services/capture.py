@@ -21,32 +21,33 @@ from quick_stream.io.sources import SourceError, open_source
 from quick_stream.io.sources.base import LiveSource, ReplaySource, open_live
 from quick_stream.io.sources.oak_device import print_devices
 from quick_stream.stream import argtypes as at
-from quick_stream.stream.capture import Capture, log
+from quick_stream.stream.capture import Capture, CaptureOptions, log
 from quick_stream.stream.process import service_main, service_parser
 from quick_stream.stream.runtime import ServiceRuntime
 
 
 def build_parser() -> argparse.ArgumentParser:
+    D = CaptureOptions  # the defaults
     p = service_parser("capture", __doc__)
     p.add_argument("--source", default="synthetic",
                    help="synthetic[:k=v,...] (default), tum:PATH, mcap:FILE or depthai[:DEVICE_ID][,width=W,height=H,fps=F]")
     p.add_argument("--list-devices", action="store_true", help="list the OAK (depthai) devices visible and exit")
     p.add_argument("--frames", type=at.positive_int, default=None, help="send at most this many frames (default: all the source has)")
-    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
+    p.add_argument("--pace", choices=("realtime", "fast"), default=D.pace,
                    help="realtime: at the frames' own timestamps (default); fast: as fast as the pipeline "
                         "takes them (at most --window frames ahead of the last stabilized one)")
-    p.add_argument("--window", type=at.nonneg_int, default=60,
-                   help="fast pace: frames in flight before waiting for stabilized output (default 60; "
+    p.add_argument("--window", type=at.nonneg_int, default=D.window,
+                   help=f"fast pace: frames in flight before waiting for stabilized output (default {D.window}; "
                         "a third of it for the motion stage; 0: no limit)")
-    p.add_argument("--shed", choices=("on", "off"), default="on",
+    p.add_argument("--shed", choices=("on", "off"), default=D.shed,
                    help="realtime pace: frames offered faster than the pipeline takes them are shed (skipped "
                         "before encoding, evenly spaced, counted in 'shed'; default on; docs/reliability.md)")
-    p.add_argument("--speed", type=at.positive_float, default=1.0, help="realtime pacing speed factor (default 1)")
+    p.add_argument("--speed", type=at.positive_float, default=D.speed, help="realtime pacing speed factor (default 1)")
     p.add_argument("--fps", type=at.positive_float, default=None,
                    help="override the pacing rate (frames/s; realtime only; default: the source's rate)")
-    p.add_argument("--color", choices=("jpeg", "raw"), default="jpeg", help="colour encoding (default jpeg)")
-    p.add_argument("--quality", type=at.quality, default=90, help="JPEG quality, 1-100 (default 90)")
-    p.add_argument("--depth", choices=("raw", "zstd"), default="zstd", help="depth encoding (default zstd)")
+    p.add_argument("--color", choices=("jpeg", "raw"), default=D.color, help=f"colour encoding (default {D.color})")
+    p.add_argument("--quality", type=at.quality, default=D.quality, help=f"JPEG quality, 1-100 (default {D.quality})")
+    p.add_argument("--depth", choices=("raw", "zstd"), default=D.depth, help=f"depth encoding (default {D.depth})")
     p.add_argument("--reencode", action="store_true",
                    help="mcap sources: re-encode frames with --color/--depth instead of sending the recorded bytes")
     p.add_argument("--history", type=at.int_in(0), default=150,
@@ -55,14 +56,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "what their link dropped)")
     p.add_argument("--wait-for", type=at.service_names, default="", metavar="S1,S2",
                    help="services (of this stream) to wait for before the first frame, e.g. flow,motion,render (default: none)")
-    p.add_argument("--wait-timeout", type=at.nonneg_float, default=30.0, help="seconds to wait for them (default 30)")
-    p.add_argument("--start-wait", type=at.nonneg_float, default=10.0,
+    p.add_argument("--wait-timeout", type=at.nonneg_float, default=D.wait_timeout,
+                   help=f"seconds to wait for them (default {D.wait_timeout:g})")
+    p.add_argument("--start-wait", type=at.nonneg_float, default=D.start_wait,
                    help="with --wait-for: seconds to wait until the receivers of frames among them (flow, render, "
-                        "recorder) have the first frame before sending the next (default 10)")
-    p.add_argument("--end-wait", type=at.nonneg_float, default=10.0,
+                        f"recorder) have the first frame before sending the next (default {D.start_wait:g})")
+    p.add_argument("--end-wait", type=at.nonneg_float, default=D.end_wait,
                    help="at the end, seconds to wait until every consumer has received the last frame before "
                         "sending the end marker, and again until they have the end marker before closing "
-                        "(default 10; stopped by a signal: 2 s at most each, a second signal ends them)")
+                        f"(default {D.end_wait:g}; stopped by a signal: 2 s at most each, a second signal ends them)")
     return p
 
 
@@ -79,7 +81,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
             source.stop = rt.stop  # reconnection retries end when the service is asked to stop
         pub = rt.publisher("frame", cache=args.history)  # lossless: lost only where counted (inboxes)
         rt.ready()
-        capture = Capture(rt, pub, args, depth_scale=float(source.depth_scale))
+        capture = Capture(rt, pub, CaptureOptions.from_flags(args), depth_scale=float(source.depth_scale))
         if (code := capture.start()) is not None:
             return code
         # an exact replay sends the recorded bytes: their pixels are decoded (and checked) by the receivers

@@ -17,7 +17,9 @@ from quick_stream.cli import build_parser
 from quick_stream.core.stabilizer import Stabilizer
 from quick_stream.io.recording import read_messages
 from quick_stream.io.sources import open_source
+from quick_stream.stream import topology
 from quick_stream.stream.launcher import ServiceSpec, Supervisor, free_port, open_when_up
+from quick_stream.stream.stream_specs import stream_specs
 from quick_stream.io.stabilizer_flags import stabilizer_params
 from quick_stream.stream.wire import WireError, decode
 
@@ -111,9 +113,8 @@ def stage_specs(z: list[str], stream: str | None = None, render: list[str] = (),
     ``<stage>-<stream>``); ``render``: the render's own arguments, ``render_module`` its module (a
     test tool such as ``tests.tools.slow_render``)."""
     s, suffix = (["--stream", stream], f"-{stream}") if stream else ([], "")
-    return [ServiceSpec(f"flow{suffix}", ["-m", "quick_stream.services.flow", *z, *s]),
-            ServiceSpec(f"motion{suffix}", ["-m", "quick_stream.services.motion", *z, *s]),
-            ServiceSpec(f"render{suffix}", ["-m", render_module, *z, *s, *render])]
+    return stream_specs(lambda _: [*z, *s], {"render": render}, run=topology.STAGES,
+                        modules={"render": render_module}, name=lambda n: f"{n}{suffix}")
 
 
 def capture_spec(z: list[str], capture: list[str], wait_for: list[str], name: str = "capture") -> ServiceSpec:
@@ -131,15 +132,11 @@ def pipeline_specs(tmp: Path, ep: str, render: list[str] = (), record: bool = Tr
     with ``capture`` arguments, a capture waiting for all of them. Every service connects to ``ep``
     with the extra flags ``flags``."""
     z = ["-e", ep, "--no-multicast-scouting", *flags]
-    specs = [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting", *router])]
-    if record:
-        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z, *recorder,
-                                              "--output", str(tmp / "rec.mcap")]))
-    if stages:
-        specs += stage_specs(z, render=render, render_module=render_module)
-    if capture is not None:
-        specs.append(capture_spec(z, capture, [s.name for s in specs[1:]]))
-    return specs
+    run = [s for s in topology.SERVICES if (s != topology.RECORDER or record)
+           and (s not in topology.STAGES or stages) and (s != topology.SOURCE or capture is not None)]
+    own = {"recorder": [*recorder, "--output", str(tmp / "rec.mcap")], "render": render, "capture": capture or []}
+    return [ServiceSpec("router", ["-m", "quick_stream", "router", "-l", ep, "--no-multicast-scouting", *router]),
+            *stream_specs(lambda _: z, own, run=run, modules={"render": render_module})]
 
 
 def start_pipeline(specs: list[ServiceSpec], tmp: Path, ep: str, max_restarts: int = 0,

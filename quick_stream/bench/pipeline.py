@@ -47,7 +47,8 @@ import zenoh
 
 from ..io.recording import RecordingError, fresh_path
 from ..stream import keys, topology
-from ..stream.launcher import ServiceSpec, StatusBoard, Supervisor, router_spec
+from ..stream.launcher import StatusBoard, Supervisor, router_spec
+from ..stream.stream_specs import stream_specs
 from ..stream.wire import WireError
 from ..stream.wire.codec import unpack
 from .release_steps import release_steps
@@ -156,25 +157,19 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     cams = [f"cam{i}" for i in range(streams)]
     specs = [router_spec(["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"])]
     recording = fresh_path(out / "recording.mcap")  # measured below: this run's, not a kept earlier one
-    if record:
-        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z,
-                                              "--output", str(recording)]
-                                 + (["--all-streams"] if streams > 1 else [])))
     for i, cam in enumerate(cams):
         # a camera at the rate offered (its frames' capture times follow it), 30 fps for 'fast'
         src = f"synthetic:frames={frames},width={width},height={height},seed={i + 1},fps={fps or 30:g}"
         if replay:
             src = prerecord(out / f"source-{cam}.mcap", src)
-        s = ["--stream", cam]
-        specs += [ServiceSpec(_name("flow", cam, streams), ["-m", "quick_stream.services.flow", *z, *s]),
-                  ServiceSpec(_name("motion", cam, streams), ["-m", "quick_stream.services.motion", *z, *s]),
-                  ServiceSpec(_name("render", cam, streams), ["-m", "quick_stream.services.render", *z, *s,
-                                                                "--output", str(out / f"stabilized-{cam}.avi")])]
-        # the recorder's liveliness token is under its own stream (cam0), even when it records all
-        wait = ",".join([topology.RECORDER] * (record and cam == "cam0") + list(topology.STAGES))
-        cap = ["-m", "quick_stream.services.capture", *z, *s, "--source", src, "--wait-for", wait]
-        cap += ["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)]
-        specs.append(ServiceSpec(_name("capture", cam, streams), cap, may_finish=True))
+        cap = ["--source", src, *(["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)])]
+        own = {"recorder": ["--output", str(recording)] + (["--all-streams"] if streams > 1 else []),
+               "render": ["--output", str(out / f"stabilized-{cam}.avi")], "capture": cap}
+        # one recorder, of cam0 (its liveliness token is under its own stream even when it records all):
+        # cam0's capture waits for it too
+        run = [s for s in topology.SERVICES if s != topology.RECORDER or (record and cam == "cam0")]
+        specs += stream_specs(lambda _s, cam=cam: [*z, "--stream", cam], own, run=run,
+                              name=lambda s, cam=cam: s if s == topology.RECORDER else _name(s, cam, streams))
     sup = Supervisor(specs, out / "logs")
     sup.start("router")
     session = open_when_up(endpoint, 20)

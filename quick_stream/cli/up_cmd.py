@@ -38,6 +38,7 @@ from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at, topology
 from ..stream.launcher import (ServiceSpec, StatusBoard, Supervisor, close_within, free_port, open_when_up,
                                router_spec)
+from ..stream.stream_specs import stream_specs
 from .up_report import SERVICES, child_failure, frame_account, log_tail, outputs, status_lines, write_status
 from ..io.settings_file import settings_toml
 from ..io.stabilizer_flags import add_stabilizer_args, stabilizer_params
@@ -134,27 +135,17 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
     if tls:
         d, n = tls_party(args, "router")
         router += ["-c", str(args.router_config), "--tls-dir", d, "--tls-name", n]
-    specs = [router_spec(router)]
-    if not args.no_record:
-        specs.append(ServiceSpec("recorder", ["-m", "quick_stream.services.recorder", *z("recorder"), *st,
-                                              "--output", str(args.recording)]))
-    specs += [
-        ServiceSpec("flow", ["-m", "quick_stream.services.flow", *z("flow"), *st]),
-        ServiceSpec("motion", ["-m", "quick_stream.services.motion", *z("motion"), *st]),
-        ServiceSpec("render", ["-m", "quick_stream.services.render", *z("render"), *st,
-                               "--output", str(getattr(args, "video", video_name(out, args.video_codec))),
-                               "--video-codec", args.video_codec]
-                    + (["--png", args.png] if args.png else [])),
-    ]
-    wait = ",".join(s.name for s in specs[1:])
-    cap = ["-m", "quick_stream.services.capture", *z("capture"), "--source", args.source, "--pace", args.pace,
-           "--color", args.color, "--wait-for", wait]
+    cap = ["--source", args.source, "--pace", args.pace, "--color", args.color]
     if args.frames is not None:
         cap += ["--frames", str(args.frames)]
     if args.fps is not None:
         cap += ["--fps", str(args.fps)]
-    specs.append(ServiceSpec("capture", cap, may_finish=True))
-    return specs
+    own = {"recorder": [*st, "--output", str(args.recording)], "flow": st, "motion": st,
+           "render": [*st, "--output", str(getattr(args, "video", video_name(out, args.video_codec))),
+                      "--video-codec", args.video_codec] + (["--png", args.png] if args.png else []),
+           "capture": cap}
+    run = [s for s in topology.SERVICES if s != topology.RECORDER or not args.no_record]
+    return [router_spec(router), *stream_specs(z, own, run=run)]
 
 
 ENDED = "source exhausted, last frame rendered"

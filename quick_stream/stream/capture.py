@@ -18,11 +18,11 @@ core's: :mod:`quick_stream.core.pacing`, :mod:`quick_stream.core.shedding`):
 """
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import threading
 import time
+from dataclasses import dataclass, fields
 from typing import Any, Iterable
 
 import zenoh
@@ -132,21 +132,50 @@ class OutputCredit:
             return self.shedder.admit(seq, time.monotonic())
 
 
-class Capture:
-    """One capture service's stream (module docstring); ``args``: the capture's flags
-    (``quick_stream.services.capture``: pace, window, shed, fps, speed, frames, encodings, waits)."""
+@dataclass(frozen=True)
+class CaptureOptions:
+    """What a capture is told (the capture service's flags, ``quick-stream-capture -h``)."""
 
-    def __init__(self, rt: ServiceRuntime, pub: TimedPublisher, args: argparse.Namespace,
+    stream: str
+    source: str  # the source's spec, for messages
+    pace: str = "realtime"  # realtime: the source's clock, shedding what the pipeline cannot take; fast: as fast as it takes frames
+    fps: float | None = None  # the realtime pace's rate (None: the source's)
+    speed: float = 1.0  # the realtime pace's speed-up
+    frames: int | None = None  # send at most this many
+    window: int = 60  # fast pace: frames in flight to the output at most
+    shed: str = "on"  # realtime pace: shed what the pipeline cannot take (on) or send every frame (off)
+    color: str = "jpeg"  # the frame's colour encoding on the wire
+    quality: int = 90  # its JPEG quality
+    depth: str = "zstd"  # the depth's encoding
+    wait_for: tuple[str, ...] = ()  # the services whose liveliness tokens it waits for before the stream
+    wait_timeout: float = 30.0  # ... at most this long (s)
+    start_wait: float = 10.0  # the first frames: until every receiver has the frame before the next (s)
+    end_wait: float = 10.0  # the end: until the receivers have the last frame, then the end marker (s)
+
+    @classmethod
+    def from_flags(cls, flags: Any) -> "CaptureOptions":
+        """From the capture service's parsed flags (an object with these attributes; ``wait_for`` the
+        flag's comma-separated text)."""
+        kw = {f.name: getattr(flags, f.name) for f in fields(cls) if hasattr(flags, f.name)}
+        if isinstance(kw.get("wait_for"), str):
+            kw["wait_for"] = tuple(s for s in kw["wait_for"].split(",") if s)
+        return cls(**kw)
+
+
+class Capture:
+    """One capture service's stream (module docstring), as ``options`` say."""
+
+    def __init__(self, rt: ServiceRuntime, pub: TimedPublisher, options: CaptureOptions,
                  depth_scale: float = 1000.0) -> None:
-        self.rt, self.pub, self.args, self.depth_scale = rt, pub, args, depth_scale
-        self.wait = [s for s in args.wait_for.split(",") if s]
+        self.rt, self.pub, self.options, self.depth_scale = rt, pub, options, depth_scale
+        self.wait = list(options.wait_for)
         self.meter = RateMeter()
         self.bad = self.sent = 0
         self.last_seq = -1
         self.shed_logged = -math.inf  # when shedding was last logged
         self.credit: OutputCredit | None = None
         self.numbering = Numbering()
-        self.pacer = Pacer(args.fps, args.speed)
+        self.pacer = Pacer(options.fps, options.speed)
 
     def values(self) -> dict[str, Any]:
         """The capture's stats."""
@@ -158,7 +187,7 @@ class Capture:
     def start(self) -> int | None:
         """Wait for the ``--wait-for`` services, follow the pipeline, continue a stream under way;
         an exit code when the services never came up."""
-        a, rt = self.args, self.rt
+        a, rt = self.options, self.rt
         if self.wait:
             missing = rt.wait_for(self.wait, a.wait_timeout)
             if missing and not rt.stop.is_set():
@@ -180,11 +209,11 @@ class Capture:
         try:
             return self._send_all(items)
         except Exception as e:  # noqa: BLE001 - a source's own failure, whatever its type
-            log.error("source %s failed: %s", self.args.source, e)
+            log.error("source %s failed: %s", self.options.source, e)
             return f"source failed: {e}"
 
     def _send_all(self, items: Iterable[tuple[RGBDFrame | BadFrame, bytes | None]]) -> str:
-        a, rt, credit = self.args, self.rt, self.credit
+        a, rt, credit = self.options, self.rt, self.credit
         assert credit is not None, "start() first"
         self.pacer = pacer = Pacer(a.fps, a.speed)
         for i, (fr, recorded) in enumerate(items):
@@ -221,7 +250,7 @@ class Capture:
             if self.sent == 1 and (receivers := FRAME_RECEIVERS & set(self.wait)):
                 # the stream's first frame reaches every receiver before the next one: a receiver's link may
                 # drop a frame under a burst (no put waits) and it recovers only what follows the first
-                # frame it got (the netns TLS test lost frame 0 at render that way, 2 runs in 7)
+                # frame it got (seen as frame 0 lost at render in tests/integration/test_netns.py under TLS)
                 t_first = time.monotonic()
                 if behind := rt.lagging("frame", seq, a.start_wait, required=frozenset(receivers)):
                     log.warning("%s not received the first frame (%d) after %.1f s; going on",
@@ -241,7 +270,7 @@ class Capture:
         """The end of the stream: the last frames reach every consumer before the end marker, and the
         end marker every receiver before the session closes. Stopped (a signal), it still waits for
         both, :data:`STOPPING_WAIT_S` each at most, unless another signal comes."""
-        rt, wait_s = self.rt, self.args.end_wait
+        rt, wait_s = self.rt, self.options.end_wait
         interrupted = None  # the stop event
         if rt.stop.is_set():
             wait_s, signals = min(wait_s, STOPPING_WAIT_S), getattr(rt, "signals", 0)
@@ -257,7 +286,7 @@ class Capture:
         # through the frames' publisher: numbered after the last frame, so a receiver whose link dropped it
         # recovers it in order, and no subscriber can hold it (it was a BLOCK put of its own: a viewer that
         # stopped reading held it, and so the end of the stream, until zenoh closed the viewer's link, 5 s)
-        self.pub.put(encode_end(EndOfStream(self.last_seq, reason), self.args.stream))
+        self.pub.put(encode_end(EndOfStream(self.last_seq, reason), self.options.stream))
         t0 = time.monotonic()
         if self.sent and (behind := rt.until_ended("frame", wait_s, interrupted=interrupted)):
             log.warning("closing although %s not received the end of the stream after %s", have(behind),

@@ -78,8 +78,8 @@ class ServiceSpec:
 
 def router_spec(argv: list[str], **kw: Any) -> ServiceSpec:
     """The router's :class:`ServiceSpec`: killed outright when the supervisor dies. It holds nothing to
-    flush, and once, after a SIGKILLed ``up``, it went on running for over a minute without handling
-    its SIGTERM or noticing it was orphaned (1 fresh-clone CI run in 4; not reproduced in 21 tries)."""
+    flush, and a router left orphaned by a SIGKILLed ``up`` has been seen to run on for over a minute
+    without handling its SIGTERM (tests/integration/test_parent_death.py)."""
     return ServiceSpec("router", argv, on_parent_death=signal.SIGKILL, **kw)
 
 

@@ -162,12 +162,11 @@ class ServiceRuntime(Cursors, Loop):
         # Recovery: messages of a lossless publisher (LOSSLESS_STAGES) that this session's link dropped
         # (congested: this process stopped reading for a while) are fetched back from the publisher's
         # cache and handed on in order; what the cache no longer holds is counted as ``lost``. Those
-        # keys get an advanced subscriber each; the others (stabilized, stats) a plain one, as before:
-        # an advanced subscriber also drops a message that is not numbered and whose timestamp is not
-        # newer than the last one delivered from its session (zenoh-ext's timestamped path; with every
-        # key on advanced subscribers, test_faults[router] missed 1-4 stabilized frames in 2 of 4 runs,
-        # most likely reordered while the router restarted). ``history``: a publisher this session does
-        # not know yet (its declaration arrives after ours) is queried once seen.
+        # keys (every data key: stream/topology.py) get an advanced subscriber each; the others (stats) a
+        # plain one: an advanced subscriber drops a message that is not numbered and whose timestamp is not
+        # newer than the last one delivered from its session (zenoh-ext's timestamped path), so an
+        # unnumbered key reordered while the router restarts would lose messages there. ``history``: a
+        # publisher this session does not know yet (its declaration arrives after ours) is queried once seen.
         head, _, last = key_expr.rpartition("/")
         lossless = [key_expr] if last in LOSSLESS_STAGES else [f"{head}/{st}" for st in LOSSLESS_STAGES] if last == "*" else []
         for k in lossless:

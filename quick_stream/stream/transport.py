@@ -248,9 +248,9 @@ def config_from_args(args: argparse.Namespace, environ: Mapping[str, str] | None
     put("timestamping/enabled", "true", "timestamping")
     # Puts drop for a congested link instead of waiting (runtime.py): a link's data queue of zenoh's
     # default 2 batches (128 KiB) does not hold one raw 320x240 frame, so on a busy link such a frame
-    # was dropped within the 50 ms a fragmented message may wait, and a receiver's first frame cannot be
-    # recovered (netns TLS test: frame 0 lost, 3 runs in 9). 16 batches (1 MiB) per link, unless a -c
-    # file sets its own.
+    # could be dropped within the 50 ms a fragmented message may wait, and a receiver's first frame cannot
+    # be recovered (seen in tests/integration/test_netns.py under TLS). 16 batches (1 MiB) per link, unless
+    # a -c file sets its own.
     if json.loads(conf.get_json(DATA_QUEUE_KEY)) == ZENOH_DEFAULT_DATA_QUEUE:
         put(DATA_QUEUE_KEY, str(DATA_QUEUE_BATCHES), "transport")
     # Multicast scouting is off unless asked for (zenoh's default is on: two deployments on one host

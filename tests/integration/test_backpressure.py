@@ -9,7 +9,7 @@ from pathlib import Path
 from tests.helpers import pipeline, recorded, wait_for_log
 from tests.tools import repo_env
 
-FRAMES = 150
+FRAMES = 100  # 6.7 s at 15 frames/s: the slowed render takes ~8, so the capture sheds within seconds
 
 
 def peak_rss_mb(pid: int) -> float:

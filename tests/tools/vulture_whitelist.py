@@ -22,7 +22,8 @@ _.budget_margin_px
 # bench/peers.py: the OpenCV 5 shim assigned into vidstab's module, which calls it
 _.cv2_estimateRigidTransform
 
-# tests: pytest fixtures (autouse, or requested by a test's parameter name)
+# tests: pytest fixtures (autouse, or requested by a test's parameter name) and hooks pytest calls by name
+pytest_configure
 one_thread
 no_work
 

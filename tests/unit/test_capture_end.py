@@ -6,7 +6,7 @@ import threading
 import time
 
 from quick_stream.stream import capture as capture_module
-from quick_stream.stream.capture import Capture
+from quick_stream.stream.capture import Capture, CaptureOptions
 from quick_stream.stream.cursor import Cursors
 
 
@@ -49,7 +49,7 @@ def capture(rt: Rt, end_wait: float) -> Capture:
     from services.capture import build_parser
 
     args = build_parser().parse_args(["--source", "synthetic", "--end-wait", str(end_wait)])
-    c = Capture(rt, Pub(), args)
+    c = Capture(rt, Pub(), CaptureOptions.from_flags(args))
     c.sent, c.last_seq = 27, 26
     return c
 

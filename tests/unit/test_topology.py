@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import re
 
+import pytest
+
 from quick_stream.core.pacing import CREDIT_STAGES
 from quick_stream.stream import acl, inbox, keys, topology
 from quick_stream.stream.capture import FRAME_RECEIVERS
@@ -37,3 +39,20 @@ def test_what_reads_the_table():
     assert FRAME_RECEIVERS == set(topology.receivers("frame")) == {"flow", "render", "recorder"}
     assert set(topology.BY_NAME[topology.SOURCE].reads) == set(CREDIT_STAGES)  # the capture paces on them
     assert topology.START_ORDER[0] == topology.RECORDER and topology.START_ORDER[-1] == topology.SOURCE
+
+
+def test_one_streams_command_lines_come_from_the_table():
+    from quick_stream.stream.stream_specs import stream_specs
+
+    specs = stream_specs(lambda s: ["-e", "E", "--stream", "cam1"], {"render": ["--output", "v.avi"]},
+                         modules={"render": "tests.tools.slow_render"}, name=lambda s: f"{s}-cam1")
+    assert [s.name for s in specs] == [f"{s}-cam1" for s in topology.START_ORDER]
+    by = {s.name.split("-")[0]: s for s in specs}
+    assert by["render"].argv == ["-m", "tests.tools.slow_render", "-e", "E", "--stream", "cam1", "--output", "v.avi"]
+    # the capture waits for the others started with it (their liveliness tokens: service names) and may finish
+    assert by["capture"].argv[-2:] == ["--wait-for", "recorder,flow,motion,render"] and by["capture"].may_finish
+    assert not any(s.may_finish for s in specs[:-1])
+    alone = stream_specs(lambda s: [], run=("capture", "flow"))
+    assert [s.name for s in alone] == ["flow", "capture"] and alone[1].argv[-1] == "flow"
+    with pytest.raises(ValueError, match="no such services"):
+        stream_specs(lambda s: [], run=("capture", "viewer"))
