@@ -33,7 +33,7 @@ SERVICES = topology.SERVICES
 PUBLISHES = {s.name: s.publishes for s in topology.PIPELINE}
 # the caches each publisher keeps (every lossless key: docs/deployment.md, "Delivery guarantees per key"),
 # whose heartbeats it sends on <key>/@adv/**
-CACHE = {s.name: tuple(k for k in s.publishes if k in topology.LOSSLESS_KEYS) for s in topology.PIPELINE if s.publishes}
+CACHE = {s.name: s.publishes for s in topology.PIPELINE if s.publishes}  # every data key is lossless
 LOSSLESS = topology.LOSSLESS_KEYS
 # the caches each service queries: to take over (a restarted one) and to recover what its link dropped
 READS_HISTORY = {s.name: s.history for s in topology.PIPELINE if s.history}

@@ -32,7 +32,6 @@ import zenoh
 
 from .arrivals import ArrivalLedger, Gap
 from .replays import ReplayFilter
-from .topology import LOSSLESS_KEYS
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +200,6 @@ class RefusalLog:
             self.unsaid, self._next = 0, now + self.every_s
 
 
-LOSSLESS_STAGES = LOSSLESS_KEYS  # the keys published numbered, cached and recovered (stream/topology.py)
 RECOVERY_CACHE = 150  # messages every lossless publisher keeps for receivers to recover (5 s at 30 fps)
 HEARTBEAT_S = 0.5  # a lossless publisher's heartbeat: a receiver notices a lost last message within it
 

@@ -40,7 +40,8 @@ import zenoh.ext
 from . import keys
 from .arrivals import Gap
 from .cursor import Cursors
-from .inbox import HEARTBEAT_S, LOSSLESS_STAGES, RECOVERY_CACHE, Inbox, TimedPublisher
+from .inbox import HEARTBEAT_S, RECOVERY_CACHE, Inbox, TimedPublisher
+from .topology import LOSSLESS_KEYS
 from .loop import Input, Loop
 from .heap import trim_heap
 from .process import TRIM_EVERY
@@ -107,7 +108,7 @@ class ServiceRuntime(Cursors, Loop):
         are timed (:class:`TimedPublisher`, in the stats). ``lossless`` None: as the pipeline's table
         says (stream/topology.py: every data key)."""
         if lossless is None:
-            lossless = stage in LOSSLESS_STAGES
+            lossless = stage in LOSSLESS_KEYS
         pub = TimedPublisher(self._declare_publisher(stage, lossless, stream, cache), stage)
         self._timed.append(pub)
         return pub
@@ -159,7 +160,7 @@ class ServiceRuntime(Cursors, Loop):
         if history and publisher is not None and self.wait_for([publisher], publisher_wait_s):
             log.warning("%s/%s: %s not seen after %.0f s; subscribing to %s with history all the same",
                         self.stream, self.service, publisher, publisher_wait_s, key_expr)
-        # Recovery: messages of a lossless publisher (LOSSLESS_STAGES) that this session's link dropped
+        # Recovery: messages of a lossless publisher (LOSSLESS_KEYS) that this session's link dropped
         # (congested: this process stopped reading for a while) are fetched back from the publisher's
         # cache and handed on in order; what the cache no longer holds is counted as ``lost``. Those
         # keys (every data key: stream/topology.py) get an advanced subscriber each; the others (stats) a
@@ -168,7 +169,7 @@ class ServiceRuntime(Cursors, Loop):
         # unnumbered key reordered while the router restarts would lose messages there. ``history``: a
         # publisher this session does not know yet (its declaration arrives after ours) is queried once seen.
         head, _, last = key_expr.rpartition("/")
-        lossless = [key_expr] if last in LOSSLESS_STAGES else [f"{head}/{st}" for st in LOSSLESS_STAGES] if last == "*" else []
+        lossless = [key_expr] if last in LOSSLESS_KEYS else [f"{head}/{st}" for st in LOSSLESS_KEYS] if last == "*" else []
         for k in lossless:
             sub = zenoh.ext.declare_advanced_subscriber(
                 self.session, k, box._on_sample,
@@ -178,7 +179,7 @@ class ServiceRuntime(Cursors, Loop):
             self._subs.append(sub)
         if key_expr not in lossless:
             def others(sample: zenoh.Sample) -> None:
-                if str(sample.key_expr).rpartition("/")[2] not in LOSSLESS_STAGES:
+                if str(sample.key_expr).rpartition("/")[2] not in LOSSLESS_KEYS:
                     box._on_sample(sample)
             self._subs.append(self.session.declare_subscriber(key_expr, others))
         self._inboxes.append(box)

@@ -47,8 +47,7 @@ PIPELINE: tuple[Service, ...] = (
 
 SERVICES: tuple[str, ...] = tuple(s.name for s in PIPELINE)  # in the order data flows
 BY_NAME: dict[str, Service] = {s.name: s for s in PIPELINE}
-DATA_KEYS: tuple[str, ...] = tuple(k for s in PIPELINE for k in s.publishes)
-LOSSLESS_KEYS: tuple[str, ...] = DATA_KEYS  # published numbered, cached and recovered
+LOSSLESS_KEYS: tuple[str, ...] = tuple(k for s in PIPELINE for k in s.publishes)  # every data key
 SOURCE = PIPELINE[0].name  # the service that brings frames in
 RECORDER = "recorder"  # receives every key, publishes none
 STAGES: tuple[str, ...] = tuple(s.name for s in PIPELINE if s.publishes and s.name != SOURCE)  # flow, motion, render

@@ -8,7 +8,7 @@ import re
 import pytest
 
 from quick_stream.core.pacing import CREDIT_STAGES
-from quick_stream.stream import acl, inbox, keys, topology
+from quick_stream.stream import acl, keys, topology
 from quick_stream.stream.capture import FRAME_RECEIVERS
 from tests.tools import REPO
 
@@ -32,7 +32,7 @@ def test_the_services_publish_their_rows_keys_and_never_choose_the_delivery():
 
 
 def test_what_reads_the_table():
-    assert inbox.LOSSLESS_STAGES == topology.LOSSLESS_KEYS == topology.DATA_KEYS
+    assert topology.LOSSLESS_KEYS == tuple(k for s in topology.PIPELINE for k in s.publishes)
     assert acl.SERVICES == topology.SERVICES and acl.LOSSLESS == topology.LOSSLESS_KEYS
     assert acl.CACHE == {s.name: s.publishes for s in topology.PIPELINE if s.publishes}
     assert acl.READS_HISTORY["recorder"] == topology.LOSSLESS_KEYS  # the recorder recovers every data key
