@@ -32,6 +32,8 @@ from quick_stream.stream.runtime import Input, ServiceRuntime
 from quick_stream.io.stabilizer_flags import add_stabilizer_args, stabilizer_params
 from quick_stream.stream.wire import Decoded, encode_correction, encode_end, encode_motion
 
+KEEP_SEGMENTS = 64  # segment accounts kept (the stats count them all): a live stream is endless
+
 log = logging.getLogger("motion")
 
 
@@ -48,7 +50,8 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     params = stabilizer_params(args)
     with ServiceRuntime("motion", args.stream, conf, settings=settings_digest(params)) as rt:
         resume_after = rt.take_over("correction", "flows", log)  # not None: a restarted motion (the path restarts)
-        driver = MotionDriver(params.motion, params.planner, params.warp, resume_after=resume_after, log=log)
+        driver = MotionDriver(params.motion, params.planner, params.warp, resume_after=resume_after, log=log,
+                              keep_segments=KEEP_SEGMENTS)
         inbox = rt.inbox(keys.key(args.stream, "flow"), args.queue, history=resume_after is not None,
                          publisher="flow", skip_through=resume_after)
         motion_pub = rt.publisher("motion")

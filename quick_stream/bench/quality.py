@@ -144,7 +144,7 @@ def run_ours(folder: Path, variant: Variant, frames: int | None, inputs: dict[in
     row: dict = scorer.result() if scorer is not None else {}
     row.update(status="ok", ms_per_frame=1e3 * t / max(n_in, 1), seconds=t, frames_in=n_in,
                frames_out=len(corrections), flagged_frames=flagged, bad_frames=len(st.bad_frames),
-               segments=len(st.planner.segments), renderer_bordered=st.render.bordered, **counts.as_dict())
+               segments=st.planner.segment_count, renderer_bordered=st.render.filler.bordered, **counts.as_dict())
     if inputs is not None and len(corrections) != len(inputs):
         row["notes"] = [f"{len(corrections)} output frames for {len(inputs)} readable inputs"]
     return row, corrections

@@ -182,7 +182,7 @@ def _run(args: argparse.Namespace) -> int:
         "bad_frames": stab.bad_frames,
         "flagged_frames": [{"seq": r["seq"], "flags": r["flags"]} for r in records if r["flags"]],
         "uncorrected_frames": sum(r["uncorrected"] for r in records),
-        "bordered_frames": stab.render.bordered,  # output pixels no source reached (the renderer's own count)
+        "bordered_frames": stab.render.filler.bordered,  # output pixels no source reached (the renderer's own count)
         "frames_by_motion": {k: n for k in CORRECTION_MOTIONS if (n := sum(r["motion"] == k for r in records))},
         "frames": records,
     }

@@ -166,7 +166,7 @@ class RenderDriver:
         The frames a correction names as shed by the flow stage are let go when its release renders."""
         if self.resume_after is not None and c.seq <= self.resume_after:
             return
-        newest = max((s for s in (self.releases.newest, self.stage.newest) if s is not None), default=None)
+        newest = max((s for s in (self.releases.newest, self.stage.hold.newest) if s is not None), default=None)
         dropped = self.ahead.dropped
         if self.releases.newest is None or c.seq <= self.releases.newest:
             taken = [(c, tag)]  # (not ahead of the corrections: neither joins nor ends a run)
@@ -187,7 +187,7 @@ class RenderDriver:
         """Hold a frame (or its loader, ``size`` bytes) for its release; False when it is not taken:
         rendered before a restart (``taken_over``), refused by the stage (``refused_frames``, reported)
         or shed by the flow stage (``shed_upstream``)."""
-        st = self.stage
+        st = self.stage.hold
         if self.resume_after is not None and seq <= self.resume_after and (st.newest is None or not st.fresh(pub_ns)):
             # rendered before the restart (the frames' history); once frames are taken, one published
             # after them is live: a stream renumbered below the cursor, for the stage to confirm
@@ -195,7 +195,7 @@ class RenderDriver:
             return False
         renumberings = st.renumberings
         try:
-            if not st.add_frame(seq, frame, pub_ns, size):
+            if not self.stage.add_frame(seq, frame, pub_ns, size):
                 return False
         except ValueError as e:
             self.refused += 1
@@ -226,22 +226,23 @@ class RenderDriver:
         if not self.releases.ready:
             return False
         _, batch, t_done, _, _ = self.releases.ready[0]
-        return self.stage.can_render(batch) or self.clock() - t_done > self.frame_wait
+        return self.stage.hold.can_render(batch) or self.clock() - t_done > self.frame_wait
 
     def render(self, release: Release) -> Iterator[Rendered]:
         """Render a release and the orphans it reveals, each frame stamped as it is rendered: ready when
         the frame that closed the release was published (the release's newest when that is not
         known, or not after it, or not here)."""
         st, last = self.stage, max(c.seq for c in release.batch)
-        n = st.numbering_of(release.batch)
+        n = st.hold.numbering_of(release.batch)
         closed = release.closed_by if release.closed_by is not None and release.closed_by > last else last
         ready = (n, closed) if (n, closed) in self._pub_ns else (n, last)
-        nbad = len(st.bad)
+        bad = st.hold.bad
+        nbad = len(bad)
         try:
             for sf in st.iter_batch(release.batch):
                 yield self._stamped(sf, ready)
         finally:
-            for b in st.bad[nbad:]:
+            for b in bad[nbad:]:
                 self.log.log(logging.ERROR, "frame %d cannot be rendered: %s", b["seq"], b["error"])
 
     def _stamped(self, sf: StabilizedFrame, ready: tuple[int, int] | None) -> Rendered:
@@ -269,7 +270,7 @@ class RenderDriver:
         self.ending, self.end_marker, self._deadline = True, marker, None
         if self.ahead.drop():
             self.log.log(logging.ERROR, "end of stream with corrections held far ahead: dropped, no run confirmed them")
-        self.stage.let_go(getattr(marker, "shed", ()))  # shed after the last flow: never corrected
+        self.stage.hold.let_go(getattr(marker, "shed", ()))  # shed after the last flow: never corrected
         n = self.releases.flush_incomplete()
         if n:
             self.log.log(logging.WARNING, "end of stream with %d incomplete releases", n)
@@ -305,15 +306,15 @@ class RenderDriver:
         self.ending, self.end_marker, self._deadline, self.resume_after = False, None, None, None
 
     def _per_stream(self) -> dict[str, int]:
-        st = self.stage
-        return {"dropped": st.dropped, "missing": st.missing, "orphans": st.orphans, "bad_frames": len(st.bad),
-                "filled": st.filled, "fill_raised": st.fill_raised, "bordered": st.bordered,
-                "renumberings": st.renumberings, "shed_upstream": st.shed}
+        st, hold, filler = self.stage, self.stage.hold, self.stage.filler
+        return {"dropped": hold.dropped, "missing": st.missing, "orphans": st.orphans, "bad_frames": len(hold.bad),
+                "filled": filler.filled, "fill_raised": filler.fill_raised, "bordered": filler.bordered,
+                "renumberings": hold.renumberings, "shed_upstream": hold.shed}
 
     def stats(self) -> dict[str, int]:
         """The counters of docs/reliability.md (the stream under way plus those ended)."""
-        return {"refused_frames": self.refused, "taken_over": self.taken_over, "buffered": self.stage.buffered,
-                "held_mb": round(self.stage.held_bytes / 2**20, 1),
+        return {"refused_frames": self.refused, "taken_over": self.taken_over, "buffered": self.stage.hold.buffered,
+                "held_mb": round(self.stage.hold.held_bytes / 2**20, 1),
                 **{k: self._done[k] + v for k, v in self._per_stream().items()}, "flagged": self.flagged,
                 "pending_releases": len(self.releases.ready), "ended": self.ended,
                 "abandoned_releases": self.releases.abandoned, "jump_corrections": self.ahead.dropped}

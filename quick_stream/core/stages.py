@@ -97,11 +97,12 @@ class MotionStage:
     """Motion estimation plus path planning: flows in, motions and correction batches out."""
 
     def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None,
-                 warp: WarpParams | None = None) -> None:
-        """``warp``: the render stage's warp parameters (the path's crop budget fits the same mesh)."""
+                 warp: WarpParams | None = None, keep_segments: int | None = None) -> None:
+        """``warp``: the render stage's warp parameters (the path's crop budget fits the same mesh);
+        ``keep_segments``: the segment accounts the planner keeps (:class:`~.path.planner.PathPlanner`)."""
         self.estimator = MotionEstimator(motion)
         self.bridge = MotionBridge(self.estimator.params.bridge_frames)
-        self.planner = PathPlanner(planner, warp)
+        self.planner = PathPlanner(planner, warp, keep_segments)
         check_groups(self.estimator.params, self.planner.params)
         self._last: int | None = None  # seq of the newest frame the path has reached
         self.gaps = 0
@@ -285,14 +286,15 @@ class MotionDriver:
     predecessor released (flows up to it are skipped, ``taken_over``, until a renumbering or the
     end of the stream). A stale or duplicate flow is refused (``refused_flows``; of them ``jump_flows``:
     held far ahead, :meth:`MotionStage.push`, and dropped unconfirmed), an invalid
-    motion counted (``invalid_motions``), both reported on ``log`` (None: silent). At the end of a
+    motion counted (``invalid_motions``), both reported on ``log`` (None: silent); ``keep_segments``:
+    the segment accounts the planner keeps (a service keeps a few: a live stream is endless). At the end of a
     stream :meth:`finish` closes the last segment; :meth:`restart` starts the next stream (the
     release numbers and the counters go on)."""
 
     def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None,
                  warp: WarpParams | None = None, *, resume_after: int | None = None,
-                 log: logging.Logger | None = None) -> None:
-        self._make = lambda: MotionStage(motion, planner, warp)
+                 log: logging.Logger | None = None, keep_segments: int | None = None) -> None:
+        self._make = lambda: MotionStage(motion, planner, warp, keep_segments)
         self.stage = self._make()
         self.releases = ReleaseNumbering()
         self.resume_after, self.log = resume_after, log_or_quiet(log)
@@ -357,7 +359,7 @@ class MotionDriver:
     def finish(self) -> list[tuple[Correction, Tag]]:
         """End of stream: the last segment's corrections, tagged."""
         out = self.releases.number(self._named(self.stage.finish()))
-        self.log.log(logging.INFO, "end of stream: %d segments, %d corrections", len(self.stage.planner.segments),
+        self.log.log(logging.INFO, "end of stream: %d segments, %d corrections", self.stage.planner.segment_count,
                   self.releases.sent)
         return out
 
@@ -375,5 +377,5 @@ class MotionDriver:
         return {"refused_flows": self.refused + jumped, "jump_flows": jumped, "invalid_motions": self.invalid,
                 "taken_over": self.taken_over,
                 **{f"motions_{k}": n for k, n in self.kinds.items() if k != "none"},
-                "gaps": st.gaps, "segments": len(st.planner.segments), "corrections": self.releases.sent,
+                "gaps": st.gaps, "segments": st.planner.segment_count, "corrections": self.releases.sent,
                 "renumberings": self._renumberings + st.renumberings}

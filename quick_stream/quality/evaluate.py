@@ -82,7 +82,7 @@ def stabilize_and_score(source: Iterable[RGBDFrame | BadFrame], params: Stabiliz
     t, frames = run_timed(st, source, score)
     m = acc.result().as_dict()
     m.update(ms_per_frame=1e3 * t / max(frames, 1), flagged_frames=flagged, bad_frames=len(st.bad_frames),
-             segments=len(st.planner.segments))
+             segments=st.planner.segment_count)
     return m
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-import quick_stream.core.path.planner as planner_module
+import quick_stream.core.path.window_smoother as smoother_module
 from quick_stream.core.path.budget import BudgetParams, rotation_directions, rotation_scales
 from quick_stream.core.path.frame_model import SegmentMeshes
 from quick_stream.core.path.planner import PlannerParams
@@ -19,14 +19,14 @@ from tests.unit.test_path_smooth import run, scene_model, shaky_motions
 def spy_on_budget(monkeypatch) -> list:
     """Every window's budget problem as the planner poses it, with the answer: [(args, (q, w, report))]."""
     seen = []
-    real = planner_module.constrain
+    real = smoother_module.constrain
 
     def constrain(*args):
         out = real(*args)
         seen.append((args, out))
         return out
 
-    monkeypatch.setattr(planner_module, "constrain", constrain)
+    monkeypatch.setattr(smoother_module, "constrain", constrain)
     return seen
 
 

@@ -76,9 +76,9 @@ def test_shaky_frames_come_out_border_free_with_less_zoom_than_without_fill():
     frames = list(SyntheticSource(width=320, height=240, frames=75, seed=4, shake=3.0))
     st, out = stabilize(frames, parse_settings([]).params)  # the defaults of quick-stream stabilize
     assert [sf.seq for sf in out] == list(range(75))
-    assert st.render.filled > 0  # the shake uncovered bands the neighbours filled
-    assert st.render.fill_raised == 0  # the planned zoom track already counted on what the fill could do
-    assert st.render.bordered == 0  # the renderer's own account: no output pixel left without a source
+    assert st.render.filler.filled > 0  # the shake uncovered bands the neighbours filled
+    assert st.render.filler.fill_raised == 0  # the planned zoom track already counted on what the fill could do
+    assert st.render.filler.bordered == 0  # the renderer's own account: no output pixel left without a source
     for sf in out:
         assert not uncovered_mask(sf.image).any(), sf.seq
     z = np.array([sf.zoom for sf in out])

@@ -162,3 +162,29 @@ def test_an_uncertain_motion_pulls_its_frame_less():
         return max(np.degrees(np.linalg.norm(SE3.log(np.linalg.inv(b) @ x)[3:]))
                    for k, (b, x) in enumerate(zip(base, v)) if k != 21)
     assert bend(fit) > 0.05 and bend(bridge) < 0.2 * bend(fit), (bend(fit), bend(bridge))
+
+
+def _held_items(pl: PathPlanner) -> int:
+    """Everything the planner holds in lists and dicts: its own, the open segment's and its smoother's."""
+    return sum(len(v) for obj in (pl, pl.window, pl.smoother) for v in vars(obj).values()
+               if isinstance(v, (list, dict)))
+
+
+@pytest.mark.parametrize("mode", ["smooth", "ep"])
+def test_an_endless_stream_holds_a_bounded_state(mode):
+    """A live stream never ends: what the planner holds after 1,500 frames is what it held after 300
+    (a smooth planner kept every frame's twist for a low-pass only ``ep`` reads, and every segment's
+    account); the accounts kept are the newest ``keep_segments``, all of them counted."""
+    rng = np.random.default_rng(3)
+    pl = PathPlanner(PlannerParams(mode=mode), keep_segments=4)
+    pl.start(0)
+    sizes = {}
+    for i in range(1500):
+        xi = np.r_[rng.normal(0, 1e-3, 3), rng.normal(0, 2e-3, 3)]
+        g = SE3.exp(xi)
+        pl.push(MotionEstimate(i, i + 1, "se3", "truth", g, xi, True))
+        if i + 1 in (300, 1500):
+            sizes[i + 1] = _held_items(pl)
+    assert sizes[1500] <= sizes[300]
+    assert len(pl.segments) == 4 and pl.segment_count >= 1500 // 30
+    assert pl.segments[-1].end_seq > 1400

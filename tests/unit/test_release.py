@@ -181,11 +181,11 @@ def test_frames_the_flow_stage_shed_are_let_go_undecoded_and_a_refused_one_is_st
     cs[2].shed = (2, 3)
     for c, tag in ReleaseNumbering().number([cs]):
         d.add_correction(c, tag)
-    assert d.stage.buffered == 9 and d.stage.held_bytes == 9000
+    assert d.stage.hold.buffered == 9 and d.stage.hold.held_bytes == 9000
     (rel,) = list(d.due())
     out = [r.frame for r in d.render(rel)]
     assert [sf.seq for sf in out] == [0, 1, 4, 5, 6, 7, 8] and [sf.seq for sf in out if sf.flags] == [6]
-    assert sorted(loaded) == [0, 1, 4, 5, 6, 7, 8] and d.stage.buffered == d.stage.held_bytes == 0
+    assert sorted(loaded) == [0, 1, 4, 5, 6, 7, 8] and d.stage.hold.buffered == d.stage.hold.held_bytes == 0
     st = d.stats()
     assert (st["shed_upstream"], st["orphans"], st["missing"], st["dropped"], st["flagged"]) == (2, 1, 0, 0, 1)
 
@@ -206,7 +206,7 @@ def test_a_frame_named_shed_that_comes_after_its_release_and_those_shed_after_th
     clock.t += 1.5
     (rel,) = list(d.due())
     assert [r.frame.seq for r in d.render(rel)] == [0, 1, 2]  # frame 4 missing: it never came in time
-    assert not d.add_frame(3, frames[3]) and d.stage.buffered == 0
+    assert not d.add_frame(3, frames[3]) and d.stage.hold.buffered == 0
     for f in frames[4:8]:
         assert d.add_frame(f.seq, f)
     d.end(EndOfStream(7, "done", (6, 7)))

@@ -67,7 +67,7 @@ def make_recording(path: Path) -> dict[str, int]:
             release += 1
             for m in msgs:
                 log.put("correction", m)
-            for sf in render.render_batch([decode(m).obj for m in msgs]):
+            for sf in render.iter_batch([decode(m).obj for m in msgs]):
                 log.put("stabilized", encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom,
                                                                         sf.flags), STREAM, color="raw",
                                                         src_pub_ns=123, ready_pub_ns=456))

@@ -125,28 +125,28 @@ def test_render_keeps_the_old_numbering_apart_and_renders_it_first(small):
     r = RenderStage()
     for f in small[:OLD]:
         r.add_frame(f.seq, f)
-    out = r.render_batch([ident(s) for s in range(25)])
+    out = list(r.iter_batch([ident(s) for s in range(25)]))
     with pytest.raises(ValueError, match="not after"):
         r.add_frame(3, small[3])  # one stray old seq
     new = [f.with_(seq=i) for i, f in enumerate(small[OLD:])]
     for f in new[:FIRST]:
         with pytest.raises(ValueError, match="not after"):
             r.add_frame(f.seq, f)
-    assert not r.can_render([restart(FIRST, OLD - 1)])  # its frame has not come yet
+    assert not r.hold.can_render([restart(FIRST, OLD - 1)])  # its frame has not come yet
     r.add_frame(FIRST, new[FIRST])  # the 15th in a row: a new numbering
-    assert (r.renumberings, r.numbering, r.buffered) == (1, 1, OLD - 25 + 1)
+    assert (r.hold.renumberings, r.hold.numbering, r.hold.buffered) == (1, 1, OLD - 25 + 1)
     for f in new[FIRST + 1:20]:
         r.add_frame(f.seq, f)
-    assert r.can_render([restart(FIRST, OLD - 1)]) and r.can_render([ident(s) for s in range(25, 38)])
-    out += r.render_batch([ident(s) for s in range(25, 38)])  # the old numbering's last corrections
-    out += r.render_batch([restart(FIRST, OLD - 1)])  # the new numbering's first
-    out += r.render_batch([ident(s) for s in range(FIRST + 1, 20)])
+    assert r.hold.can_render([restart(FIRST, OLD - 1)]) and r.hold.can_render([ident(s) for s in range(25, 38)])
+    out += list(r.iter_batch([ident(s) for s in range(25, 38)]))  # the old numbering's last corrections
+    out += list(r.iter_batch([restart(FIRST, OLD - 1)]))  # the new numbering's first
+    out += list(r.iter_batch([ident(s) for s in range(FIRST + 1, 20)]))
     assert [(sf.seq, sf.numbering) for sf in out] == ([(s, 0) for s in range(OLD)]
                                                        + [(s, 1) for s in range(FIRST, 20)])
     flagged = {(sf.seq, sf.numbering): sf.flags[0] for sf in out if sf.flags}
     assert flagged.keys() == {(38, 0), (39, 0)}  # no correction reached 38, 39: orphans
     assert flagged[(38, 0)] == STALE and out[OLD].correction.motion == "restart"
-    assert (r.orphans, r.missing, r.buffered) == (2, 0, 0)
+    assert (r.orphans, r.missing, r.hold.buffered) == (2, 0, 0)
     for sf, f in zip(out[-5:], new[FIRST + 1:20]):  # the new frames, not the old ones of the same seq
         assert sf.timestamp_ns == f.timestamp_ns
 
@@ -161,7 +161,7 @@ def test_render_never_takes_an_interleaved_publisher_or_a_replay(small):
     for f in small[:OLD]:  # a replay published before the newest frame
         with pytest.raises(ValueError, match="not after"):
             r.add_frame(f.seq, f, pub_ns=1000 + 2 * f.seq)
-    assert r.renumberings == 0 and r.buffered == OLD
+    assert r.hold.renumberings == 0 and r.hold.buffered == OLD
 
 
 def test_release_groups_put_the_new_numbering_after_the_old_one():
@@ -221,7 +221,7 @@ def test_the_stabilizer_stabilizes_the_renumbered_stream_after_the_run(frames):
     assert out[OLD].correction.motion == "restart" and RENUMBERED in out[OLD].correction.reason
     assert all(sf.correction.valid for sf in out)
     assert len(st.bad_frames) == FIRST and all("out of order" in b["error"] for b in st.bad_frames)
-    assert st.flow.check.counts["renumberings"] == st.motion.renumberings == st.render.renumberings == 1
+    assert st.flow.check.counts["renumberings"] == st.motion.renumberings == st.render.hold.renumberings == 1
     assert st.render.orphans == st.render.missing == 0
 
 

@@ -42,9 +42,9 @@ def run_with_gap(frames, skip: range, restart: bool):
         else:
             _, batches = motion.push(fl)
         for b in batches:
-            out += render.render_batch(b)
+            out += list(render.iter_batch(b))
     for b in motion.finish():
-        out += render.render_batch(b)
+        out += list(render.iter_batch(b))
     out += render.flush()
     return motion, render, out
 
@@ -92,7 +92,7 @@ def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, br
             batches += motion.push(fl)[1]
     batches += motion.finish()
     for b in batches:
-        out += render.render_batch(b)
+        out += list(render.iter_batch(b))
     out += render.flush()
     assert [sf.seq for sf in out] == [0, 8, 16, 24]
     assert flow.check.counts["missing_frames"] == 21 and flow.check.counts["breaks"] == breaks
@@ -113,9 +113,9 @@ def test_render_stage_bounds_what_it_holds(frames):
     r = RenderStage(max_frames=5)
     for f in frames[:8]:
         r.add_frame(f.seq, f)
-    assert r.buffered == 5 and r.dropped == 3
-    out = r.render_batch([Correction(0, np.eye(4), 0, True)])  # frame 0 was dropped: counted missing, the rest waits
-    assert out == [] and r.missing == 1 and r.buffered == 5
+    assert r.hold.buffered == 5 and r.hold.dropped == 3
+    out = list(r.iter_batch([Correction(0, np.eye(4), 0, True)]))  # frame 0 was dropped: counted missing, the rest waits
+    assert out == [] and r.missing == 1 and r.hold.buffered == 5
 
 
 def test_render_stage_bounds_the_bytes_it_holds(frames):
@@ -124,9 +124,9 @@ def test_render_stage_bounds_the_bytes_it_holds(frames):
     r = RenderStage(max_bytes=3000)
     for f in frames[:8]:
         assert r.add_frame(f.seq, lambda f=f: f, size=1000)
-    assert r.buffered == 3 and r.dropped == 5 and r.held_bytes == 3000
-    assert [sf.seq for sf in r.render_batch([Correction(5, np.eye(4), 0, True)])] == [5]
-    assert r.held_bytes == 2000
+    assert r.hold.buffered == 3 and r.hold.dropped == 5 and r.hold.held_bytes == 3000
+    assert [sf.seq for sf in r.iter_batch([Correction(5, np.eye(4), 0, True)])] == [5]
+    assert r.hold.held_bytes == 2000
 
 
 def test_frames_shed_by_flow_are_bridged_named_on_the_next_correction_and_not_counted_missing(frames):
@@ -164,8 +164,8 @@ def test_render_stage_reports_a_frame_that_cannot_be_loaded(frames):
         raise ValueError("truncated JPEG")
 
     r.add_frame(0, broken)
-    assert r.render_batch([Correction(0, np.eye(4), 0, True)]) == []
-    assert r.bad == [{"seq": 0, "error": "ValueError: truncated JPEG"}]
+    assert list(r.iter_batch([Correction(0, np.eye(4), 0, True)])) == []
+    assert r.hold.bad == [{"seq": 0, "error": "ValueError: truncated JPEG"}]
 
 
 def test_release_groups_hand_over_releases_whose_sender_died():
@@ -205,7 +205,7 @@ def test_render_refuses_one_far_future_frame_and_follows_a_confirmed_renumbering
         with pytest.raises(ValueError, match="ahead"):
             st.add_frame(s, fr)
     st.add_frame(9004, fr)  # the fifth in a row: a new numbering
-    assert st.buffered == 3
+    assert st.hold.buffered == 3
 
 
 def test_flow_refuses_one_far_future_frame_and_breaks_at_a_confirmed_renumbering():
