@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import logging
 import sys
 from types import ModuleType
@@ -62,7 +63,18 @@ def _chosen_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) ->
         parser = subs[0].choices[chosen]
 
 
+def bench_installed() -> bool:
+    """Whether the benchmarks are here: a source checkout's install has them, the wheel leaves them out
+    (pyproject.toml's package list: the product installs what a user runs)."""
+    return importlib.util.find_spec("quick_stream.bench") is not None
+
+
 def main(argv: list[str] | None = None) -> int:
+    words = [a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")]
+    if words[:1] == ["bench"] and not bench_installed():
+        print("quick-stream bench: the benchmarks come with a source checkout (git clone, then pip install -e .), "
+              "not with the installed product", file=sys.stderr)
+        return 2
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     if extra:  # said by the sub-command's own parser, with its usage (not the top level's)

@@ -91,15 +91,35 @@ def test_a_planted_cycle_is_found_even_through_a_deferred_import(copy: Path):
     assert find_cycles(copy) == [["quick_stream.core.frame", "quick_stream.core.lie.so3"]]
 
 
-def test_pyproject_installs_every_package_and_the_services_inside_the_package():
+SOURCE_CHECKOUT_ONLY = {"quick_stream.bench", "quick_stream.io.sources.stand_in"}  # test rigs, not the product
+
+
+def test_pyproject_installs_every_package_but_the_test_rigs_and_the_services_inside_the_package():
+    """The product installs what a user runs: the benchmarks and the stand-in camera stay in a checkout."""
     setup = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     on_disk = {".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "quick_stream").rglob("__init__.py")}
-    assert set(setup["packages"]) == on_disk | {"quick_stream.services"}
+    assert SOURCE_CHECKOUT_ONLY <= on_disk
+    assert set(setup["packages"]) == on_disk - SOURCE_CHECKOUT_ONLY | {"quick_stream.services"}
     assert setup["package-dir"] == {"quick_stream.services": "services"}
     assert not any(p == "services" or p.startswith("services.") for p in setup["packages"])
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
     for s in ("capture", "flow", "motion", "render", "recorder"):
         assert scripts[f"quick-stream-{s}"] == f"quick_stream.services.{s}:main"
+
+
+def test_without_the_test_rigs_the_product_says_where_they_are(monkeypatch, capsys):
+    """An installed product (no benchmarks, no stand-in camera) refuses their commands by name."""
+    import sys
+
+    from quick_stream import cli
+    from quick_stream.io.sources import SourceError, open_source
+
+    monkeypatch.setattr(cli, "bench_installed", lambda: False)
+    assert cli.main(["bench", "speed", "--pairs", "2"]) == 2
+    assert "benchmarks come with a source checkout" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "quick_stream.io.sources.stand_in.oak_fake", None)  # import fails
+    with pytest.raises(SourceError, match="fake= asks for the scripted stand-in camera, a test rig"):
+        open_source("depthai:fake0,fake=1")
 
 
 def test_the_tool_refuses_a_folder_that_is_not_a_repository_and_has_help(tmp_path: Path, capsys):

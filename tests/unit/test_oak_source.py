@@ -1,7 +1,7 @@
 """The depthai (OAK) source: adapter, pairing, faults and reconnection (docs/usage.md, "Live OAK (depthai) cameras").
 
 No camera is attached here, so the adapter runs on (a) the scripted fake device
-(quick_stream/io/sources/oak_fake.py) and (b) real ``depthai.ImgFrame`` objects coming
+(quick_stream/io/sources/stand_in/oak_fake.py) and (b) real ``depthai.ImgFrame`` objects coming
 out of a host-only depthai pipeline (``ReplayVideo`` replaying an MP4, no device).
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ from quick_stream.core.frame import BadFrame, RGBDFrame, dequantize_depth, quant
 from quick_stream.io.sources import SourceError, open_source
 from quick_stream.io.sources.oak import FramePairer, OakSource
 from quick_stream.io.sources.oak_options import DeviceGone, NoDevice
-from quick_stream.io.sources.oak_fake import FakeImgFrame, FakeOakBackend, parse_script
+from quick_stream.io.sources.stand_in.oak_fake import FakeImgFrame, FakeOakBackend, parse_script
 from quick_stream.io.sources.synthetic import SyntheticSource
 from quick_stream.stream.wire import decode, encode_frame
 

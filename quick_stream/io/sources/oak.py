@@ -6,8 +6,8 @@ Spec: ``depthai`` or ``depthai:DEVICE_ID`` with options ``width``, ``height``, `
 attempts), the stereo settings of :class:`StereoSettings` (``preset``, ``subpixel``,
 ``lr_check``, ``confidence``, ``median``, ``spatial``, ``temporal``, ``speckle``, ``extended``;
 defaults chosen from the measured depth noise the stabilizer tolerates), and ``fake=1`` for the
-scripted stand-in device of :mod:`~quick_stream.io.sources.oak_fake` (tests and demos without
-hardware; it has no stereo matcher, so it ignores the stereo settings).
+scripted stand-in device of :mod:`~quick_stream.io.sources.stand_in.oak_fake` (tests and demos without
+hardware, in a source checkout only; it has no stereo matcher, so it ignores the stereo settings).
 
 Everything that talks to depthai sits behind :class:`CameraBackend`: ``open()``,
 ``read(timeout)`` returning the colour and depth messages that arrived (objects
@@ -44,6 +44,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from ...core.frame import BadFrame, FrameError, Intrinsics, RGBDFrame
+from .base import SourceError
 from .oak_options import CameraBackend, DeviceGone, NoDevice, oak_settings
 
 log = logging.getLogger("quick_stream.io.sources.oak")
@@ -271,7 +272,11 @@ def open_oak(device: str, options: dict[str, str]) -> OakSource:
     o = oak_settings(options)
     w, h, fps = o["width"], o["height"], o["fps"]
     if options.get("fake"):
-        from .oak_fake import FakeOakBackend
+        try:
+            from .stand_in.oak_fake import FakeOakBackend
+        except ModuleNotFoundError:
+            raise SourceError("depthai: fake= asks for the scripted stand-in camera, a test rig that comes with a "
+                              "source checkout (pip install -e .), not with the installed product") from None
 
         backend: CameraBackend = FakeOakBackend.from_script(options["fake"], width=w, height=h, fps=fps,
                                                             device_id=device or "fake0")

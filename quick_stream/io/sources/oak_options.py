@@ -1,7 +1,7 @@
 """What the OAK source asks of a camera: the typed options of a ``depthai`` spec (size, rate, pairing,
 retries and the stereo depth settings, :class:`StereoSettings`), the small interface every backend
 provides (:class:`CameraBackend`: the real device, :mod:`~quick_stream.io.sources.oak_device`, or the
-scripted stand-in, :mod:`~quick_stream.io.sources.oak_fake`) and the errors a backend raises. Apart from
+scripted stand-in, :mod:`~quick_stream.io.sources.stand_in.oak_fake`) and the errors a backend raises. Apart from
 :mod:`~quick_stream.io.sources.oak` (the source itself), so the backends need nothing of the source.
 """
 from __future__ import annotations

@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from ...core.frame import quantize_depth
-from .oak_options import DeviceGone, NoDevice
-from .synthetic import SyntheticSource
+from ....core.frame import quantize_depth
+from ..oak_options import DeviceGone, NoDevice
+from ..synthetic import SyntheticSource
 
 EVENTS = ("drop_color", "drop_depth", "mismatch", "late_depth", "intrinsics", "disconnect", "absent")
 
