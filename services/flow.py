@@ -67,7 +67,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
             t0 = time.perf_counter()
             shed.extend(gate.take_shed())
             del shed[:-MAX_NAMED]  # what one message names at most (no flow for that long: the oldest unnamed)
-            flow = driver.push(msg.obj, msg.extra.get("pub_ns"), shed)
+            flow = driver.push(msg.obj, msg.pub_ns, shed)
             if driver.taken is not None:
                 gate.taken(driver.taken)
             if flow is not None:  # it names the frames shed before its end; those shed on arrival after it wait

@@ -66,7 +66,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
 
         def on_flow(msg: Decoded) -> None:
             t0 = time.perf_counter()
-            out = driver.push(msg.obj, msg.extra.get("shed", ()))  # frames flow shed: named on the correction
+            out = driver.push(msg.obj, msg.shed)  # frames flow shed: named on the correction
             if driver.resume_after is None:
                 inbox.skip_through = None  # a new numbering: the predecessor's cursor says nothing of it
             if out is not None:

@@ -235,7 +235,7 @@ def _rerun_motion(ch: dict[str, list[_Msg]], stream: str, params: StabilizerPara
             corrections.extend(_tagged(driver.finish(), stream))
             corrections.append(encode_end(msg.obj, stream))
             driver.restart()
-        elif msg.type == "flow" and (out := driver.push(msg.obj, msg.extra.get("shed", ()))) is not None:
+        elif msg.type == "flow" and (out := driver.push(msg.obj, msg.shed)) is not None:
             motions.extend(encode_motion(x, stream) for x in out[0])
             corrections.extend(_tagged(out[1], stream))
     if driver.refused:
@@ -263,7 +263,7 @@ def _render_run(driver: RenderDriver, frames: list[_Msg], corrections: list[_Msg
             msg = decode(m.data)
         except WireError:
             continue
-        driver.add_correction(msg.obj, msg.extra.get("batch"))
+        driver.add_correction(msg.obj, msg.batch)
         for rel in driver.due(force=True):
             feed(max(c.seq for c in rel.batch))
             out.extend(r.frame for r in driver.render(rel))
@@ -289,7 +289,7 @@ def _compare_image(t: TopicResult, sf: StabilizedFrame, m: _Msg, stream: str, qu
         res.mismatches.append(Mismatch(t.topic, m.seq, ("decode",), str(e)))
         return
     want, img = logged.obj, StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom, sf.flags)
-    got = decode(encode_stabilized(img, stream, color=logged.extra["encoding"], quality=quality)).obj
+    got = decode(encode_stabilized(img, stream, color=logged.encoding, quality=quality)).obj
     diff = tuple(name for name, same in (
         ("image", got.image.shape == want.image.shape and np.array_equal(got.image, want.image)),
         ("t_ns", got.timestamp_ns == want.timestamp_ns), ("zoom", got.zoom == want.zoom),

@@ -102,7 +102,7 @@ class ArrivalLedger:
             return None
         if d.type in WHOLE_WHEN_CHECKED:
             self.last = (payload, d)
-        return d.type, d.seq, d.extra.get("pub_ns") if d.extra else None, d.obj.seq if d.type == "end" else None
+        return d.type, d.seq, d.pub_ns, d.obj.seq if d.type == "end" else None
 
     def add(self, key_expr: str, payload: bytes) -> Gap | None:
         """Check and account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any."""

@@ -130,7 +130,7 @@ class Loop:
         if msg is None:
             return
         if inp.lazy:
-            msg.extra["payload"] = payload
+            msg.payload = payload
         handler = inp.on[msg.type]
         if handler is not None:
             data = inp.label is not None and msg.type != "end"  # an end marker is named by its type and seq

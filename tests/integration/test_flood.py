@@ -44,7 +44,7 @@ def test_a_foreign_flood_is_shed_once_by_flow_and_every_stage_follows(tmp_path):
         stage = topic.rsplit("/", 1)[-1]
         if m.type == "flow":
             flows.append((m.seq, m.obj.seq_next))
-            named += m.extra.get("shed", ())
+            named += m.shed
         elif m.type == "end" and stage == "flow":
             named += getattr(m.obj, "shed", ())
         elif m.type == "correction":

@@ -194,5 +194,5 @@ def test_a_message_its_input_does_not_admit_is_let_go_undecoded_and_a_lazy_input
     assert asked == [*jpeg, end(1)]  # the garbage was refused on arrival: never queued, never asked
     assert [(m.type, m.seq) for m in got] == [("frame", 0), ("end", 1)]  # frame 1 let go
     assert box.arrivals.invalid == 1 and rt.errors["decode_errors"] == 0
-    assert got[0].extra["payload"] == jpeg[0] and not got[0].obj.color.any() and not got[0].obj.depth.any()
-    assert decode(got[0].extra["payload"]).obj.color.any()  # decoded when asked
+    assert got[0].payload == jpeg[0] and not got[0].obj.color.any() and not got[0].obj.depth.any()
+    assert decode(got[0].payload).obj.color.any()  # decoded when asked

@@ -118,7 +118,7 @@ def test_frame_raw_raw_bit_exact():
     assert np.abs(g.depth - f.depth).max() <= 0.5e-3 + 1e-6
     assert g.intrinsics == f.intrinsics and g.timestamp_ns == f.timestamp_ns and g.seq == f.seq
     assert np.array_equal(g.pose, f.pose) and g.origin == "synthetic"
-    assert m.extra == {"color_encoding": "raw", "depth_encoding": "raw", "depth_scale": 1000.0, "pub_ns": None}
+    assert (m.color_encoding, m.depth_encoding, m.depth_scale, m.pub_ns) == ("raw", "raw", 1000.0, None)
     g.validate()
 
 
@@ -129,7 +129,7 @@ def test_frame_jpeg_zstd():
     assert g.pose is None and g.color.shape == f.color.shape
     assert np.abs(g.color.astype(int) - f.color).mean() < 3.0
     assert np.array_equal(g.depth, dequantize_depth(quantize_depth(f.depth, 5000), 5000))
-    assert m.extra["depth_encoding"] == "zstd" and m.extra["depth_scale"] == 5000.0
+    assert m.depth_encoding == "zstd" and m.depth_scale == 5000.0
 
 
 def test_depth_quantisation_invalid_values():
@@ -214,12 +214,12 @@ def test_correction_round_trip():
     g = m.obj
     assert isinstance(g, Correction) and np.array_equal(g.matrix, c.matrix)
     assert (g.seq, g.segment, g.keyframe, g.valid, g.reason) == (11, 2, True, True, "")
-    assert m.extra["zoom"] == 1.25
-    assert decode(encode_correction(c, "cam0")).extra["zoom"] is None
-    assert decode(encode_correction(c, "cam0")).extra["batch"] is None
-    tagged = decode(encode_correction(c, "cam0", batch=Tag(3, 1, 5, 40))).extra["batch"]
+    assert m.obj.zoom == 1.25
+    assert decode(encode_correction(c, "cam0")).obj.zoom is None
+    assert decode(encode_correction(c, "cam0")).batch is None
+    tagged = decode(encode_correction(c, "cam0", batch=Tag(3, 1, 5, 40))).batch
     assert tagged == (3, 1, 5, 40) and tagged.closed_by == 40
-    assert decode(encode_correction(c, "cam0", batch=(3, 1, 5))).extra["batch"] == Tag(3, 1, 5, None)
+    assert decode(encode_correction(c, "cam0", batch=(3, 1, 5))).batch == Tag(3, 1, 5, None)
 
 
 def test_the_frames_a_flow_stage_shed_travel_on_the_flow_the_correction_and_the_end():
@@ -228,8 +228,8 @@ def test_the_frames_a_flow_stage_shed_travel_on_the_flow_the_correction_and_the_
     there are none, and a message without it decodes as none shed."""
     fl = make_flow()  # 3 -> 4 ... the seqs shed lie before seq_next
     fl.seq, fl.seq_next = 3, 9
-    assert decode(encode_flow(fl, "cam0", shed=[4, 6, 7])).extra["shed"] == (4, 6, 7)
-    assert "shed" not in raw(encode_flow(fl, "cam0")) and decode(encode_flow(fl, "cam0")).extra["shed"] == ()
+    assert decode(encode_flow(fl, "cam0", shed=[4, 6, 7])).shed == (4, 6, 7)
+    assert "shed" not in raw(encode_flow(fl, "cam0")) and decode(encode_flow(fl, "cam0")).shed == ()
     c = make_correction()
     c.shed = (8, 9, 10)
     assert decode(encode_correction(c, "cam0")).obj.shed == (8, 9, 10)
@@ -259,7 +259,7 @@ def test_stabilized_and_stats_round_trip():
     g = decode(encode_stabilized(s, "cam0", color="raw")).obj
     assert np.array_equal(g.image, img) and g.zoom == 1.07 and g.flags == s.flags and g.timestamp_ns == 400
     m = decode(encode_stabilized(s, "cam0"))
-    assert m.extra["encoding"] == "jpeg" and np.abs(m.obj.image.astype(int) - img).mean() < 4.0
+    assert m.encoding == "jpeg" and np.abs(m.obj.image.astype(int) - img).mean() < 4.0
     st_ = Stats("motion", {"fps": 30.1, "frames": 1200, "state": "ok", "degraded": False, "last_err": None})
     m = decode(encode_stats(st_, "cam0", 5))
     assert m.type == "stats" and m.seq == 5 and m.obj == st_
@@ -267,7 +267,7 @@ def test_stabilized_and_stats_round_trip():
 
 def test_encode_dispatch():
     assert decode(encode(make_motion(), "a")).type == "motion"
-    assert decode(encode(replace(make_correction(), zoom=1.5), stream="b")).extra["zoom"] == 1.5
+    assert decode(encode(replace(make_correction(), zoom=1.5), stream="b")).obj.zoom == 1.5
     assert decode(encode(make_frame(), "c", color="raw")).type == "frame"
     with pytest.raises(WireError):
         encode(object(), "x")

@@ -92,7 +92,7 @@ def test_corrections_poses_zooms_and_timestamps():
     _refused(_with(s, t_ns=-1), "t_ns", "timestamp")
     _refused(_with(s, src_pub_ns=2**64 - 1), "src_pub_ns", "timestamp")
     f = encode_frame(_frame(), "cam0", pub_ns=7)
-    assert decode(f).extra["pub_ns"] == 7
+    assert decode(f).pub_ns == 7
     _refused(_with(f, t_ns=-5), "t_ns", "timestamp")
     _refused(_with(f, pub_ns=2**63), "pub_ns", "timestamp")
     _refused(_with(f, pose=[1e307] * 16), "pose", "outside")

@@ -210,8 +210,8 @@ class McapSource:
             raise SourceError(f"recording {self.path}: none of the {self._count} frame messages of stream "
                               f"{self.stream!r} decodes ({'; '.join(why) or 'none could be read'})")
         self.intrinsics: Intrinsics = first.obj.intrinsics
-        self.depth_scale: float = float(first.extra["depth_scale"])
-        self.color_encoding: str = first.extra["color_encoding"]
+        self.depth_scale: float = float(first.depth_scale)
+        self.color_encoding: str = first.color_encoding
         dts = np.diff(np.asarray(times, dtype=np.float64))
         dts = dts[dts > 0]
         self.fps = 1e9 / float(np.median(dts)) if len(dts) else DEFAULT_FPS

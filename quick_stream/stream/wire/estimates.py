@@ -69,8 +69,7 @@ def _decode_flow(r: Reader) -> Decoded:
         r.seq, seq_next, arrays["points"], arrays["displacements"], arrays["weights"],
         arrays["pixels"], arrays["pixels_next"], K0, K1, counts, r.str("problem"),
     )
-    return Decoded("flow", flow, r.stream, r.seq, version=r.version,
-                   extra={"shed": r.seqs("shed", max(r.seq, seq_next))})
+    return Decoded("flow", flow, r.stream, r.seq, version=r.version, shed=r.seqs("shed", max(r.seq, seq_next)))
 
 
 # --- motion -------------------------------------------------------------------------------------
@@ -163,5 +162,4 @@ def _decode_correction(r: Reader) -> Decoded:
                 or not (batch[0] >= 0 and 0 <= batch[1] < batch[2])):
             raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {batch!r}")
         batch = Tag(*batch, closed_by)
-    return Decoded("correction", c, r.stream, r.seq,
-                   extra={"zoom": c.zoom, "batch": batch})
+    return Decoded("correction", c, r.stream, r.seq, batch=batch)

@@ -2,28 +2,38 @@
 (intrinsics, strings) of docs/wire-format.md."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from ...core.frame import FrameError, Intrinsics
+from ...core.release_tags import Tag
 from . import ranges
 from .codec import FORMAT_VERSION, Reader, WireError
 
 
 @dataclass
 class Decoded:
-    """A decoded message: ``type``, the object, its envelope and wire-only ``extra`` fields.
-
-    ``extra`` holds what the object has no attribute for: ``zoom`` (correction),
-    ``color_encoding``/``depth_encoding``/``depth_scale`` (frame), ``encoding`` (stabilized).
-    """
+    """A decoded message: ``type``, the object, its envelope, and the fields of its message the object
+    has no attribute for (docs/wire-format.md), each set by its type's decoder (the others keep
+    their defaults): a ``frame``'s encodings, depth scale and ``pub_ns``; a ``flow``'s ``shed``; a
+    ``correction``'s release tag ``batch``; a ``stabilized`` image's encoding and latency stamps.
+    ``payload``: the message as received, kept by a service loop whose input decodes lazily."""
 
     type: str
     obj: Any
     stream: str
     seq: int
     version: int = FORMAT_VERSION
-    extra: dict[str, Any] = field(default_factory=dict)
+    color_encoding: str | None = None  # frame
+    depth_encoding: str | None = None  # frame
+    depth_scale: float | None = None  # frame: depth units per metre
+    pub_ns: int | None = None  # frame: when the capture published it (None: not stamped)
+    shed: tuple[int, ...] = ()  # flow: frames before this pair that the flow stage shed
+    batch: Tag | None = None  # correction: its release tag (None: a sender without tags)
+    encoding: str | None = None  # stabilized: the image's encoding
+    src_pub_ns: int | None = None  # stabilized: when its input frame was published
+    ready_pub_ns: int | None = None  # stabilized: when the frame that made it renderable was published
+    payload: bytes | None = None  # the message's bytes (a lazy input's frame, decoded when rendered)
 
 
 def intrinsics_fields(k: Intrinsics) -> dict[str, Any]:

@@ -119,9 +119,8 @@ def _decode_frame(r: Reader) -> Decoded:
             capture[key_] = v
     frame = RGBDFrame(color, depth, k, t_ns, r.seq, pose,
                       r.str("origin", optional=True) or "", capture=capture, luma=luma)
-    return Decoded("frame", frame, r.stream, r.seq,
-                   extra={"color_encoding": cenc, "depth_encoding": denc, "depth_scale": scale,
-                          "pub_ns": ranges.time_ns(r, "pub_ns", r.int("pub_ns", optional=True))})
+    return Decoded("frame", frame, r.stream, r.seq, color_encoding=cenc, depth_encoding=denc, depth_scale=scale,
+                   pub_ns=ranges.time_ns(r, "pub_ns", r.int("pub_ns", optional=True)))
 
 
 # --- stabilized ---------------------------------------------------------------------------------
@@ -153,7 +152,7 @@ def _decode_stabilized(r: Reader) -> Decoded:
     s = StabilizedImage(r.seq, ranges.time_ns(r, "t_ns", r.int("t_ns")), img,
                         ranges.zoom(r, "zoom", r.float("zoom", positive=True)), flags)
     src, ready = (ranges.time_ns(r, k, r.int(k, optional=True)) for k in ("src_pub_ns", "ready_pub_ns"))
-    return Decoded("stabilized", s, r.stream, r.seq, extra={"encoding": enc, "src_pub_ns": src, "ready_pub_ns": ready})
+    return Decoded("stabilized", s, r.stream, r.seq, encoding=enc, src_pub_ns=src, ready_pub_ns=ready)
 
 
 # --- stats --------------------------------------------------------------------------------------
