@@ -118,7 +118,7 @@ def check_tls(args: argparse.Namespace) -> None:
         raise ValueError(f"--router-config {args.router_config}: no such file")
 
 
-def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[ServiceSpec]:
+def service_specs(args: argparse.Namespace, endpoint: str, paths: RunPaths) -> list[ServiceSpec]:
     """Router first, then the services in start order, each with the zenoh flags to reach the router
     (with ``--tls-dir``: as TLS clients, each with its own certificate)."""
     tls = bool(getattr(args, "tls_dir", None))
@@ -130,18 +130,18 @@ def service_specs(args: argparse.Namespace, endpoint: str, out: Path) -> list[Se
             flags = ["-m", "client", *flags, "--tls-dir", d, "--tls-name", n]
         return flags
 
-    st = ["--settings", str(args.settings_file)]
+    st = ["--settings", str(paths.settings)]
     router = ["-m", "quick_stream", "router", "-l", endpoint, "--no-multicast-scouting"]
     if tls:
         d, n = tls_party(args, "router")
-        router += ["-c", str(args.router_config), "--tls-dir", d, "--tls-name", n]
+        router += ["-c", str(paths.router_config), "--tls-dir", d, "--tls-name", n]
     cap = ["--source", args.source, "--pace", args.pace, "--color", args.color]
     if args.frames is not None:
         cap += ["--frames", str(args.frames)]
     if args.fps is not None:
         cap += ["--fps", str(args.fps)]
-    own = {"recorder": [*st, "--output", str(args.recording)], "flow": st, "motion": st,
-           "render": [*st, "--output", str(getattr(args, "video", video_name(out, args.video_codec))),
+    own = {"recorder": [*st, "--output", str(paths.recording)], "flow": st, "motion": st,
+           "render": [*st, "--output", str(paths.video),
                       "--video-codec", args.video_codec] + (["--png", args.png] if args.png else []),
            "capture": cap}
     run = [s for s in topology.SERVICES if s != topology.RECORDER or not args.no_record]
@@ -213,19 +213,38 @@ def run_paths(out: Path, codec: str) -> tuple[Path, Path, Path]:
     return video, recording, logs
 
 
-def _prepare(args: argparse.Namespace, params, out: Path) -> None:
+@dataclass(frozen=True)
+class RunPaths:
+    """Where one run of ``up`` writes: its video, recording and logs folder (:func:`run_paths`), the one
+    settings file every service reads, and the router's config (``--router-config``, or the one the run
+    wrote for ``--tls-dir``; None: the router's defaults)."""
+
+    video: Path
+    recording: Path
+    logs: Path
+    settings: Path
+    router_config: Path | None
+
+    @property
+    def status(self) -> Path:
+        return self.logs / "status.json"
+
+
+def _prepare(args: argparse.Namespace, params, out: Path) -> RunPaths:
     """The output folder, this run's fresh file names, the settings file (and the router's TLS config)."""
     out.mkdir(parents=True, exist_ok=True)
-    args.video, args.recording, args.logs = run_paths(out, args.video_codec)
+    video, recording, logs = run_paths(out, args.video_codec)
     # one settings file for every service (and the recording's settings record)
-    args.logs.mkdir()
-    args.settings_file = args.logs / "settings.toml"
-    args.settings_file.write_text(settings_toml(params, f"settings of {args.recording.name} (quick-stream up)"))
-    if args.tls_dir and not args.router_config:
+    logs.mkdir()
+    settings = logs / "settings.toml"
+    settings.write_text(settings_toml(params, f"settings of {recording.name} (quick-stream up)"))
+    router_config = Path(args.router_config) if args.router_config else None
+    if args.tls_dir and router_config is None:
         from ..stream.acl import router_config_text
 
-        args.router_config = str(args.logs / "router-tls.json5")
-        Path(args.router_config).write_text(router_config_text([args.stream]))
+        router_config = logs / "router-tls.json5"
+        router_config.write_text(router_config_text([args.stream]))
+    return RunPaths(video, recording, logs, settings, router_config)
 
 
 def cannot_write(e: OSError) -> str:
@@ -235,14 +254,14 @@ def cannot_write(e: OSError) -> str:
 def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
     out = Path(args.out)
     try:
-        _prepare(args, params, out)
+        paths = _prepare(args, params, out)
     except OSError as e:
         print(f"quick-stream up: {cannot_write(e)}", file=sys.stderr)
         return 2
     before = set(out.glob("recording*.mcap"))
     endpoint = f"{'tls' if args.tls_dir else 'tcp'}/127.0.0.1:{args.port or free_port()}"
-    sup = Supervisor(service_specs(args, endpoint, out), args.logs)
-    status_path = args.logs / "status.json"
+    sup = Supervisor(service_specs(args, endpoint, paths), paths.logs)
+    status_path = paths.status
     o = Outcome()
     session = board = None
     t0 = time.monotonic()
@@ -268,7 +287,7 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
     except Abort as e:
         o.reason = o.error = str(e)
     except zenoh.ZError as e:
-        o.reason = o.error = f"router did not come up on {endpoint}: {e} (see {args.logs / 'router.log'})"
+        o.reason = o.error = f"router did not come up on {endpoint}: {e} (see {paths.logs / 'router.log'})"
     except OSError as e:  # a write of up's own: the status file, a service's log
         o.reason = o.error = cannot_write(e)
     except Exception as e:  # noqa: BLE001 - a bug of up's own: said, and the run still stopped and closed
@@ -290,7 +309,7 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
         finally:  # the session closed whatever happened, within a bounded time
             closers = [c.close for c in (board, session) if c is not None]
             closing = close_within(closers, timeout_s=5.0) if closers else None
-    return _finish(args, out, sup, board, o, codes, before, status_path, final, closing)
+    return _finish(args, paths, sup, board, o, codes, before, final, closing)
 
 
 def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: list[str], status_path: Path,
@@ -298,7 +317,8 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
     """Until the stream is done, a signal, ``--duration``, or a failure (``o`` says which); OSError when
     the status file cannot be written."""
     board_out = sys.stderr  # the live status is progress, on stderr; stdout is for the run's result (its end)
-    tty = board_out.isatty() and not args.quiet
+    quiet = args.quiet
+    tty = board_out.isatty() and not quiet
     shown = 0
     while True:
         time.sleep(0.25)
@@ -317,10 +337,10 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
             return
         o.failed = [n for n, c in sup.children.items() if c.finished and c.exit_code not in (0, None)]
         if o.failed:  # not restarted: cannot go on (exit 2: no camera, a bad flag, a full disk) or crashes
-            o.reason = f"{o.failed[0]} failed (see {Path(args.logs).name}/{o.failed[0]}.log)"
+            o.reason = f"{o.failed[0]} failed (see {status_path.parent.name}/{o.failed[0]}.log)"
             o.error = "; ".join(child_failure(sup, n, Path(args.out)) for n in o.failed)
             return
-        if not args.quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
+        if not quiet and (tty or int((time.monotonic() - t0) * 4) % 20 == 0):
             lines = status_lines(board, sup, args.stream, t0)
             try:
                 if tty and shown:
@@ -328,7 +348,7 @@ def _loop(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: l
                 board_out.write("\n".join(x + "\x1b[K" if tty else x for x in lines) + "\n")
                 board_out.flush()
             except OSError:  # stderr closed (a pipe's reader went away): the run goes on, status.json has it
-                args.quiet = True
+                quiet = True
             shown = len(lines)
 
 
@@ -376,14 +396,15 @@ def _drain(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: 
         sleep(0.1)
 
 
-def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusBoard | None, o: Outcome,
-            codes: dict[str, int | None], before: set[Path], status_path: Path, final: list[str],
-            closing: str | None) -> int:
+def _finish(args: argparse.Namespace, paths: RunPaths, sup: Supervisor, board: StatusBoard | None, o: Outcome,
+            codes: dict[str, int | None], before: set[Path], final: list[str], closing: str | None) -> int:
     """After the children stopped and the session closed (``closing``: what went wrong closing it):
     the account, the outputs, status.json and the last lines; the exit code."""
     account = frame_account((lambda n: board.totals(args.stream, n)) if board is not None else (lambda n: {}))
-    files = [(args.video, account.rendered > 0)]
-    files += [(f, False) for f in ([] if args.no_record else sorted(set(out.glob("recording*.mcap")) - before))]
+    status_path = paths.status
+    files = [(paths.video, account.rendered > 0)]
+    files += [(f, False) for f in ([] if args.no_record else sorted(set(paths.recording.parent.glob("recording*.mcap"))
+                                                                   - before))]
     whole, broken = outputs(files)
     nothing = account.rendered == 0
     code = 1 if (o.error or o.failed or nothing) else 0
@@ -415,5 +436,5 @@ def _finish(args: argparse.Namespace, out: Path, sup: Supervisor, board: StatusB
         say(summary, err=nothing)
     for f, why in broken:
         say(f"quick-stream up: {f} is incomplete: {why}", err=True)
-    say(("wrote " + ", ".join(str(f) for f in whole) if whole else "wrote nothing") + f" (logs in {args.logs})")
+    say(("wrote " + ", ".join(str(f) for f in whole) if whole else "wrote nothing") + f" (logs in {paths.logs})")
     return code
