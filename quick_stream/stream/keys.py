@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import re
 
+from .topology import LOSSLESS_KEYS
+
 PREFIX = "quick/@v1"
-STAGES = ("frame", "flow", "motion", "correction", "stabilized", "stats", "health")
+STAGES = (*LOSSLESS_KEYS, "stats", "health")  # the pipeline's data keys (its table), then every service's own
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,64}$")  # stream ids and service names
 
 

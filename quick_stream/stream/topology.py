@@ -2,7 +2,7 @@
 history it reads and which cursor it takes over by (docs/architecture.md, docs/deployment.md,
 "Delivery guarantees per key").
 
-Everything that depends on the shape reads it from here: the lossless keys the runtime publishes
+Everything that depends on the shape reads it from here: the key names (:mod:`.keys`), the lossless keys the runtime publishes
 numbered and recovers (:mod:`.runtime`, :mod:`.inbox`), the access control's roles (:mod:`.acl`),
 the receivers a capture waits for (:mod:`.capture`), ``quick-stream up``'s processes and their
 order, the pipeline benchmark and the test harness. Adding a stage is a row here plus its service
