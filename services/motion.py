@@ -3,7 +3,7 @@
 Runs :class:`quick_stream.core.stages.MotionDriver` on every flow (lossless inbox and
 publishers: a lost correction would leave frames unrendered). Publishes each
 pair's ``motion`` and, one segment late, the ``correction`` of every frame of a
-closed segment, tagged with its planner release (``batch``) so the renderer
+closed segment, tagged with its planner release (``Tag``) so the renderer
 frames each release as a whole. A flow that skips frames (upstream drops or a
 restarted flow service) becomes an invalid motion: the path restarts there and
 those frames are flagged. The frames a flow names as shed by the flow stage go out on the
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
 
         def release(corrections: list[tuple[Correction, Tag]]) -> None:
             for c, tag in corrections:
-                corr_pub.put(encode_correction(c, args.stream, batch=tag))
+                corr_pub.put(encode_correction(c, args.stream, tag=tag))
 
         def on_flow(msg: Decoded) -> None:
             t0 = time.perf_counter()

@@ -123,7 +123,7 @@ def serve(args: argparse.Namespace, params: StabilizerParams, rt: ServiceRuntime
         return driver.add_frame(m.seq, held(m.payload), m.pub_ns, len(m.payload))
 
     # all pending corrections, then the frames pending by then (RenderDriver.takes_corrections)
-    rt.serve([Input(corr_in, {"correction": lambda m: driver.add_correction(m.obj, m.batch),
+    rt.serve([Input(corr_in, {"correction": lambda m: driver.add_correction(m.obj, m.tag),
                               "end": lambda m: driver.end(m.obj)}, take="all",
                     paused=lambda: not driver.takes_corrections),
               Input(frames_in, {"frame": take_frame, "end": None}, take="pending", lazy=True)],

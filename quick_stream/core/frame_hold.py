@@ -1,12 +1,12 @@
 """Frames waiting for their corrections, kept apart per numbering of the stream.
 
 The render stage (:mod:`quick_stream.core.render_stage`) takes frames as they arrive and renders
-them when their correction batch comes. :class:`FrameHold` is the waiting room: it admits a frame
+them when their release comes. :class:`FrameHold` is the waiting room: it admits a frame
 or refuses it (out of order, a duplicate, a jump no run of frames confirms), confirms a stream
 renumbered lower (:class:`~quick_stream.core.continuity.JumpGuard`, as the flow stage does) and keeps
 that numbering's frames apart from the old one's, bounds what it holds (frames and bytes: the
 oldest is dropped), lets go of frames the flow stage shed, and says which numbering a correction
-batch belongs to and whether it can be rendered yet. It renders nothing.
+release belongs to and whether it can be rendered yet. It renders nothing.
 """
 from __future__ import annotations
 
@@ -139,35 +139,35 @@ class FrameHold:
             self.bad.append({"seq": seq, "error": f"{type(e).__name__}: {e}"})
             return None, None, 0.0
 
-    def numbering_of(self, batch: list[Correction]) -> int:
-        """The numbering a correction batch belongs to. The batch that restarts the path in a new
+    def numbering_of(self, release: list[Correction]) -> int:
+        """The numbering a release belongs to. The release that restarts the path in a new
         numbering (the restart correction of a renumbering's break,
         :func:`~quick_stream.core.continuity.starts_numbering`) belongs to the next numbering frames
         were taken in (if the frames have not shown one, this hold never saw the old numbering: the
-        current one); any other batch to the numbering the corrections reached, unless only a later
-        numbering holds any of its frames (the restart batch was lost or rendered before its frames came)."""
+        current one); any other release to the numbering the corrections reached, unless only a later
+        numbering holds any of its frames (the restart release was lost or rendered before its frames came)."""
         later = sorted(n for n in self._held if n > self.reached)
-        if starts_numbering(batch[0]):
+        if starts_numbering(release[0]):
             return later[0] if later else self.reached
-        seqs = {c.seq for c in batch}
+        seqs = {c.seq for c in release}
         for n in [self.reached, *later]:
             if not seqs.isdisjoint(self._held.get(n, {})):
                 return n
         return self.reached
 
-    def can_render(self, batch: list[Correction]) -> bool:
-        """Whether a correction batch can be rendered now, before the frames it waits for could come:
+    def can_render(self, release: list[Correction]) -> bool:
+        """Whether a release can be rendered now, before the frames it waits for could come:
         all its frames are held, or a newer frame of its numbering (or a later numbering) has been
-        taken, so a missing one will never come. A batch that restarts the path in a new numbering
+        taken, so a missing one will never come. A release that restarts the path in a new numbering
         waits for its frames while the frames have not shown the renumbering yet."""
-        if not batch:
+        if not release:
             return True
-        n = self.numbering_of(batch)
+        n = self.numbering_of(release)
         held = self._held.get(n, {})
-        seqs = [c.seq for c in batch]
+        seqs = [c.seq for c in release]
         if all(s in held for s in seqs):
             return True
-        if starts_numbering(batch[0]) and n == self.reached:
+        if starts_numbering(release[0]) and n == self.reached:
             return False
         newest = self._newest_in.get(n)
         return n < self.numbering or (newest is not None and newest > max(seqs))

@@ -1,6 +1,6 @@
-"""Releases: correction batches from the motion stage to the render stage, and the render policy.
+"""Releases: the corrections of each planner call, from the motion stage to the render stage, and the render policy.
 
-    MotionStage batches -> ReleaseNumbering -> (correction, (release, index, size)) -> wire ->
+    MotionStage releases -> ReleaseNumbering -> (correction, (release, index, size)) -> wire ->
         ReleaseGroups -> RenderDriver -> Rendered (stabilized frame + latency stamps)
 
 A *release* is what one planner call released (:mod:`quick_stream.core.stages`); the renderer frames
@@ -40,7 +40,7 @@ class ReleaseGroups:
     service numbers releases from 0 again; a correction that does not fit the open release
     of that number (other size, or an index already there) starts a new one.
 
-    ``ready`` holds (release, batch, completed at, numbering, closed by), in seq order within a numbering:
+    ``ready`` holds (release, corrections, completed at, numbering, closed by), in seq order within a numbering:
     the restart correction of a renumbering's break (:func:`~quick_stream.core.continuity.starts_numbering`,
     going back) starts the next numbering, whose releases follow every release of the old one.
     """
@@ -72,12 +72,12 @@ class ReleaseGroups:
         self._newest = c.seq if self._newest is None else max(self._newest, c.seq)
         return self.numbering
 
-    def add(self, c: Correction, batch: Tag | tuple[int, int, int] | None) -> None:
+    def add(self, c: Correction, tag: Tag | tuple[int, int, int] | None) -> None:
         numbering = self._numbering(c)
-        if batch is None:  # a sender without release tags: each correction is its own batch
+        if tag is None:  # a sender without release tags: each correction is its own release
             self.ready.append((-1, [c], self.clock(), numbering, None))
             return
-        rel, idx, size, closed_by = Tag(*batch)
+        rel, idx, size, closed_by = Tag(*tag)
         for other in [r for r in self._open if r != rel]:
             self.abandoned += 1
             self._hand_over(other)
@@ -104,12 +104,12 @@ class Release:
     """One release due for rendering: its id and its corrections."""
 
     id: int
-    batch: list[Correction]
+    corrections: list[Correction]
     closed_by: int | None = None  # the frame whose arrival closed it (None: not known)
 
     @property
     def label(self) -> str:
-        return f"release {self.id} (frames {self.batch[0].seq}..{self.batch[-1].seq})"
+        return f"release {self.id} (frames {self.corrections[0].seq}..{self.corrections[-1].seq})"
 
 
 @dataclass
@@ -216,8 +216,8 @@ class RenderDriver:
         :meth:`render` before asking for the next): all its frames are here, a newer frame has
         arrived (a missing one will not come), ``frame_wait`` has passed, or ``force``."""
         while force and self.releases.ready or self.has_due:
-            rel, batch, _, _, closed_by = self.releases.ready.pop(0)
-            yield Release(rel, batch, closed_by)
+            rel, corrections, _, _, closed_by = self.releases.ready.pop(0)
+            yield Release(rel, corrections, closed_by)
 
     @property
     def has_due(self) -> bool:
@@ -225,21 +225,21 @@ class RenderDriver:
         frames arriving meanwhile are taken between releases, does not sleep while one is)."""
         if not self.releases.ready:
             return False
-        _, batch, t_done, _, _ = self.releases.ready[0]
-        return self.stage.hold.can_render(batch) or self.clock() - t_done > self.frame_wait
+        _, corrections, t_done, _, _ = self.releases.ready[0]
+        return self.stage.hold.can_render(corrections) or self.clock() - t_done > self.frame_wait
 
     def render(self, release: Release) -> Iterator[Rendered]:
         """Render a release and the orphans it reveals, each frame stamped as it is rendered: ready when
         the frame that closed the release was published (the release's newest when that is not
         known, or not after it, or not here)."""
-        st, last = self.stage, max(c.seq for c in release.batch)
-        n = st.hold.numbering_of(release.batch)
+        st, last = self.stage, max(c.seq for c in release.corrections)
+        n = st.hold.numbering_of(release.corrections)
         closed = release.closed_by if release.closed_by is not None and release.closed_by > last else last
         ready = (n, closed) if (n, closed) in self._pub_ns else (n, last)
         bad = st.hold.bad
         nbad = len(bad)
         try:
-            for sf in st.iter_batch(release.batch):
+            for sf in st.iter_release(release.corrections):
                 yield self._stamped(sf, ready)
         finally:
             for b in bad[nbad:]:

@@ -23,17 +23,17 @@ class Tag(NamedTuple):
 
 
 class ReleaseNumbering:
-    """Correction batches tagged as the motion service publishes them: each batch one release,
+    """Releases tagged as the motion service publishes them: each list of corrections one release,
     numbered from 0 for the service's life (not reset at the end of a stream)."""
 
     def __init__(self) -> None:
         self.release = 0
         self.sent = 0  # corrections tagged
 
-    def number(self, batches: list[list[Correction]], closed_by: int | None = None) -> list[tuple[Correction, Tag]]:
-        """Tag each batch as one release; ``closed_by``: the newest frame taken when they were released."""
+    def number(self, released: list[list[Correction]], closed_by: int | None = None) -> list[tuple[Correction, Tag]]:
+        """Tag each list of corrections as one release; ``closed_by``: the newest frame taken when they were released."""
         out: list[tuple[Correction, Tag]] = []
-        for b in batches:
+        for b in released:
             out += [(c, Tag(self.release, i, len(b), closed_by)) for i, c in enumerate(b)]
             self.sent += len(b)
             self.release += 1

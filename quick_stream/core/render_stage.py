@@ -1,11 +1,11 @@
 """The render stage, shared by the in-process stabilizer and the ``render`` service.
 
-    frames + correction batches -> RenderStage -> StabilizedFrame
+    frames + releases -> RenderStage -> StabilizedFrame
 
-:class:`RenderStage` renders a correction batch (what one planner call released,
-:mod:`quick_stream.core.stages`) as a whole: it takes the batch's frames out of its
+:class:`RenderStage` renders a release (what one planner call released,
+:mod:`quick_stream.core.stages`) as a whole: it takes the release's frames out of its
 :class:`~quick_stream.core.frame_hold.FrameHold` (``hold``: frames wait there, per numbering of the
-stream, until their corrections come), plans the batch's zooms (one zoom track,
+stream, until their corrections come), plans the release's zooms (one zoom track,
 :func:`~quick_stream.core.render.segment_zooms`, or the path's planned zooms), solves each warp when
 first needed and renders each frame with its border filled from its neighbours
 (:class:`~quick_stream.core.render.filler.BorderFiller`, ``filler``). A frame that no correction will
@@ -60,7 +60,7 @@ class _Plan:
     """A frame about to be rendered: its correction, frame, warp (None until solved, from the warp
     input made on arrival, ``prepared``; ``prep_ms``: the ms that took plus the frame's share of
     loading, counted with the solve as its warp time) and zoom, the numbering it was taken in, its
-    share of the batch's framing time (ms) and, when the border fill's estimate made them, the map
+    share of the release's framing time (ms) and, when the border fill's estimate made them, the map
     samples at that zoom (the render reuses them)."""
 
     c: Correction
@@ -84,7 +84,7 @@ def orphan_correction(seq: int, reason: str = ORPHAN) -> Correction:
 
 
 class RenderStage:
-    """Renders correction batches against the frames its ``hold`` keeps (module docstring).
+    """Renders releases against the frames its ``hold`` keeps (module docstring).
 
     ``max_frames``, ``max_bytes``: what the hold keeps at most
     (:class:`~quick_stream.core.frame_hold.FrameHold`); a correction whose frame is gone is counted in
@@ -106,21 +106,21 @@ class RenderStage:
 
     def add_frame(self, seq: int, frame: RGBDFrame | FrameLoader, pub_ns: int | None = None,
                   size: int | None = None) -> bool:
-        """Hold a frame (or its loader) until its correction batch comes (:meth:`FrameHold.add
+        """Hold a frame (or its loader) until its release comes (:meth:`FrameHold.add
         <quick_stream.core.frame_hold.FrameHold.add>`: False when let go, ValueError when refused)."""
         return self.hold.add(seq, frame, pub_ns, size)
 
-    def iter_batch(self, corrections: list[Correction]) -> Iterator[StabilizedFrame]:
-        """Render one correction batch and the orphans it reveals, yielding frames in seq order.
+    def iter_release(self, corrections: list[Correction]) -> Iterator[StabilizedFrame]:
+        """Render one release and the orphans it reveals, yielding frames in seq order.
 
         Each frame is rendered only when the caller asks for it, so a service can publish the
-        first frame while the rest of the batch waits. What it waits for is what its zoom needs:
+        first frame while the rest of the release waits. What it waits for is what its zoom needs:
         with the border fill and zooms planned with the path (``auto``), its own warp and border
         estimate and those of the ``fill_lookahead`` frames after it (docs/method.md (14a));
-        otherwise every warp of the batch and its zoom track. Orphans are held frames older than the
-        batch's newest that the batch does not cover (skipped upstream: no correction
+        otherwise every warp of the release and its zoom track. Orphans are held frames older than the
+        release's newest that the release does not cover (skipped upstream: no correction
         will ever come); each is framed on its own, uncorrected and flagged, unless a correction of
-        the batch names it as shed by the flow stage (then it is let go:
+        the release names it as shed by the flow stage (then it is let go:
         :meth:`FrameHold.let_go <quick_stream.core.frame_hold.FrameHold.let_go>`)."""
         if not corrections:
             return
@@ -206,7 +206,7 @@ class RenderStage:
         return out
 
     def _plan(self, corrections: list[Correction], numbering: int) -> list[_Plan]:
-        """Load the frames (of ``numbering``) and the batch's zoom track; the warps are solved when a
+        """Load the frames (of ``numbering``) and the release's zoom track; the warps are solved when a
         frame needs its own (:meth:`_solve`), unless the zoom track needs them all first."""
         t0 = time.perf_counter()
         items = []

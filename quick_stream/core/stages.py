@@ -1,7 +1,7 @@
 """The pipeline's three stateful stages, shared by the in-process stabilizer and the services.
 
-    frames -> FlowStage -> SceneFlowResult -> MotionStage -> MotionEstimate + correction batches
-    frames + correction batches -> RenderStage -> StabilizedFrame   (quick_stream/core/render_stage.py)
+    frames -> FlowStage -> SceneFlowResult -> MotionStage -> MotionEstimate + releases
+    frames + releases -> RenderStage -> StabilizedFrame   (quick_stream/core/render_stage.py)
 
 :class:`~quick_stream.core.stabilizer.Stabilizer` chains them in one process; the
 ``flow``, ``motion`` and ``render`` services each drive one of them from Zenoh
@@ -9,10 +9,10 @@ messages (docs/architecture.md). Because the services add only transport, a
 stream run through the services gives bit-for-bit the offline result
 (tests/integration/test_services_e2e.py).
 
-A *correction batch* is what one planner call released (the first frame's
+A *release* is what one planner call released (the first frame's
 correction; a closed segment; a segment closed early by an invalid motion plus
-the restart frame). The renderer frames each batch as a whole (one zoom track,
-:func:`~quick_stream.core.render.segment_zooms`), so the batches travel as batches: tagged as
+the restart frame). The renderer frames each release as a whole (one zoom track,
+:func:`~quick_stream.core.render.segment_zooms`), so the releases travel as releases: tagged as
 releases (:mod:`quick_stream.core.release`).
 
 :class:`FlowDriver` and :class:`MotionDriver` are the flow and motion stages over a service's life
@@ -94,7 +94,7 @@ class FlowStage:
 
 
 class MotionStage:
-    """Motion estimation plus path planning: flows in, motions and correction batches out."""
+    """Motion estimation plus path planning: flows in, motions and releases out."""
 
     def __init__(self, motion: MotionParams | None = None, planner: PlannerParams | None = None,
                  warp: WarpParams | None = None, keep_segments: int | None = None) -> None:
@@ -121,12 +121,12 @@ class MotionStage:
         return self._last
 
     def start(self, seq: int) -> list[Correction]:
-        """First frame of the stream: its correction batch (identity, a keyframe)."""
+        """First frame of the stream: its release (identity, a keyframe)."""
         self._last = seq
         return self.planner.start(seq)
 
     def push(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[list[Correction]]]:
-        """Add one flow; returns the motions made and the correction batches released, in order.
+        """Add one flow; returns the motions made and the releases, in order.
 
         Starts the path at ``flow.seq`` if not started. A flow that does not begin
         at the newest frame reached (frames skipped upstream) first gets an invalid
@@ -134,7 +134,7 @@ class MotionStage:
         back is refused with ValueError (stale, duplicate or overlapping), unless it is the flow
         stage's break to a new numbering (:meth:`renumbers`): the path then restarts at its
         ``seq_next``, and the corrections of the old numbering and of the new one go out in separate
-        batches. A flow reaching more than ``max_jump`` frames beyond the newest frame reached is
+        releases. A flow reaching more than ``max_jump`` frames beyond the newest frame reached is
         held (nothing returned) until ``confirm`` flows in a row confirm the new numbering, as the
         flow stage confirms frames (:class:`~quick_stream.core.continuity.AheadHold`): then they are
         all taken, in order; an ordinary flow first drops them (``jump_flows``), so one far-future
@@ -148,7 +148,7 @@ class MotionStage:
         if len(taken) <= 1:
             return self._take(flow) if taken else ([], [])
         motions: list[MotionEstimate] = []
-        batches: list[list[Correction]] = []
+        released: list[list[Correction]] = []
         for f in taken:  # a confirmed run: the held flows, then this one
             try:
                 m, b = self._take(f)
@@ -156,8 +156,8 @@ class MotionStage:
                 self.ahead.dropped += 1
                 continue
             motions += m
-            batches += b
-        return motions, batches
+            released += b
+        return motions, released
 
     def _refuse(self, flow: SceneFlowResult) -> bool:
         """Raises ValueError for a flow the path cannot take after the newest frame reached (stale,
@@ -178,11 +178,11 @@ class MotionStage:
 
     def _take(self, flow: SceneFlowResult) -> tuple[list[MotionEstimate], list[list[Correction]]]:
         """:meth:`push` without the far-ahead hold."""
-        batches: list[list[Correction]] = []
+        released: list[list[Correction]] = []
         motions: list[MotionEstimate] = []
         renumbered = self._refuse(flow)
         if self._last is None:
-            batches.append(self.start(flow.seq))
+            released.append(self.start(flow.seq))
         if renumbered:
             self.renumberings += 1
             self._break = (flow.seq, flow.seq_next)
@@ -194,7 +194,7 @@ class MotionStage:
                                  f"no scene flow from frame {self._last} to {flow.seq} (frames skipped upstream)")
             gap = self.bridge.take(gap, flow.seq - self._last)
             motions.append(gap)
-            batches.append(self.planner.push(gap))
+            released.append(self.planner.push(gap))
         t0 = time.perf_counter()
         m = self.estimator.estimate(flow)
         if breaks_stream(flow.problem):  # a discontinuity: nothing may be guessed across it (method.md 2.4)
@@ -203,11 +203,11 @@ class MotionStage:
             m = self.bridge.take(m, flow.seq_next - flow.seq)
         t1 = time.perf_counter()
         motions.append(m)
-        batches += split_numberings(self.planner.push(m, self.frame_model(flow)))
+        released += split_numberings(self.planner.push(m, self.frame_model(flow)))
         self.timer.add("motion", (t1 - t0) * 1e3)
         self.timer.add("path", (time.perf_counter() - t1) * 1e3)
         self._last = flow.seq_next
-        return motions, [b for b in batches if b]
+        return motions, [b for b in released if b]
 
     def renumbers(self, flow: SceneFlowResult) -> bool:
         """Whether ``flow`` is the flow stage's break to a new numbering: empty, going back
@@ -227,17 +227,17 @@ class MotionStage:
                                       b.model_points)
 
     def finish(self) -> list[list[Correction]]:
-        """End of stream: the last segment's batch (if any); flows still held far ahead are dropped."""
+        """End of stream: the last segment's release (if any); flows still held far ahead are dropped."""
         self.ahead.drop()
         b = self.planner.finish() if self.started else []
         return [b] if b else []
 
 
-def split_numberings(batch: list[Correction]) -> list[list[Correction]]:
-    """``batch`` cut where its seqs go back (a path closed by a renumbering and restarted in the new
-    numbering), so no correction batch mixes two numberings."""
-    cuts = [i for i in range(1, len(batch)) if batch[i].seq <= batch[i - 1].seq]
-    return [batch[a:b] for a, b in zip([0, *cuts], [*cuts, len(batch)])]
+def split_numberings(release: list[Correction]) -> list[list[Correction]]:
+    """``release`` cut where its seqs go back (a path closed by a renumbering and restarted in the new
+    numbering), so no release mixes two numberings."""
+    cuts = [i for i in range(1, len(release)) if release[i].seq <= release[i - 1].seq]
+    return [release[a:b] for a, b in zip([0, *cuts], [*cuts, len(release)])]
 
 
 class FlowDriver:
@@ -279,7 +279,7 @@ class FlowDriver:
 
 
 class MotionDriver:
-    """The motion stage over a service's life: flows in; motions and the correction batches released,
+    """The motion stage over a service's life: flows in; motions and the releases,
     tagged with their release (:class:`~quick_stream.core.release_tags.ReleaseNumbering`), out.
 
     ``resume_after``: a restarted motion service starts a new path after the last correction its
@@ -308,12 +308,12 @@ class MotionDriver:
         """The stream's first frame, before any flow (in-process): its correction, released at once."""
         return self.releases.number([self.stage.start(seq)], closed_by=seq)
 
-    def _named(self, batches: list[list[Correction]]) -> list[list[Correction]]:
-        """The batches, each correction carrying the frames the flow stage shed before its frame."""
+    def _named(self, released: list[list[Correction]]) -> list[list[Correction]]:
+        """The releases, each correction carrying the frames the flow stage shed before its frame."""
         if self._shed:
-            for c in (c for b in batches for c in b):
+            for c in (c for b in released for c in b):
                 c.shed = self._shed.pop(c.seq, ())
-        return batches
+        return released
 
     def push(self, flow: SceneFlowResult, shed: Collection[int] = ()) -> tuple[list[MotionEstimate],
                                                                               list[tuple[Correction, Tag]]] | None:
@@ -326,7 +326,7 @@ class MotionDriver:
         ahead, last = self.stage.ahead, self.stage.reached
         dropped = ahead.dropped
         try:
-            motions, batches = self.stage.push(flow)
+            motions, released = self.stage.push(flow)
         except ValueError as e:
             self.refused += 1
             self.log.log(logging.ERROR, "flow %d->%d refused: %s", flow.seq, flow.seq_next, e)
@@ -345,7 +345,7 @@ class MotionDriver:
             self._shed[flow.seq_next] = tuple(shed)
             while len(self._shed) > 4096:  # frames whose correction never came (bounded)
                 self._shed.pop(next(iter(self._shed)))
-        batches = self._named(batches)
+        released = self._named(released)
         for m in motions:
             self.kinds[m.kind] = self.kinds.get(m.kind, 0) + 1
             if not m.valid:
@@ -354,7 +354,7 @@ class MotionDriver:
                           m.reason)
             elif m.kind != "fit":
                 self.log.log(logging.INFO, "motion %d->%d by %s: %s", m.seq, m.seq_next, m.kind, m.reason)
-        return motions, self.releases.number(batches, closed_by=flow.seq_next)
+        return motions, self.releases.number(released, closed_by=flow.seq_next)
 
     def finish(self) -> list[tuple[Correction, Tag]]:
         """End of stream: the last segment's corrections, tagged."""

@@ -219,7 +219,7 @@ def _rerun_flow(ch: dict[str, list[_Msg]], stream: str, params: StabilizerParams
 
 
 def _tagged(corrections: list[tuple[Correction, Tag]], stream: str) -> list[bytes]:
-    return [encode_correction(c, stream, batch=tag) for c, tag in corrections]
+    return [encode_correction(c, stream, tag=tag) for c, tag in corrections]
 
 
 def _rerun_motion(ch: dict[str, list[_Msg]], stream: str, params: StabilizerParams, res: RerunResult) -> None:
@@ -263,9 +263,9 @@ def _render_run(driver: RenderDriver, frames: list[_Msg], corrections: list[_Msg
             msg = decode(m.data)
         except WireError:
             continue
-        driver.add_correction(msg.obj, msg.batch)
+        driver.add_correction(msg.obj, msg.tag)
         for rel in driver.due(force=True):
-            feed(max(c.seq for c in rel.batch))
+            feed(max(c.seq for c in rel.corrections))
             out.extend(r.frame for r in driver.render(rel))
     if ended is not None:
         feed(None)

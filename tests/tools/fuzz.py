@@ -60,7 +60,7 @@ def seeds() -> list[bytes]:
     return [
         encode_frame(f, "cam0", color="jpeg"), encode_frame(f, "cam0", color="raw", depth="zstd"),
         encode_frame(f, "cam0", color="raw", depth="raw", pub_ns=12),
-        encode(flow, "cam0"), encode(compact, "cam0"), encode(m, "cam0"), encode(c, "cam0", batch=(3, 0, 2)),
+        encode(flow, "cam0"), encode(compact, "cam0"), encode(m, "cam0"), encode(c, "cam0", tag=(3, 0, 2)),
         encode_stabilized(s, "cam0"), encode_stabilized(s, "cam0", color="raw", src_pub_ns=1, ready_pub_ns=2),
         encode(Stats("flow", {"fps": 30.0, "n": 3, "ok": True, "why": None}), "cam0", seq=4),
         encode(EndOfStream(7, "done"), "cam0"),

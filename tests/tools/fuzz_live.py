@@ -96,7 +96,7 @@ def seeds(key: str, size: str) -> list[bytes]:
     if key == "motion":
         return [encode(MotionEstimate(7, 8, "se3", "exact", np.eye(4), np.zeros(6), True, "", 9, 0.9, 0.3), STREAM)]
     if key == "correction":
-        return [encode(Correction(7, np.eye(4), 2, False, True, "", 1.1, np.eye(4), 0), STREAM, batch=(3, 0, 2)), end]
+        return [encode(Correction(7, np.eye(4), 2, False, True, "", 1.1, np.eye(4), 0), STREAM, tag=(3, 0, 2)), end]
     if key == "stabilized":
         return [encode_stabilized(StabilizedImage(7, 5, f.color, 1.05), STREAM, src_pub_ns=1), end]
     from .fuzz import seeds as tiny  # flow (compact and version 1), stats: the wire fuzzer's own

@@ -24,8 +24,8 @@ def slowed(stage_class: type, slow_ms: float) -> type:
     """A subclass of the render stage whose batches and final flush yield each frame ``slow_ms`` later."""
 
     class SlowRenderStage(stage_class):
-        def iter_batch(self, *a, **k) -> Iterator:
-            for sf in super().iter_batch(*a, **k):
+        def iter_release(self, *a, **k) -> Iterator:
+            for sf in super().iter_release(*a, **k):
                 time.sleep(slow_ms / 1e3)
                 yield sf
 

@@ -134,7 +134,7 @@ def test_a_frame_renders_once_its_lookahead_is_estimated(scene, monkeypatch):
     monkeypatch.setattr(RenderStage, "_solve", counted_solve)
     monkeypatch.setattr(ZoomSmoother, "cover_frames", recorded_cover)
     out = []
-    for sf in stage.iter_batch(corr):
+    for sf in stage.iter_release(corr):
         ahead = list(range(batch[0].seq, min(sf.seq + framing.fill_lookahead, batch[-1].seq) + 1))
         assert estimated == ahead and solved == ahead, sf.seq
         out.append(sf)

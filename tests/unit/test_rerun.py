@@ -63,11 +63,11 @@ def make_recording(path: Path) -> dict[str, int]:
     def publish_batches(batches, closed_by=None) -> None:
         nonlocal release
         for b in batches:
-            msgs = [encode_correction(c, STREAM, batch=(release, i, len(b), closed_by)) for i, c in enumerate(b)]
+            msgs = [encode_correction(c, STREAM, tag=(release, i, len(b), closed_by)) for i, c in enumerate(b)]
             release += 1
             for m in msgs:
                 log.put("correction", m)
-            for sf in render.iter_batch([decode(m).obj for m in msgs]):
+            for sf in render.iter_release([decode(m).obj for m in msgs]):
                 log.put("stabilized", encode_stabilized(StabilizedImage(sf.seq, sf.timestamp_ns, sf.image, sf.zoom,
                                                                         sf.flags), STREAM, color="raw",
                                                         src_pub_ns=123, ready_pub_ns=456))

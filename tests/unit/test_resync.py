@@ -125,7 +125,7 @@ def test_render_keeps_the_old_numbering_apart_and_renders_it_first(small):
     r = RenderStage()
     for f in small[:OLD]:
         r.add_frame(f.seq, f)
-    out = list(r.iter_batch([ident(s) for s in range(25)]))
+    out = list(r.iter_release([ident(s) for s in range(25)]))
     with pytest.raises(ValueError, match="not after"):
         r.add_frame(3, small[3])  # one stray old seq
     new = [f.with_(seq=i) for i, f in enumerate(small[OLD:])]
@@ -138,9 +138,9 @@ def test_render_keeps_the_old_numbering_apart_and_renders_it_first(small):
     for f in new[FIRST + 1:20]:
         r.add_frame(f.seq, f)
     assert r.hold.can_render([restart(FIRST, OLD - 1)]) and r.hold.can_render([ident(s) for s in range(25, 38)])
-    out += list(r.iter_batch([ident(s) for s in range(25, 38)]))  # the old numbering's last corrections
-    out += list(r.iter_batch([restart(FIRST, OLD - 1)]))  # the new numbering's first
-    out += list(r.iter_batch([ident(s) for s in range(FIRST + 1, 20)]))
+    out += list(r.iter_release([ident(s) for s in range(25, 38)]))  # the old numbering's last corrections
+    out += list(r.iter_release([restart(FIRST, OLD - 1)]))  # the new numbering's first
+    out += list(r.iter_release([ident(s) for s in range(FIRST + 1, 20)]))
     assert [(sf.seq, sf.numbering) for sf in out] == ([(s, 0) for s in range(OLD)]
                                                        + [(s, 1) for s in range(FIRST, 20)])
     flagged = {(sf.seq, sf.numbering): sf.flags[0] for sf in out if sf.flags}

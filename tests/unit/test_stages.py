@@ -42,9 +42,9 @@ def run_with_gap(frames, skip: range, restart: bool):
         else:
             _, batches = motion.push(fl)
         for b in batches:
-            out += list(render.iter_batch(b))
+            out += list(render.iter_release(b))
     for b in motion.finish():
-        out += list(render.iter_batch(b))
+        out += list(render.iter_release(b))
     out += render.flush()
     return motion, render, out
 
@@ -92,7 +92,7 @@ def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, br
             batches += motion.push(fl)[1]
     batches += motion.finish()
     for b in batches:
-        out += list(render.iter_batch(b))
+        out += list(render.iter_release(b))
     out += render.flush()
     assert [sf.seq for sf in out] == [0, 8, 16, 24]
     assert flow.check.counts["missing_frames"] == 21 and flow.check.counts["breaks"] == breaks
@@ -114,7 +114,7 @@ def test_render_stage_bounds_what_it_holds(frames):
     for f in frames[:8]:
         r.add_frame(f.seq, f)
     assert r.hold.buffered == 5 and r.hold.dropped == 3
-    out = list(r.iter_batch([Correction(0, np.eye(4), 0, True)]))  # frame 0 was dropped: counted missing, the rest waits
+    out = list(r.iter_release([Correction(0, np.eye(4), 0, True)]))  # frame 0 was dropped: counted missing, the rest waits
     assert out == [] and r.missing == 1 and r.hold.buffered == 5
 
 
@@ -125,7 +125,7 @@ def test_render_stage_bounds_the_bytes_it_holds(frames):
     for f in frames[:8]:
         assert r.add_frame(f.seq, lambda f=f: f, size=1000)
     assert r.hold.buffered == 3 and r.hold.dropped == 5 and r.hold.held_bytes == 3000
-    assert [sf.seq for sf in r.iter_batch([Correction(5, np.eye(4), 0, True)])] == [5]
+    assert [sf.seq for sf in r.iter_release([Correction(5, np.eye(4), 0, True)])] == [5]
     assert r.hold.held_bytes == 2000
 
 
@@ -164,7 +164,7 @@ def test_render_stage_reports_a_frame_that_cannot_be_loaded(frames):
         raise ValueError("truncated JPEG")
 
     r.add_frame(0, broken)
-    assert list(r.iter_batch([Correction(0, np.eye(4), 0, True)])) == []
+    assert list(r.iter_release([Correction(0, np.eye(4), 0, True)])) == []
     assert r.hold.bad == [{"seq": 0, "error": "ValueError: truncated JPEG"}]
 
 

@@ -216,10 +216,10 @@ def test_correction_round_trip():
     assert (g.seq, g.segment, g.keyframe, g.valid, g.reason) == (11, 2, True, True, "")
     assert m.obj.zoom == 1.25
     assert decode(encode_correction(c, "cam0")).obj.zoom is None
-    assert decode(encode_correction(c, "cam0")).batch is None
-    tagged = decode(encode_correction(c, "cam0", batch=Tag(3, 1, 5, 40))).batch
+    assert decode(encode_correction(c, "cam0")).tag is None
+    tagged = decode(encode_correction(c, "cam0", tag=Tag(3, 1, 5, 40))).tag
     assert tagged == (3, 1, 5, 40) and tagged.closed_by == 40
-    assert decode(encode_correction(c, "cam0", batch=(3, 1, 5))).batch == Tag(3, 1, 5, None)
+    assert decode(encode_correction(c, "cam0", tag=(3, 1, 5))).tag == Tag(3, 1, 5, None)
 
 
 def test_the_frames_a_flow_stage_shed_travel_on_the_flow_the_correction_and_the_end():

@@ -2,7 +2,7 @@
 
 :class:`BorderFiller` keeps the last frames rendered (the fill's past sources), estimates before
 rendering the zoom a frame needs so that the fill covers what its mesh leaves (:meth:`BorderFiller.need`)
-and renders a frame at its zoom, filling the band its mesh leaves from the batch's frames and the
+and renders a frame at its zoom, filling the band its mesh leaves from the release's frames and the
 past ones and zooming in on what no neighbour saw (:meth:`BorderFiller.render`). It counts the
 frames filled (``filled``), zoomed beyond their plan (``fill_raised``) and left with output pixels
 no source reached (``bordered``, 0 expected). The pixel work is :mod:`.fill`'s.
@@ -35,7 +35,7 @@ class BorderFiller:
         self.bordered = 0  # frames rendered with output pixels no source reached (a black border): 0 expected
 
     def sources(self, c: Correction, ahead: list[FillSource]) -> list[FillSource]:
-        """The frames the fill reads for ``c``'s frame, nearest first: ``ahead`` (the batch's) and the past."""
+        """The frames the fill reads for ``c``'s frame, nearest first: ``ahead`` (the release's) and the past."""
         if c.camera is None:
             return []
         return ordered_sources(c.seq, c.chain, self.past + ahead, self.framing.fill_frames)

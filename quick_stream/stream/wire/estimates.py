@@ -123,20 +123,20 @@ def _decode_motion(r: Reader) -> Decoded:
 
 # --- correction ---------------------------------------------------------------------------------
 
-def encode_correction(c: Correction, stream: str, batch: Tag | tuple[int, int, int] | None = None) -> bytes:
+def encode_correction(c: Correction, stream: str, tag: Tag | tuple[int, int, int] | None = None) -> bytes:
     """A Correction as a ``correction`` message, with the framing zoom planned with the path (``c.zoom``)
-    and ``batch`` = (release id, index in it, release size[, closed by]): the planner's release it
+    and its release ``tag`` = (release id, index in it, release size[, closed by]): the planner's release it
     belongs to (:class:`~quick_stream.core.release_tags.Tag`)."""
     zoom = c.zoom
     if zoom is not None and not (np.isfinite(zoom) and zoom > 0):
         raise WireError(f"zoom must be finite and > 0, got {zoom}", field="zoom", stream=stream, seq=c.seq)
-    if batch is not None and not (len(batch) in (3, 4) and batch[0] >= 0 and 0 <= batch[1] < batch[2]):
-        raise WireError(f"batch must be (release >= 0, 0 <= index < size, size), got {batch}",
+    if tag is not None and not (len(tag) in (3, 4) and tag[0] >= 0 and 0 <= tag[1] < tag[2]):
+        raise WireError(f"the release tag (field batch) must be (release >= 0, 0 <= index < size, size), got {tag}",
                         field="batch", stream=stream, seq=c.seq)
-    closed_by = None if batch is None else Tag(*batch).closed_by
+    closed_by = None if tag is None else Tag(*tag).closed_by
     f = {"matrix": float_list("matrix", c.matrix, 16), "segment": int(c.segment), "keyframe": bool(c.keyframe),
          "valid": bool(c.valid), "reason": text("reason", c.reason), "zoom": None if zoom is None else float(zoom),
-         "batch": None if batch is None else [int(x) for x in batch[:3]],
+         "batch": None if tag is None else [int(x) for x in tag[:3]],  # the tag's wire field
          "closed_by": None if closed_by is None else int(closed_by),
          "camera": None if c.camera is None else float_list("camera", c.camera, 16), "chain": int(c.chain),
          "motion": _kind("motion", c.motion, CORRECTION_MOTIONS, stream, c.seq)}
@@ -156,10 +156,10 @@ def _decode_correction(r: Reader) -> Decoded:
                    r.bool("keyframe"), r.bool("valid"), r.str("reason"),
                    ranges.zoom(r, "zoom", r.float("zoom", positive=True, optional=True)), camera,
                    -1 if chain is None else chain, motion, r.seqs("shed", r.seq))
-    batch, closed_by = r.get("batch", optional=True), r.int("closed_by", optional=True)
-    if batch is not None:
-        if (not isinstance(batch, list) or len(batch) != 3 or not all(type(x) is int for x in batch)
-                or not (batch[0] >= 0 and 0 <= batch[1] < batch[2])):
-            raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {batch!r}")
-        batch = Tag(*batch, closed_by)
-    return Decoded("correction", c, r.stream, r.seq, batch=batch)
+    tag, closed_by = r.get("batch", optional=True), r.int("closed_by", optional=True)  # the release tag
+    if tag is not None:
+        if (not isinstance(tag, list) or len(tag) != 3 or not all(type(x) is int for x in tag)
+                or not (tag[0] >= 0 and 0 <= tag[1] < tag[2])):
+            raise r.error("batch", f"expected [release >= 0, 0 <= index < size, size], got {tag!r}")
+        tag = Tag(*tag, closed_by)
+    return Decoded("correction", c, r.stream, r.seq, tag=tag)

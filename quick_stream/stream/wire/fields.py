@@ -16,7 +16,7 @@ class Decoded:
     """A decoded message: ``type``, the object, its envelope, and the fields of its message the object
     has no attribute for (docs/wire-format.md), each set by its type's decoder (the others keep
     their defaults): a ``frame``'s encodings, depth scale and ``pub_ns``; a ``flow``'s ``shed``; a
-    ``correction``'s release tag ``batch``; a ``stabilized`` image's encoding and latency stamps.
+    ``correction``'s release ``tag``; a ``stabilized`` image's encoding and latency stamps.
     ``payload``: the message as received, kept by a service loop whose input decodes lazily."""
 
     type: str
@@ -29,7 +29,7 @@ class Decoded:
     depth_scale: float | None = None  # frame: depth units per metre
     pub_ns: int | None = None  # frame: when the capture published it (None: not stamped)
     shed: tuple[int, ...] = ()  # flow: frames before this pair that the flow stage shed
-    batch: Tag | None = None  # correction: its release tag (None: a sender without tags)
+    tag: Tag | None = None  # correction: its release tag (wire field ``batch``; None: a sender without tags)
     encoding: str | None = None  # stabilized: the image's encoding
     src_pub_ns: int | None = None  # stabilized: when its input frame was published
     ready_pub_ns: int | None = None  # stabilized: when the frame that made it renderable was published
