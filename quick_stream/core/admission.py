@@ -40,13 +40,13 @@ services' liveliness and the clock.
 """
 from __future__ import annotations
 
-from .shedding import ShedLimits, Shedder
+from .shedding import UPSTREAM, ShedLimits, Shedder
 
 # Frames admitted by flow and not yet through the stage: above the capture's own bounds (motion 8/20
 # frames sent, output 60/90 and a release; core/shedding.DEFAULT_LIMITS), which count the same frames
 # and those on their way, so a capture of ours that sheds keeps flow under them.
-FLOW_LIMITS = {"motion": ShedLimits(soft=20, hard=30, needs=("flow", "motion")),
-               "stabilized": ShedLimits(soft=110, hard=140, needs=("flow", "motion", "render"))}
+FLOW_LIMITS = {"motion": ShedLimits(soft=20, hard=30, needs=UPSTREAM["motion"]),
+               "stabilized": ShedLimits(soft=110, hard=140, needs=UPSTREAM["stabilized"])}
 MAX_NAMED = 10_000  # shed frames named on one message at most (the wire's bound, codec.MAX_SEQ_LIST)
 CAPTURE = "capture"  # the service of ours that publishes a stream's frames (its liveliness token)
 

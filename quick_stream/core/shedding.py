@@ -47,12 +47,16 @@ class ShedLimits:
             raise ValueError(f"need 0 <= soft <= hard, got {self}")
 
 
+# The services each shed-limited stage's progress needs: what its key is computed through (the
+# pipeline's table, stream/topology.upstream, which core cannot import: a test ties the two).
+UPSTREAM: dict[str, tuple[str, ...]] = {"motion": ("flow", "motion"), "stabilized": ("flow", "motion", "render")}
+
 # Frames in flight (sent, not yet through the stage) before a live capture sheds: the motion stage
 # follows flow a frame or two behind when keeping up, and flow's queue holds 30, which absorbs a
 # hiccup (hard stays under it); the output lags one planning window (30 frames, up to 45 with the
 # look-ahead) plus rendering, so its bounds sit above that (render holds 150).
-DEFAULT_LIMITS = {"motion": ShedLimits(soft=8, hard=20, needs=("flow", "motion")),
-                  "stabilized": ShedLimits(soft=60, hard=90, needs=("flow", "motion", "render"))}
+DEFAULT_LIMITS = {"motion": ShedLimits(soft=8, hard=20, needs=UPSTREAM["motion"]),
+                  "stabilized": ShedLimits(soft=60, hard=90, needs=UPSTREAM["stabilized"])}
 
 
 class Shedder:

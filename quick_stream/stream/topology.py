@@ -55,6 +55,21 @@ START_ORDER: tuple[str, ...] = (RECORDER, *STAGES, SOURCE)  # receivers up befor
 assert set(START_ORDER) == set(SERVICES) and not BY_NAME[RECORDER].publishes
 
 
+def upstream(key: str) -> tuple[str, ...]:
+    """The services ``key`` is computed through, from the source's frames on, in the order data flows:
+    its publisher and, through the keys each reads history of (its inputs), theirs (the source not
+    included). What a stage's progress needs up (the capture's and flow's shedding limits)."""
+    publisher = {k: s for s in PIPELINE for k in s.publishes}
+    seen: set[str] = set()
+    todo = [key]
+    while todo:
+        s = publisher[todo.pop()]
+        if s.name != SOURCE and s.name not in seen:
+            seen.add(s.name)
+            todo += list(s.history)
+    return tuple(n for n in SERVICES if n in seen)
+
+
 def receivers(key: str) -> tuple[str, ...]:
     """The services that subscribe to ``key`` (the capture waits for the frame's receivers)."""
     return tuple(s.name for s in PIPELINE if key in s.reads)

@@ -8,6 +8,7 @@ import re
 import pytest
 
 from quick_stream.core.pacing import CREDIT_STAGES
+from quick_stream.core.shedding import UPSTREAM
 from quick_stream.stream import acl, keys, topology
 from quick_stream.stream.capture import FRAME_RECEIVERS
 from tests.tools import REPO
@@ -38,6 +39,8 @@ def test_what_reads_the_table():
     assert acl.READS_HISTORY["recorder"] == topology.LOSSLESS_KEYS  # the recorder recovers every data key
     assert FRAME_RECEIVERS == set(topology.receivers("frame")) == {"flow", "render", "recorder"}
     assert set(topology.BY_NAME[topology.SOURCE].reads) == set(CREDIT_STAGES)  # the capture paces on them
+    # what a shed-limited stage needs up is what the table says its key is computed through
+    assert UPSTREAM == {k: topology.upstream(k) for k in CREDIT_STAGES}
     assert topology.START_ORDER[0] == topology.RECORDER and topology.START_ORDER[-1] == topology.SOURCE
 
 
