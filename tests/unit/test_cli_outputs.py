@@ -138,7 +138,7 @@ def test_up_numbers_its_video_like_its_recording(tmp_path, capsys, monkeypatch, 
 def test_a_runs_files_share_one_number(tmp_path):
     """The video, the recording and the logs of one run go together: a folder where only the recording
     was numbered on (the video was .mp4 then, or a recording split) still gets one number for all."""
-    from quick_stream.cli.up_cmd import run_paths
+    from quick_stream.cli.up_run import run_paths
 
     assert run_paths(tmp_path, "mjpeg") == (tmp_path / "stabilized.avi", tmp_path / "recording.mcap",
                                             tmp_path / "logs")
