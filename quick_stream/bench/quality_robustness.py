@@ -5,7 +5,9 @@ One row per (known-shake clip, cell), from the benchmark's result (:func:`robust
 JSON's ``robustness``): ours' residual jitter (px, deg), the best peer's for each of the two
 columns separately (best = lowest, among the peers that ran and were scored: status "ok", not
 ``failed``, a finite value), ours' border-free cropping, distortion and frames not corrected,
-and the share of the injected shake ours removed per axis with ``--reference``. Peers are every
+and the share of the injected shake ours removed per axis with ``--reference``; with the peers, also
+ours leaving black borders as they mostly do (the ``bordered`` variant: no budget, zoom or fill), the
+like-for-like value for a peer that shows borders. Peers are every
 method but ours, its variants and the unstabilised input. A peer that did not run, or whose
 scorer failed on the cell (heavy blur can leave the feature matching too few matches), or
 whose value is NaN, is named in the row's ``peers_not_scored`` with why, and in the table.
@@ -13,6 +15,8 @@ whose value is NaN, is named in the row's ``peers_not_scored`` with why, and in 
 from __future__ import annotations
 
 import math
+
+from .variants import BORDERED
 
 AXES = ("pitch", "yaw", "roll", "total")
 INPUT = "input (unstabilized)"
@@ -53,6 +57,8 @@ def robustness_row(clip: dict) -> dict:
                  "ours": {k: ours.get(k) for k in (*JITTER, "border_free_cropping", "distortion", "uncorrected",
                                                    "failed", "failure_reason")},
                  "best_peer": {}, "peers_not_scored": {}}
+    bordered = methods.get(f"ours [{BORDERED}]")
+    row["ours_bordered"] = None if bordered is None else {k: bordered.get(k) for k in JITTER}
     peers = {n: m for n, m in methods.items() if is_peer(n)}
     for key in JITTER:
         ranked = [(m[key], n) for n, m in peers.items() if not _not_scored(m, key)]
@@ -84,10 +90,10 @@ def format_robustness(rows: list[dict]) -> str:
     cw = max(16, *(len(x["clip"]) for x in rows))
     nw = max(7, *(len(x["cell"]) for x in rows))
     head = (f"{'known-shake clip':{cw}s} {'cell':{nw}s} {'ours px':>8s} {'  best peer px':21s} {'ours deg':>8s} "
-            f"{'  best peer deg':21s} {'bf crop':>7s} {'distort':>7s} {'uncorr':>6s} "
+            f"{'  best peer deg':21s} {'bordered px / deg':>17s} {'bf crop':>7s} {'distort':>7s} {'uncorr':>6s} "
             + " ".join(f"{a:>8s}" for a in AXES) + "  peers not scored")
-    lines = ["robustness: ours vs the best peer per column (lowest jitter); shake removed with --reference, "
-             "per axis", head]
+    lines = ["robustness: ours vs the best peer per column (lowest jitter); ours bordered: leaving black borders as "
+             "the peers mostly do; shake removed with --reference, per axis", head]
     notes = []
     for x in rows:
         o = x["ours"]
@@ -96,6 +102,9 @@ def format_robustness(rows: list[dict]) -> str:
             b = x["best_peer"].get(key)
             best = "-".rjust(21) if b is None else f"{_num(b['value'], fmt, 8)} {short(b['method']):<12s}"
             cells += [_num(o.get(key), fmt, 8), best]
+        ob = x.get("ours_bordered")
+        cells.append("-".rjust(17) if ob is None else
+                     f"{_num(ob.get('jitter_px'), '.3f', 8)} {_num(ob.get('jitter_deg'), '.4f', 8)}")
         cells += [_num(o.get("border_free_cropping"), ".3f", 7), _num(o.get("distortion"), ".3f", 7),
                   str(o.get("uncorrected", "-")).rjust(6)]
         rm = x.get("removed_with_reference")

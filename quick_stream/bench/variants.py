@@ -43,6 +43,15 @@ def default_settings() -> Variant:
     return parse_settings([], "ours")
 
 
+BORDERED = "bordered"
+
+
+def bordered_variant() -> Variant:
+    """Ours leaving black borders as most peers do (no crop budget, no zoom, no border fill): what a
+    peer that shows borders is compared with like for like (its jitter is not charged for a crop)."""
+    return parse_settings(["--max-zoom", "0", "--framing", "black"], BORDERED)
+
+
 def parse_variant(text: str) -> Variant:
     """``NAME=--flag value ...`` (shell-quoted flags of ``quick-stream stabilize``) -> Variant."""
     name, sep, rest = text.partition("=")

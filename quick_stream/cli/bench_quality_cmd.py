@@ -100,7 +100,9 @@ def add_arguments(q: argparse.ArgumentParser) -> None:
                    help="add the variants every group x both end modes, and the paper's path (se3, identity, "
                    "--lowpass-sigma 0)")
     q.add_argument("--no-baselines", action="store_true",
-                   help="skip the peers (FFmpeg, vidstab, vidgear, LK moving average): ours and the input only")
+                   help="skip the peers (FFmpeg, vidstab, vidgear, LK moving average) and ours 'bordered' (ours leaving "
+                        "black borders as those peers mostly do, run with them to compare like for like): ours and "
+                        "the input only")
     add_json(q, "everything (settings, commands, versions, per-clip metrics, the robustness grid)")
     at.add_force(q)
 
@@ -115,6 +117,17 @@ def _used_twice(flag: str, names: list[str]) -> str:
     return f"{flag}: name(s) used twice: {', '.join(dup)}" if dup else ""
 
 
+def ours_variants(args: argparse.Namespace) -> list[Variant]:
+    """Ours' variants to run: ``--variant``, ``--grid``'s, and with the peers the ``bordered`` one (ours
+    leaving black borders as they mostly do: the like-for-like row for a peer that shows borders)."""
+    from ..bench import variants
+
+    out = list(args.variants) + (variants.grid_variants() if args.grid else [])
+    if not args.no_baselines and variants.BORDERED not in {v.name for v in out}:
+        out.append(variants.bordered_variant())
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     """The benchmark from parsed flags; exit 2 (a message naming the flag) before any work when one is wrong.
 
@@ -124,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     from ..bench.quality_clips import select_sources
     from ..bench.shake_clips import check_tool
 
-    variant_list = list(args.variants) + (variants.grid_variants() if args.grid else [])
+    variant_list = ours_variants(args)
     cells = (degrade_clips.grid_cells() if args.degrade_grid else []) + list(args.degrade)
     problem = (_used_twice("--variant", [v.name for v in variant_list])
                or _used_twice("--degrade", [c.name for c in cells]))

@@ -353,3 +353,27 @@ def test_run_with_a_degrade_cell_through_stand_in_tools(tmp_path):
     assert "robustness:" in text and "degrade cell b: " in text and "ours on the unshaken reference: frames by" in text
     json.dumps(r, default=quality_tables.json_default)
     shutil.rmtree(tmp_path / "work")
+
+
+def test_with_the_peers_ours_also_runs_bordered_and_the_grid_shows_it():
+    """Peers that show black borders are compared like for like: ours leaving borders too (no budget,
+    zoom or fill); the robustness table shows it beside ours, '-' where it did not run."""
+    from quick_stream.cli import build_parser
+    from quick_stream.cli.bench_quality_cmd import ours_variants
+
+    parse = build_parser().parse_args
+    names = [v.name for v in ours_variants(parse(["bench", "quality"]))]
+    assert names == ["bordered"]
+    p = ours_variants(parse(["bench", "quality"]))[0].params
+    assert p.planner.budget.max_zoom == 0 and p.framing.mode == "black"
+    assert ours_variants(parse(["bench", "quality", "--no-baselines"])) == []
+    mine = ours_variants(parse(["bench", "quality", "--variant", "bordered=--max-zoom 1.3"]))
+    assert [v.name for v in mine] == ["bordered"] and mine[0].params.planner.budget.max_zoom == 1.3
+    clip = made_up_clip("clean", False)
+    clip["methods"]["ours [bordered]"] = method(0.15, 0.012)
+    rows = robustness_rows({"clips": [clip, made_up_clip("blur1", False)]})
+    assert rows[0]["ours_bordered"] == {"jitter_px": 0.15, "jitter_deg": 0.012} and rows[1]["ours_bordered"] is None
+    lines = format_robustness(rows).splitlines()
+    assert "bordered px / deg" in lines[1]
+    assert lines[2].split()[7:11] == ["LK", "avg", "0.150", "0.0120"]
+    assert lines[3].split()[7:10] == ["LK", "avg", "-"]
