@@ -36,7 +36,8 @@ from ..io.sinks import VIDEO_CODECS
 from ..stream.argtypes import plain_text
 from ..io.sources import SourceError, check_source, source_settings
 from ..stream import argtypes as at, topology
-from ..stream.launcher import StatusBoard, Supervisor, close_within, free_port, open_when_up
+from ..stream.launcher import StatusBoard, Supervisor, free_port, open_when_up
+from ..stream.process import close_within
 from .up_report import child_failure, frame_account, log_tail, outputs, status_lines, write_status
 from .up_run import RunPaths, check_tls, prepare_run, service_specs, tls_party
 from ..io.stabilizer_flags import add_stabilizer_args, stabilizer_params

@@ -13,9 +13,9 @@
   caller's thread: zenoh starts no thread of ours, so an open session never holds up the
   interpreter's exit) and keeps the latest per service, and the counts of a restarted service's
   predecessors, for the live status and the final summary.
-* :func:`free_port`, :func:`open_when_up`, :func:`close_within`: a loopback port for a router, a client
-  session to it once it answers (``up``, the benchmarks, the tests; giving up at once when the
-  caller says so: the router died, a signal came), and a close that cannot hang its caller.
+* :func:`free_port`, :func:`open_when_up`: a loopback port for a router, a client session to it once
+  it answers (``up``, the benchmarks, the tests; giving up at once when the caller says so: the router
+  died, a signal came); its close cannot hang the caller (:func:`~quick_stream.stream.process.close_within`).
 """
 from __future__ import annotations
 
@@ -369,22 +369,3 @@ def open_when_up(endpoint: str, timeout_s: float, tls: tuple[str, str] | None = 
             time.sleep(0.2)
 
 
-def close_within(closers: list[Callable[[], None]], timeout_s: float) -> str | None:
-    """Run ``closers`` in order (e.g. a subscription's undeclare, then its session's close) in a daemon
-    thread, waiting at most ``timeout_s``: a close that hangs (a router that stopped answering) does
-    not hang the caller. None when all ran, else what went wrong (the first error, or the timeout)."""
-    errors: list[str] = []
-
-    def close_all() -> None:
-        for close in closers:
-            try:
-                close()
-            except Exception as e:  # noqa: BLE001 - a close that fails leaves nothing more to do
-                errors.append(f"{type(e).__name__}: {e}")
-
-    t = threading.Thread(target=close_all, name="close", daemon=True)
-    t.start()
-    t.join(timeout_s)
-    if t.is_alive():
-        return f"did not finish within {timeout_s:g} s"
-    return errors[0] if errors else None

@@ -13,6 +13,7 @@ import atexit
 import logging
 import os
 import signal
+import threading
 from typing import Any, Callable
 
 import zenoh
@@ -81,6 +82,41 @@ def _ignore_term_while_exiting() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
+CLOSE_TIMED_OUT = "did not finish within"  # what close_within says when a closer hung
+
+
+def close_within(closers: list[Callable[[], None]], timeout_s: float) -> str | None:
+    """Run ``closers`` in order (e.g. a subscription's undeclare, then its session's close) in a daemon
+    thread, waiting at most ``timeout_s``: a close that hangs (a router that stopped answering) does
+    not hang the caller. None when all ran, else what went wrong (the first error, or the timeout)."""
+    errors: list[str] = []
+
+    def close_all() -> None:
+        for close in closers:
+            try:
+                close()
+            except Exception as e:  # noqa: BLE001 - a close that fails leaves nothing more to do
+                errors.append(f"{type(e).__name__}: {e}")
+
+    t = threading.Thread(target=close_all, name="close", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        return f"{CLOSE_TIMED_OUT} {timeout_s:g} s"
+    return errors[0] if errors else None
+
+
+SESSION_CLOSE_S = 5.0  # the longest a service waits for its zenoh session to close
+_unclosed: list[str] = []  # sessions whose close did not finish: the process then exits without finalising
+
+
+def closed_late(problem: str) -> None:
+    """A session's close did not finish (its router went away: a SIGKILLed ``up`` takes its router with
+    it): :func:`service_main` then ends the process at once, its outputs finished, instead of letting
+    the interpreter's finalisation wait on zenoh again (a recorder ran on for over a minute)."""
+    _unclosed.append(problem)
+
+
 def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace, zenoh.Config], int],
                  argv: list[str] | None, check: Callable[[argparse.Namespace], Any] | None = None,
                  early: Callable[[argparse.Namespace], int | None] | None = None) -> int:
@@ -115,8 +151,13 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
         logging.getLogger(service).error("%s", e)
         return 2
     try:
-        return run(args, conf)
+        code = run(args, conf)
     except zenoh.ZError as e:
         logging.getLogger(service).error("zenoh: %s (check -e/-l/-c/--cfg and the QUICK_STREAM_ZENOH_* variables)",
                                          zenoh_message(e))
         return 2
+    if _unclosed:  # its outputs are finished; the interpreter's finalisation would wait on zenoh again
+        logging.getLogger(service).warning("exiting without waiting for zenoh: its session's close %s", _unclosed[0])
+        logging.shutdown()
+        os._exit(code)
+    return code

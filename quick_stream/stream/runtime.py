@@ -44,7 +44,7 @@ from .inbox import HEARTBEAT_S, RECOVERY_CACHE, Inbox, TimedPublisher
 from .topology import LOSSLESS_KEYS
 from .loop import Input, Loop
 from .heap import trim_heap
-from .process import TRIM_EVERY
+from .process import CLOSE_TIMED_OUT, SESSION_CLOSE_S, TRIM_EVERY, close_within, closed_late
 from .replays import ReplayFilter
 from .wire import Decoded, Stats, WireError, decode, encode_stats
 
@@ -313,16 +313,25 @@ class ServiceRuntime(Cursors, Loop):
     # --- shutdown --------------------------------------------------------------------------------------
 
     def close(self) -> None:
+        """Undeclare everything and close the session, waiting at most ``SESSION_CLOSE_S``: a close that
+        hangs (the router went away with a SIGKILLed ``up``) is logged and left behind
+        (:func:`~quick_stream.stream.process.closed_late`), so the service still finishes its outputs."""
         entities = [*self._subs, *([self._token] if self._token is not None else []), *self._pubs]
-        for e in entities:
+
+        def undeclare(e: Any) -> None:
             try:
                 e.undeclare()
             except zenoh.ZError:
                 pass  # already gone with a dying session: nothing left to release
+
+        problem = close_within([*(lambda e=e: undeclare(e) for e in entities), self.session.close], SESSION_CLOSE_S)
         self._subs.clear()
         self._pubs.clear()
         self._token = None
-        self.session.close()
+        if problem is not None:
+            log.warning("%s/%s: closing the zenoh session: %s", self.stream, self.service, problem)
+            if problem.startswith(CLOSE_TIMED_OUT):
+                closed_late(problem)
 
     def __enter__(self) -> "ServiceRuntime":
         return self

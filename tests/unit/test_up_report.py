@@ -16,7 +16,8 @@ import pytest
 
 from quick_stream.cli.up_report import frame_account, frame_drops, write_status
 from quick_stream.io.file_checks import incomplete
-from quick_stream.stream.launcher import ServiceSpec, StatusBoard, Supervisor, close_within, open_when_up
+from quick_stream.stream.launcher import ServiceSpec, StatusBoard, Supervisor, open_when_up
+from quick_stream.stream.process import close_within
 from quick_stream.stream.wire import Stats, encode_stats
 
 # row 10 of issue 30, as the services' stats said it (a loaded machine, real-time pacing)
@@ -269,3 +270,35 @@ def test_a_recording_is_whole_only_with_its_footer(tmp_path):
     (tmp_path / "torn.mcap").write_bytes(path.read_bytes()[:-40])
     assert "quick-stream recover" in incomplete(tmp_path / "torn.mcap")
 
+
+
+def test_a_service_whose_session_close_hangs_still_finishes(monkeypatch):
+    """The router went away with a SIGKILLed up: the session's close hangs. The runtime gives it
+    SESSION_CLOSE_S, logs it and goes on (a recorder then finishes its file), and the process is marked
+    to exit without finalising zenoh again (a recorder ran on for over a minute after its SIGTERM)."""
+    import zenoh
+
+    from quick_stream.stream import process
+    from quick_stream.stream.runtime import ServiceRuntime
+
+    monkeypatch.setattr(process, "_unclosed", [])
+    monkeypatch.setattr("quick_stream.stream.runtime.SESSION_CLOSE_S", 0.2)
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    rt = ServiceRuntime("flow", "cam0", conf, install_signals=False)
+    real, release = rt.session, threading.Event()
+
+    class Hung:
+        def close(self):
+            release.wait(600)
+
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+    rt.session = Hung()
+    try:
+        rt.close()  # returns: the close is left behind
+        assert process._unclosed and process._unclosed[0].startswith("did not finish within 0.2 s")
+    finally:
+        release.set()
+        real.close()
