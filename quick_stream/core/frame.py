@@ -92,8 +92,7 @@ class RGBDFrame:
     @property
     def label(self) -> str:
         """Short human-readable name of this frame for error messages."""
-        where = f" ({self.origin})" if self.origin else ""
-        return f"frame {self.seq}{where}"
+        return frame_label(self.seq, self.origin)
 
     def validate(self) -> "RGBDFrame":
         """Check types, shapes and values; raise :class:`FrameError` naming the field.
@@ -166,8 +165,12 @@ class BadFrame:
 
     @property
     def label(self) -> str:
-        where = f" ({self.origin})" if self.origin else ""
-        return f"frame {self.seq}{where}"
+        return frame_label(self.seq, self.origin)
+
+
+def frame_label(seq: int, origin: str) -> str:
+    """A frame's short name in messages: ``frame SEQ (ORIGIN)``, the origin when known."""
+    return f"frame {seq}" + (f" ({origin})" if origin else "")
 
 
 def quantize_depth(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
