@@ -318,13 +318,14 @@ class ServiceRuntime(Cursors, Loop):
         (:func:`~quick_stream.stream.process.closed_late`), so the service still finishes its outputs."""
         entities = [*self._subs, *([self._token] if self._token is not None else []), *self._pubs]
 
-        def undeclare(e: Any) -> None:
-            try:
-                e.undeclare()
-            except zenoh.ZError:
-                pass  # already gone with a dying session: nothing left to release
+        def undeclare_all() -> None:
+            for e in entities:
+                try:
+                    e.undeclare()
+                except zenoh.ZError:
+                    pass  # already gone with a dying session: nothing left to release
 
-        problem = close_within([*(lambda e=e: undeclare(e) for e in entities), self.session.close], SESSION_CLOSE_S)
+        problem = close_within([undeclare_all, self.session.close], SESSION_CLOSE_S)
         self._subs.clear()
         self._pubs.clear()
         self._token = None

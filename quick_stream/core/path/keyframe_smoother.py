@@ -53,8 +53,9 @@ class KeyframeSmoother:
                            f"{why}; the last correction held", camera=pl.pose.copy(), chain=pl.chain,
                            motion="restart")]
 
-    def closes(self, motion: MotionEstimate, window: OpenSegment) -> str:
-        """The keyframe detector's word on the new frame (the interval, a turn, or not a keyframe)."""
+    def push(self, motion: MotionEstimate, window: OpenSegment) -> str:
+        """The new frame's motion kept for the low-pass; the keyframe detector's word on it (the interval,
+        a turn, or not a keyframe)."""
         if self.params.lowpass_sigma > 0:
             self._history.append(motion.twist if motion.twist is not None else self.group.log(motion.matrix))
             self._history = self._history[-(len(window.seqs) + int(np.ceil(3 * self.params.lowpass_sigma))):]

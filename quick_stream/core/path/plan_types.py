@@ -179,8 +179,8 @@ class PathSmoother(Protocol):
         """After the invalid ``motion``: a new pose chain from ``motion.seq_next``, handed over without a
         jump (docs/method.md 4.4); the corrections released at once."""
 
-    def closes(self, motion: MotionEstimate, window: OpenSegment) -> str:
-        """Whether the frame ``motion`` brought (the window's newest) closes the segment: why, or ''."""
+    def push(self, motion: MotionEstimate, window: OpenSegment) -> str:
+        """Take the motion into the window's newest frame; whether that frame closes the segment: why, or ''."""
 
     def close(self, pl: PlanState, closed_by: str) -> list[Correction]:
         """The open segment's path: the corrections it releases (the frames it keeps stay open)."""

@@ -111,7 +111,7 @@ class PathPlanner:
         if model is not None:
             self._model = model
         self.window.add(motion.seq_next, zb, motion.matrix, self.pose.copy(), self._model, motion.kind, closeness)
-        why = self.smoother.closes(motion, self.window)
+        why = self.smoother.push(motion, self.window)
         return self._close(why) if why else []
 
     def finish(self) -> list[Correction]:

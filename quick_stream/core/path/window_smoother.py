@@ -38,11 +38,8 @@ class WindowSmoother:
             import scipy.optimize  # noqa: F401
 
     def begin(self, pose: np.ndarray, restart: bool) -> None:
-        """A new window; in a new pose chain (``restart``) the path restarts at the real camera ``pose``, at rest."""
-        if not restart:
-            return
-        self._committed = [pose.copy()]
-        self._real, self._real_c = [pose.copy()], [1.0]
+        """Nothing to reset: the stabilized path goes on from its committed past across a new pose chain
+        (:meth:`restart`), and the stream's start clears it (:meth:`start`)."""
 
     def start(self, pl: PlanState, seq: int) -> list[Correction]:
         """The stream's first frame: the first window's first frame, placed with it (no past), nothing now."""
@@ -53,9 +50,7 @@ class WindowSmoother:
     def restart(self, pl: PlanState, motion: MotionEstimate, why: str) -> list[Correction]:
         """After an invalid motion: the stabilized path goes on from its committed past; the restart frame
         is placed with the next window, its pose barely trusted (docs/method.md 4.4)."""
-        committed, real, real_c = self._committed, self._real, self._real_c
         pl.begin(motion.seq_next, restart=True)
-        self._committed, self._real, self._real_c = committed, real, real_c
         self._open_with(pl, motion.seq_next, "restart", pl.trust(float("inf")))
         pl.notes[motion.seq_next] = why
         return []
@@ -65,7 +60,7 @@ class WindowSmoother:
         pl.window.reset(seq)
         pl.window.add(seq, np.zeros(self.group.dim), np.eye(4), pl.pose.copy(), None, kind, closeness)
 
-    def closes(self, motion: MotionEstimate, window: OpenSegment) -> str:
+    def push(self, motion: MotionEstimate, window: OpenSegment) -> str:
         """The window is the keyframe interval (the smoother needs no turn keyframes)."""
         return "interval" if len(window.path) >= self.params.keyframes.interval else ""
 
