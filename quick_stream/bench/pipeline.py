@@ -51,6 +51,7 @@ from ..stream.launcher import StatusBoard, Supervisor, router_spec
 from ..stream.stream_specs import stream_specs
 from ..stream.wire import WireError
 from ..stream.wire.codec import unpack
+from .pipeline_profile import PROFILE_ENV, format_profile, summarise, thread_cpu, thread_shares
 from .release_steps import release_steps
 
 CLK = os.sysconf("SC_CLK_TCK")
@@ -142,12 +143,13 @@ def prerecord(path: Path, spec: str) -> str:
 
 def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
                  record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1,
-                 progress: Callable[[str], None] | None = None) -> dict:
+                 progress: Callable[[str], None] | None = None, profile: bool = False) -> dict:
     """One measured run; ``fps`` None = capture as fast as possible; ``replay``: the capture sends a
     pre-encoded recording instead of rendering synthetic frames live; ``streams``: that many cameras
     side by side (``cam0``, ``cam1``, ...; each its own capture, flow, motion and render, synthetic
     seeds 1, 2, ...; one recorder of all). ``progress`` is told once a second how far it is.
-    Returns the report dict."""
+    ``profile``: each process's CPU by thread, and each service's main thread under cProfile
+    (:mod:`.pipeline_profile`; ``out/profile``). Returns the report dict."""
     from ..stream.launcher import free_port, open_when_up
 
     out.mkdir(parents=True, exist_ok=True)
@@ -170,7 +172,13 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
         run = [s for s in topology.SERVICES if s != topology.RECORDER or (record and cam == "cam0")]
         specs += stream_specs(lambda _s, cam=cam: [*z, "--stream", cam], own, run=run,
                               name=lambda s, cam=cam: s if s == topology.RECORDER else _name(s, cam, streams))
-    sup = Supervisor(specs, out / "logs")
+    prof_dir = out / "profile"
+    if profile:
+        prof_dir.mkdir(exist_ok=True)
+        for old in prof_dir.glob("*.prof"):
+            old.unlink()
+    sup = Supervisor(specs, out / "logs", env={PROFILE_ENV: str(prof_dir)} if profile else None)
+    threads: dict[str, dict[str, float]] = {}
     sup.start("router")
     session = open_when_up(endpoint, 20)
     mons = {cam: Monitor() for cam in cams}
@@ -194,6 +202,8 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
                 got = proc_sample(pid) if pid else None
                 if got:
                     samples.setdefault(name, []).append((now, *got))
+                    if profile:
+                        threads[name] = thread_cpu(pid) or threads.get(name, {})
             if t_start is not None and now - t_start > warmup_s:
                 for (st, svc), vals in board.snapshot().items():
                     for k, v in vals.items():
@@ -232,6 +242,9 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
     rate = sum(x["stabilized_fps"] for x in per.values())
     common = {"processes": procs, "queues": qs, "capture": capture,
               "cpu_per_frame": cpu_per_frame(procs, rate, len(os.sched_getaffinity(0)))}
+    if profile:
+        common["profile"] = {"threads": {k: thread_shares(v) for k, v in threads.items()},
+                             "functions": summarise(prof_dir, sum(len(m.seqs) for m in mons.values()))}
     if streams == 1:
         return {**per["cam0"], **common}
     return {"streams": per, **common, "size": f"{width}x{height}", "fps_target": fps or "fast",
@@ -356,6 +369,8 @@ def format_report(r: dict) -> str:
         lines.append("  queue lengths after warm-up, sampled each second (max in the first half/max in the second "
                      "half/mean): " + ", ".join(f"{k} {q['max_first_half']:.0f}/{q['max_second_half']:.0f}/"
                                                 f"{q['mean']:g}" for k, q in r["queues"].items()))
+    if r.get("profile"):
+        lines.append(format_profile(r["profile"]["threads"], r["profile"]["functions"]))
     return "\n".join(lines)
 
 
@@ -372,10 +387,10 @@ def _files(folder: Path) -> dict[Path, int]:
 
 
 def scratch_files(folder: Path, before: dict[Path, int]) -> dict[Path, int]:
-    """The files a run wrote in ``folder`` (not there, or another size, ``before``), its logs left out:
-    recordings, videos, pre-encoded sources."""
+    """The files a run wrote in ``folder`` (not there, or another size, ``before``), its logs and
+    profiles left out: recordings, videos, pre-encoded sources."""
     return {p: n for p, n in _files(folder).items()
-            if before.get(p) != n and "logs" not in p.relative_to(folder).parts}
+            if before.get(p) != n and not {"logs", "profile"} & set(p.relative_to(folder).parts)}
 
 
 def _size(n: int) -> str:
@@ -384,7 +399,7 @@ def _size(n: int) -> str:
 
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
          record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480",
-         progress: Callable[[str], None] | None = None, keep: bool = False) -> int:
+         progress: Callable[[str], None] | None = None, keep: bool = False, profile: bool = False) -> int:
     """Run each rate and print its report; ``json_path``: also the reports as JSON there (``-``: on
     standard output, the reports then going to stderr). Each rate's recordings and videos are deleted
     once measured (scratch: ~1 GB a 120 s run) unless ``keep``; either way the last line says where
@@ -397,7 +412,7 @@ def main(fps_list: list[float | None], seconds: float, out: str, json_path: str 
         before = _files(folder)
         try:
             r = run_pipeline(folder, fps, seconds, width=w, height=h, record=record, replay=replay, streams=streams,
-                             progress=progress)
+                             progress=progress, profile=profile)
         finally:
             scratch = scratch_files(folder, before)
             total = sum(scratch.values())
@@ -409,7 +424,8 @@ def main(fps_list: list[float | None], seconds: float, out: str, json_path: str 
                     f"deleted {_size(total)} of scratch files ({what}) from {folder} (--keep keeps them)")
         reports.append(r)
         print(format_report(r), file=text, flush=True)
-        print(f"{note}; logs in {folder / 'logs'}", file=text, flush=True)
+        print(f"{note}; logs in {folder / 'logs'}" + (f", profiles in {folder / 'profile'}" if profile else ""),
+              file=text, flush=True)
     if json_path == "-":
         print(json.dumps(reports, indent=1), flush=True)
     elif json_path:

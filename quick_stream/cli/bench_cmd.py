@@ -96,6 +96,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--keep", action="store_true",
                     help="keep the recordings and videos (about 1 GB a 120 s run at 640x480; default: deleted once "
                     "measured, the logs kept; the last line says where and how much)")
+    pl.add_argument("--profile", action="store_true",
+                    help="also where the CPU goes: each process's by thread, and each service's main thread under "
+                    "cProfile, its functions by own time per stabilized frame (slows the services by up to a "
+                    "third; the profiles in DIR/fps-RATE/profile)")
     add_json(pl, "the reports")
     at.add_force(pl)
 
@@ -134,7 +138,7 @@ def _run(args: argparse.Namespace) -> int:
         with progress:
             return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
                                  streams=args.streams, size=args.size, replay=args.replay, progress=progress,
-                                 keep=args.keep)
+                                 keep=args.keep, profile=args.profile)
     if args.bench == "quality":
         return bench_quality_cmd.run(args)
     with progress:

@@ -117,6 +117,30 @@ def closed_late(problem: str) -> None:
     _unclosed.append(problem)
 
 
+PROFILE_ENV = "QUICK_STREAM_PROFILE"  # a folder: each service profiles its main thread into it (bench pipeline --profile)
+
+
+def _profiled(service: str, run: Callable[[argparse.Namespace, zenoh.Config], int]
+              ) -> Callable[[argparse.Namespace, zenoh.Config], int]:
+    """``run`` itself, or, when ``QUICK_STREAM_PROFILE`` names a folder, ``run`` under :mod:`cProfile`
+    writing ``<folder>/<service>-<pid>.prof`` when it returns (read by ``bench pipeline --profile``)."""
+    folder = os.environ.get(PROFILE_ENV)
+    if not folder:
+        return run
+
+    def profiled(args: argparse.Namespace, conf: zenoh.Config) -> int:
+        import cProfile
+
+        prof = cProfile.Profile()
+        prof.enable()
+        try:
+            return run(args, conf)
+        finally:
+            prof.disable()
+            prof.dump_stats(os.path.join(folder, f"{service}-{os.getpid()}.prof"))
+    return profiled
+
+
 def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace, zenoh.Config], int],
                  argv: list[str] | None, check: Callable[[argparse.Namespace], Any] | None = None,
                  early: Callable[[argparse.Namespace], int | None] | None = None) -> int:
@@ -151,7 +175,7 @@ def service_main(service: str, parser: argparse.ArgumentParser, run: Callable[[a
         logging.getLogger(service).error("%s", e)
         return 2
     try:
-        code = run(args, conf)
+        code = _profiled(service, run)(args, conf)
     except zenoh.ZError as e:
         logging.getLogger(service).error("zenoh: %s (check -e/-l/-c/--cfg and the QUICK_STREAM_ZENOH_* variables)",
                                          zenoh_message(e))
