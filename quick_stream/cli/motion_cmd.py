@@ -51,7 +51,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", choices=sorted(DIS_PRESETS), default=SceneFlowParams.preset,
                    help=f"DIS optical-flow preset (default: {SceneFlowParams.preset})")
     p.add_argument("--flow-scale", type=at.float_in(0.1, 1.0), default=SceneFlowParams.flow_scale,
-                   help="compute optical flow on images scaled by this factor, 0.1-1 (default: 1)")
+                   help="compute optical flow on images scaled by this factor, 0.1-1 (default: 1) ...")
+    p.add_argument("--flow-max-side", type=at.nonneg_int, default=SceneFlowParams.flow_max_side, metavar="PX",
+                   help="... or less, so that their longer side is at most PX (0: no limit; default "
+                   f"{SceneFlowParams.flow_max_side}: 1280x720 flows at 0.5)")
     p.add_argument("--no-fb-check", action="store_true", help="skip the forward-backward occlusion test")
     p.add_argument("--max-points", type=at.int_in(3), default=SceneFlowParams.max_points,
                    help=f"scene-flow pairs kept per frame pair (default: {SceneFlowParams.max_points})")
@@ -107,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         source = open_source(args.source)
         flow_params = SceneFlowParams(
-            preset=args.preset, flow_scale=args.flow_scale, fb_check=not args.no_fb_check,
+            preset=args.preset, flow_scale=args.flow_scale, flow_max_side=args.flow_max_side,
+            fb_check=not args.no_fb_check,
             max_points=args.max_points,
         )
         flow_params.validate()

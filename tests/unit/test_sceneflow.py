@@ -205,3 +205,30 @@ def test_forward_backward_limit_grows_with_the_flow():
     assert len(grown) > 1.1 * len(fixed)
     with pytest.raises(ValueError, match="fb_rel"):
         SceneFlowParams(fb_rel=1.5).validate()
+
+
+def test_flow_runs_at_a_scale_that_keeps_its_longer_side_within_the_limit():
+    p = SceneFlowParams()
+    assert p.flow_scale_for(480, 640) == 1.0  # 640x480 as it is: the default changes nothing there
+    assert p.flow_scale_for(720, 1280) == 0.5
+    assert p.flow_scale_for(1080, 1920) == pytest.approx(1 / 3)
+    assert SceneFlowParams(flow_scale=0.5).flow_scale_for(480, 640) == 0.5  # the smaller of the two
+    assert SceneFlowParams(flow_scale=0.25).flow_scale_for(720, 1280) == 0.25
+    assert SceneFlowParams(flow_max_side=0).flow_scale_for(1080, 1920) == 1.0  # no limit
+    for bad in (-1, 10, 63, 640.5):
+        with pytest.raises(ValueError, match="flow_max_side"):
+            SceneFlowParams(flow_max_side=bad).validate()
+
+
+def test_a_720p_pair_flows_at_half_scale_and_its_samples_still_follow_ground_truth():
+    src = SyntheticSource(frames=3, seed=11, width=1280, height=720)
+    a, b = src.frame(0), src.frame(1)
+    fwd, _ = SceneFlow(SceneFlowParams()).optical_flow(a, b)
+    full, _ = SceneFlow(SceneFlowParams(flow_max_side=0)).optical_flow(a, b)
+    assert full.shape[0] == 2 * fwd.shape[0] and full.shape[1] == 2 * fwd.shape[1]
+    r = SceneFlow().compute(a, b)
+    assert 1000 <= len(r) <= SceneFlowParams().max_points
+    M = point_motion(a, b)
+    err = np.linalg.norm(r.points + r.displacements - (r.points @ M[:3, :3].T + M[:3, 3]), axis=1)
+    assert np.median(err) < 0.003  # metres, as at 640x480 and full scale (test_lifted_pairs_follow_ground_truth)
+    assert r.pixels[:, 0].max() > 700  # the samples are the frame's own pixels, in its full-size units

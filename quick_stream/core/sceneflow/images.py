@@ -96,8 +96,9 @@ class ImageCache:
             return hit[1]
         p = self.params
         grey = frame.grey()
-        flow_grey = _scaled(grey, p.flow_scale)
-        fb = self.dis_fb.dis_input(_scaled(grey, p.fb_scale * p.flow_scale)) if p.fb_check else None
+        scale = p.flow_scale_for(*grey.shape)
+        flow_grey = _scaled(grey, scale)
+        fb = self.dis_fb.dis_input(_scaled(grey, p.fb_scale * scale)) if p.fb_check else None
         images = FrameImages(grey, self.dis.dis_input(flow_grey), fb, float(cv2.meanStdDev(flow_grey)[1][0, 0]))
         self._cache.pop(frame.seq, None)
         if len(self._cache) >= 2:

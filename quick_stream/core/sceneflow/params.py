@@ -19,7 +19,9 @@ class SceneFlowParams:
 
     preset: str = "ultrafast"  # DIS preset: ultrafast | fast | medium
     dis_stride: int = 6  # DIS patch stride (px, finest level), any preset; 0: the preset's own (4; medium 3)
-    flow_scale: float = 1.0  # compute optical flow on images resized by this factor
+    flow_scale: float = 1.0  # compute optical flow on images resized by this factor ...
+    flow_max_side: int = 640  # ... or less, so that their longer side is at most this many px (0: no limit;
+    # docs/method.md 1, "Resolution"): 1280x720 flows at 0.5
     fb_check: bool = True  # forward-backward consistency test (occlusions)
     fb_scale: float = 0.5  # backward flow (used only for the test) at this image scale
     fb_threshold_px: float = 1.5  # max |f_fwd(p) + f_bwd(p + f_fwd)| in full-resolution px ...
@@ -53,6 +55,8 @@ class SceneFlowParams:
             val = getattr(self, name)
             if not 0.1 <= val <= 1.0:
                 raise ValueError(f"sceneflow {name} must be in [0.1, 1], got {val}")
+        if not (isinstance(self.flow_max_side, int) and (self.flow_max_side == 0 or self.flow_max_side >= 64)):
+            raise ValueError(f"sceneflow flow_max_side must be 0 (no limit) or an integer >= 64, got {self.flow_max_side!r}")
         if not 0 <= self.dis_stride <= DIS_MIN_PATCH:  # beyond its patch size, OpenCV's DIS reads out of bounds
             raise ValueError(f"sceneflow dis_stride must be in [1, {DIS_MIN_PATCH}] px (the patch size; 0: the "
                              f"preset's own), got {self.dis_stride}")
@@ -64,3 +68,11 @@ class SceneFlowParams:
             raise ValueError("sceneflow lk_window must be odd >= 3, lk_iters >= 1 and lk_max_shift_px > 0")
         if not 0 < self.lk_eps_px <= 1:
             raise ValueError(f"sceneflow lk_eps_px must be in (0, 1] px, got {self.lk_eps_px}")
+
+    def flow_scale_for(self, height: int, width: int) -> float:
+        """The scale optical flow runs at on a ``height`` x ``width`` frame: ``flow_scale``, lowered so that
+        the longer side comes to at most ``flow_max_side`` px (docs/method.md 1, "Resolution")."""
+        side = max(height, width)
+        if self.flow_max_side and side * self.flow_scale > self.flow_max_side:
+            return self.flow_max_side / side
+        return self.flow_scale
