@@ -354,11 +354,12 @@ def format_report(r: dict) -> str:
             lines.append("  total latency p99 per minute (ms): "
                          + " ".join(f"{w['total_p99_ms']:.0f}" for w in x["latency_p99_per_minute"]))
     cpu = r.get("cpu_per_frame") or {}
-    lines.append(f"  {'process':<15} {'CPU %':>6} {'ms/frame':>8} {'RSS warm':>9} {'RSS end':>8} {'growth':>7} "
-                 f"{'peak RSS':>9} (MB)   RSS over the run, from start-up")
+    lines.append(f"  {'process':<15} {'CPU %':>6} {'ms/frame':>8} {'core fps':>8} {'RSS warm':>9} {'RSS end':>8} "
+                 f"{'growth':>7} {'peak RSS':>9} (MB)   RSS over the run, from start-up")
     for name, p in r["processes"].items():
         per = cpu.get("ms", {}).get(name)
-        lines.append(f"  {name:<15} {p['cpu_pct']:>6.1f} {'-' if per is None else f'{per:.1f}':>8} "
+        alone = f"{1000.0 / per:.0f}" if per else "-"  # frames/s on a core of its own, if its CPU bounds it
+        lines.append(f"  {name:<15} {p['cpu_pct']:>6.1f} {'-' if per is None else f'{per:.1f}':>8} {alone:>8} "
                      f"{p['rss_mb_warm']:>9.1f} {p['rss_mb_end']:>8.1f} {p['rss_growth_pct']:>6.1f}% "
                      f"{p['peak_rss_mb']:>9.1f}        {' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
     if cpu:

@@ -27,7 +27,7 @@ def test_the_report_prints_cpu_per_frame_and_how_much_of_the_budget_it_uses():
          "drops": {}, "latency": {}, "processes": procs, "queues": {}, "cpu_per_frame": cpu_per_frame(procs, 40.0, 2)}
     text = format_report(r)
     row = next(line for line in text.splitlines() if line.strip().startswith("render"))
-    assert row.split()[1:3] == ["80.0", "20.0"]
+    assert row.split()[1:4] == ["80.0", "20.0", "50"]  # CPU %, ms a frame, frames/s on a core of its own
     assert "CPU per stabilized frame: 35.0 ms of the 50.0 ms that 2 cores give per frame at 40 fps (70 % used)" in text
     del r["cpu_per_frame"]  # a report without it (nothing stabilized): no ms column values, no budget line
     assert "CPU per stabilized frame" not in format_report(r)
