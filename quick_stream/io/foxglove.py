@@ -137,10 +137,10 @@ def nearest_rotation(m: np.ndarray) -> np.ndarray:
     m = np.asarray(m, dtype=np.float64)[:3, :3]
     if not np.all(np.isfinite(m)):
         raise ValueError(f"matrix has non-finite values: {m.tolist()}")
-    s = np.linalg.svd(m, compute_uv=False)
+    U, s, Vt = np.linalg.svd(m)  # one decomposition: the check's and the projection's (so3's, below)
     if s[0] <= 0 or s[-1] <= 1e-12 * s[0]:
         raise ValueError(f"matrix is singular (singular values {s.tolist()}); no rotation to take")
-    return so3.nearest_rotation(m)
+    return so3.polar_rotation(U, Vt)
 
 
 def rotation_to_quaternion(m: np.ndarray) -> np.ndarray:

@@ -108,6 +108,11 @@ def nearest_rotation(A: np.ndarray) -> np.ndarray:
     package projects onto SO(3): fits, reports, plots and the renderer's rotation reference.
     """
     U, _, Vt = np.linalg.svd(np.asarray(A, dtype=np.float64))
+    return polar_rotation(U, Vt)
+
+
+def polar_rotation(U: np.ndarray, Vt: np.ndarray) -> np.ndarray:
+    """:func:`nearest_rotation` from the SVD factors ``U``, ``Vt`` of ``A`` (a caller that has them)."""
     d = np.sign(np.linalg.det(U @ Vt))
     d = np.where(d == 0.0, 1.0, d)
     D = np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)

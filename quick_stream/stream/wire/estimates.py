@@ -98,6 +98,21 @@ def _kind(name: str, value: str, allowed: tuple[str, ...], stream: str, seq: int
     return value
 
 
+def motion_transform(r: Reader) -> tuple[int, np.ndarray]:
+    """(seq_next, 4x4 matrix) of a motion message's Reader, those fields checked as :func:`decode` checks
+    them: what a reader of a message checked whole before (a recorder's views) needs, without the rest."""
+    group = r.str("group")
+    if group not in GROUP_DIMS:
+        raise r.error("group", f"unknown group {group!r} (known: {', '.join(GROUP_DIMS)})")
+    return r.int("seq_next", min=0), ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4), group)
+
+
+def correction_transform(r: Reader) -> np.ndarray:
+    """The 4x4 matrix of a correction message's Reader, checked as :func:`decode` checks it (as
+    :func:`motion_transform`)."""
+    return ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4))
+
+
 def _decode_motion(r: Reader) -> Decoded:
     group = r.str("group")
     dim = GROUP_DIMS.get(group)
