@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["hat", "vee", "exp", "log", "right_jacobian", "left_jacobian", "nearest_rotation"]
+__all__ = ["hat", "vee", "exp", "log", "right_jacobian", "left_jacobian", "nearest_rotation", "polar_rotation"]
 
 # Below this angle the trigonometric coefficients are evaluated by Taylor series.
 _SMALL = 1e-4
