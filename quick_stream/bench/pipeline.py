@@ -51,20 +51,17 @@ from ..stream.launcher import StatusBoard, Supervisor, router_spec
 from ..stream.stream_specs import stream_specs
 from ..stream.wire import WireError
 from ..stream.wire.codec import unpack
-from .pipeline_profile import PROFILE_ENV, format_profile, summarise, thread_cpu, thread_shares
+from .pipeline_profile import PROFILE_ENV, format_profile, stat_cpu, summarise, thread_cpu, thread_shares
 from .release_steps import release_steps
-
-CLK = os.sysconf("SC_CLK_TCK")
 
 
 def proc_sample(pid: int) -> tuple[float, int, int] | None:
     """(CPU seconds used, RSS bytes, peak RSS bytes) of a process, None if it is gone."""
     try:
-        stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        cpu = stat_cpu(Path(f"/proc/{pid}/stat").read_text())
         status = Path(f"/proc/{pid}/status").read_text()
     except OSError:
         return None
-    cpu = (int(stat[11]) + int(stat[12])) / CLK
     vals = {ln.split(":")[0]: int(ln.split()[1]) * 1024 for ln in status.splitlines()
             if ln.startswith(("VmRSS", "VmHWM"))}
     return cpu, vals.get("VmRSS", 0), vals.get("VmHWM", 0)

@@ -10,10 +10,11 @@ Two views of the same run:
 * **functions** (:func:`summarise`): each service's main thread under :mod:`cProfile` (the service
   does that itself when ``QUICK_STREAM_PROFILE`` names a folder:
   :func:`quick_stream.stream.process.service_main`), its functions by own time in ms per stabilized
-  frame, waits left out (the lock a service blocks on while its inbox is empty, sleeps, selects).
-  cProfile times the calling thread's wall clock, so a call that blocks (a publisher's put waiting
-  on the network) counts too, and its own overhead slows a service by up to a third: read the
-  table for where the time goes, the rate and CPU columns of a run without it for how much.
+  frame, on that thread's CPU clock (``time.thread_time``: a call that blocks, a publisher's put
+  waiting for Python's lock or the network, costs only the CPU it uses), the calls a service waits
+  in left out. The profiler's own cost slows the services by about half, Python-heavy code more
+  than OpenCV's: read the table for where the time goes, the rate and CPU columns of a run
+  without it for how much.
 """
 from __future__ import annotations
 
@@ -23,11 +24,17 @@ from pathlib import Path
 
 from ..stream.process import PROFILE_ENV
 
-__all__ = ["PROFILE_ENV", "format_profile", "summarise", "thread_cpu", "thread_shares"]
+__all__ = ["PROFILE_ENV", "format_profile", "stat_cpu", "summarise", "thread_cpu", "thread_shares"]
 
 CLK = os.sysconf("SC_CLK_TCK")
 # names of the calls a service makes to wait for work (its own time is idle, not work)
 WAITS = ("acquire", "sleep", "select", "poll", "wait", "epoll")
+
+
+def stat_cpu(stat: str) -> float:
+    """CPU seconds (user + system) of a ``/proc/<pid>/stat`` or ``/proc/<pid>/task/<tid>/stat`` text."""
+    f = stat[stat.rindex(")") + 2:].split()
+    return (int(f[11]) + int(f[12])) / CLK
 
 
 def thread_cpu(pid: int) -> dict[str, float]:
@@ -47,8 +54,7 @@ def thread_cpu(pid: int) -> dict[str, float]:
         except OSError:
             continue  # a thread that ended meanwhile
         comm = stat[stat.index("(") + 1:stat.rindex(")")]
-        f = stat[stat.rindex(")") + 2:].split()
-        cpu = (int(f[11]) + int(f[12])) / CLK
+        cpu = stat_cpu(stat)
         if t.name == str(pid):
             name, group = comm, "main"
         else:

@@ -98,8 +98,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "measured, the logs kept; the last line says where and how much)")
     pl.add_argument("--profile", action="store_true",
                     help="also where the CPU goes: each process's by thread, and each service's main thread under "
-                    "cProfile, its functions by own time per stabilized frame (slows the services by up to a "
-                    "third; the profiles in DIR/fps-RATE/profile)")
+                    "cProfile on its CPU clock, its functions by own time per stabilized frame (slows the services "
+                    "by about half; the profiles in DIR/fps-RATE/profile)")
     add_json(pl, "the reports")
     at.add_force(pl)
 
