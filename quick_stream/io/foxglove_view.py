@@ -23,7 +23,7 @@ from collections import OrderedDict
 import numpy as np
 
 from ..stream.wire.codec import unpack
-from ..stream.wire.estimates import correction_transform, motion_transform
+from ..stream.wire.estimates import matrix_field, motion_transform
 from ..stream.wire.fields import read_intrinsics
 from ..stream.wire.ranges import MAX_ENTRY
 from . import foxglove
@@ -152,7 +152,7 @@ class FoxgloveView:
             r = unpack(payload)
             if r.type != "correction":
                 return []
-            self._remember(self._corr, r.seq, correction_transform(r))
+            self._remember(self._corr, r.seq, matrix_field(r))
             return self._poses(r.seq)
         return []
 

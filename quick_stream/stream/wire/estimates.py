@@ -104,13 +104,13 @@ def motion_transform(r: Reader) -> tuple[int, np.ndarray]:
     group = r.str("group")
     if group not in GROUP_DIMS:
         raise r.error("group", f"unknown group {group!r} (known: {', '.join(GROUP_DIMS)})")
-    return r.int("seq_next", min=0), ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4), group)
+    return r.int("seq_next", min=0), matrix_field(r, group)
 
 
-def correction_transform(r: Reader) -> np.ndarray:
-    """The 4x4 matrix of a correction message's Reader, checked as :func:`decode` checks it (as
-    :func:`motion_transform`)."""
-    return ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4))
+def matrix_field(r: Reader, group: str | None = None) -> np.ndarray:
+    """The 4x4 ``matrix`` field of a correction's (or, with its ``group``, a motion's) Reader, checked as
+    :func:`decode` checks it: what a reader of a correction checked whole before needs of it."""
+    return ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4), group)
 
 
 def _decode_motion(r: Reader) -> Decoded:
@@ -128,8 +128,8 @@ def _decode_motion(r: Reader) -> Decoded:
         raise r.error("inlier_ratio", f"must be in [0, 1], got {inliers:g}")
     m = MotionEstimate(
         r.seq, r.int("seq_next", min=0), group, r.str("estimator"),
-        ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4), group),
-        r.floats("twist", dim), r.bool("valid"), r.str("reason"), r.int("n_points", min=0),
+        matrix_field(r, group), r.floats("twist", dim), r.bool("valid"), r.str("reason"),
+        r.int("n_points", min=0),
         inliers, r.float("rms_px", finite=False), zeta,
         kind=kind, covariance=None if cov is None else cov.reshape(dim, dim),
     )
@@ -167,7 +167,7 @@ def _decode_correction(r: Reader) -> Decoded:
     motion = r.str("motion", optional=True) or "fit"  # optional (added within v1)
     if motion not in CORRECTION_MOTIONS:
         raise r.error("motion", f"expected one of {', '.join(CORRECTION_MOTIONS)}, got {motion!r}")
-    c = Correction(r.seq, ranges.transform(r, "matrix", r.floats("matrix", 16).reshape(4, 4)), r.int("segment"),
+    c = Correction(r.seq, matrix_field(r), r.int("segment"),
                    r.bool("keyframe"), r.bool("valid"), r.str("reason"),
                    ranges.zoom(r, "zoom", r.float("zoom", positive=True, optional=True)), camera,
                    -1 if chain is None else chain, motion, r.seqs("shed", r.seq))
