@@ -251,6 +251,14 @@ def scale_and_distortion(H: np.ndarray) -> tuple[float, float, float]:
     return math.sqrt(abs(det)), float(sv[1] / sv[0]) if sv[0] > 0 else 0.0, det
 
 
+def sound(H: np.ndarray, p: MetricParams) -> bool:
+    """Whether a fitted homography can be a view of the same scene: its affine part keeps orientation (det > 0)
+    and its scale is within [min_scale, max_scale]. Else it is a RANSAC accident (a blurred frame's matches
+    along one streak): an input-output fit is a failure, a consecutive pair's is taken as unmatched."""
+    scale, _, det = scale_and_distortion(H)
+    return det > 0 and p.min_scale <= scale <= p.max_scale
+
+
 def _fill(motions: list[tuple[float, float, float] | None]) -> tuple[np.ndarray, int]:
     """(N, 3) motion array with missing pairs linearly interpolated; returns it and the number filled."""
     n = len(motions)
@@ -325,7 +333,7 @@ class MetricsAccumulator:
                 fm.cropping = fm.distortion = float("nan")
             else:
                 fm.cropping, fm.distortion, det = scale_and_distortion(fit.H)
-                if det <= 0 or not p.min_scale <= fm.cropping <= p.max_scale:
+                if not sound(fit.H, p):
                     fm.problem = f"degenerate input-output homography (scale {fm.cropping:.3g}, det {det:.3g})"
                 else:
                     self.last_homography = fit.H  # centred coordinates (module docstring)
@@ -336,8 +344,9 @@ class MetricsAccumulator:
             for name, attr, a, b in (("output", "motion_to_next", self._prev[1], fout),
                                      ("input", "input_motion_to_next", self._prev[0], fin)):
                 fit = self.matcher.fit(a, b)
-                setattr(prev_fm, attr, None if fit.H is None else motion_of(fit.H))
-                self._pair_h[name].append(fit.H)
+                H = fit.H if fit.H is not None and sound(fit.H, p) else None  # degenerate: as if unmatched
+                setattr(prev_fm, attr, None if H is None else motion_of(H))
+                self._pair_h[name].append(H)
         self._prev = (fin, fout)
         self.frames.append(fm)
         self._seconds += time.perf_counter() - t0

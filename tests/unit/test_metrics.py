@@ -259,3 +259,31 @@ def test_ffmpeg_baselines_frame_count_and_shape(tmp_path):
     assert any("vidstabtransform=" in " ".join(c) for c in out.commands.values())
     m = evaluate_sequence(frames, out["vidstab"])
     assert not m.failed and m.cropping < 1.0  # optzoom=1 zooms in
+
+
+def test_a_degenerate_pair_homography_counts_as_unmatched_not_as_a_huge_jitter(smooth12, monkeypatch):
+    """RANSAC on a motion-blurred frame can return a homography that flips orientation (matches along one
+    streak); a consecutive pair's is then taken as unmatched and interpolated (docs/method.md 6.1), as the
+    input-output fit already refused one (``sound``)."""
+    from quick_stream.quality import metrics as mm
+
+    flipped = np.array([[-217.4, -197.4, -222.9], [277.0, 251.9, 292.8], [1.89, 1.72, 1.0]])  # the measured one
+    p = MetricParams()
+    assert not mm.sound(flipped, p) and mm.sound(np.eye(3), p)
+    assert not mm.sound(np.diag([20.0, 20.0, 1.0]), p) and not mm.sound(np.diag([1.0, -1.0, 1.0]), p)
+    clean = evaluate_sequence(smooth12, smooth12)
+    fit = mm.FeatureMatcher.fit
+    calls = {"n": 0}
+
+    def one_flipped_pair(self, a, b):
+        r = fit(self, a, b)
+        calls["n"] += 1
+        if calls["n"] == 15:  # frame k >= 1 makes calls 3k - 1 (input-output), 3k (output pair k-1 -> k), 3k + 1
+            return mm.PairFit(flipped, r.matches, r.inliers)
+        return r
+
+    monkeypatch.setattr(mm.FeatureMatcher, "fit", one_flipped_pair)
+    m = evaluate_sequence(smooth12, smooth12)
+    assert not m.failed and m.per_frame[4].motion_to_next is None
+    assert any("1 of 11 consecutive output pairs had no homography" in w for w in m.warnings)
+    assert m.jitter_px < 2 * clean.jitter_px + 0.05 and m.jitter_deg < 2 * clean.jitter_deg + 0.05
