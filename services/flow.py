@@ -67,21 +67,26 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
             t0 = time.perf_counter()
             shed.extend(gate.take_shed())
             del shed[:-MAX_NAMED]  # what one message names at most (no flow for that long: the oldest unnamed)
-            flow = driver.push(msg.obj, msg.pub_ns, shed)
+            flows = driver.push(msg.obj, msg.pub_ns, shed)
             if driver.taken is not None:
                 gate.taken(driver.taken)
-            if flow is not None:  # it names the frames shed before its end; those shed on arrival after it wait
+            publish(flows)
+            if flows:
+                meter.add((time.perf_counter() - t0) * 1e3)
+
+        def publish(flows: list) -> None:
+            for flow in flows:  # each names the frames shed before its end; those shed on arrival after it wait
                 named, shed[:], dropped = split_named(shed, flow.seq, flow.seq_next)
                 if dropped:
                     log.warning("%d frames shed after frame %d go unnamed: the numbering restarts at %d (render "
                                 "flags them)", dropped, flow.seq, flow.seq_next)
                 pub.put(encode_flow(flow, args.stream, named))
-                meter.add((time.perf_counter() - t0) * 1e3)
 
         def on_end(msg: Decoded) -> None:
             end = msg.obj
             shed.extend(gate.take_shed())
             del shed[:-MAX_NAMED]
+            publish(driver.finish())  # frames being reached over: the flow held for them, before the end
             pub.put(encode_end(EndOfStream(end.seq, end.reason, tuple(s for s in shed if s <= end.seq)), args.stream))
             log.info("end of stream after frame %d", end.seq)
             shed.clear()

@@ -44,11 +44,10 @@ def flows_of(frames: list) -> list:
     st, out = FlowStage(), []
     for f in frames:
         try:
-            if (fl := st.push(f)) is not None:
-                out.append(fl)
+            out += st.push(f)
         except FrameRefused:
             pass
-    return out
+    return out + st.finish()
 
 
 def offline_images(spec: str, *settings: str) -> dict[int, np.ndarray]:

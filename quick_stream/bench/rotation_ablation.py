@@ -30,6 +30,7 @@ import numpy as np
 
 from ..core.lie import get_group
 from ..core.motion import MotionEstimate
+from ..core.motion.chain import split_over
 from ..core.stabilizer import Stabilizer, StabilizerParams
 from ..core.stages import FlowStage, MotionStage
 from ..io.sources.tum import TumSource
@@ -61,9 +62,8 @@ def _flows(folder: Path, params: StabilizerParams) -> Run:
     stamps, flows = [], []
     for fr in TumSource(folder):
         stamps.append(fr.timestamp_ns)
-        f = fs.push(fr)
-        if f is not None:
-            flows.append(f)
+        flows += fs.push(fr)
+    flows += fs.finish()
     return Run(stamps, flows)
 
 
@@ -82,7 +82,8 @@ def _plan(run: Run, params: StabilizerParams, motions: list[MotionEstimate] | No
         if motions is None:
             take(stage.push(f)[1])
         else:
-            take([stage.planner.push(motions[i], stage.frame_model(f))])
+            for part in split_over(motions[i], f.over):  # a flow that reached over frames: one motion each
+                take([stage.planner.push(part, stage.frame_model(f) if part.seq_next == f.seq_next else None)])
     take(stage.finish())
     return [out[s] for s in sorted(out)]
 

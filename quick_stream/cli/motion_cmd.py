@@ -169,6 +169,9 @@ def run(args: argparse.Namespace) -> int:
     by_kind = {k: pair_error_stats(p for p in result.pairs if p.motion.kind == k)
                for k in KINDS if k != "none" and any(p.motion.kind == k for p in result.pairs)}
     kinds = {k: sum(p.motion.kind == k for p in result.pairs) for k in KINDS}
+    reached = [p for p in result.pairs if p.span is not None]  # parts of a flow that reached over frames
+    if reached:
+        by_kind["reached over"] = pair_error_stats(reached)
     report: dict = {
         "source": args.source,
         "group": args.group,
@@ -183,8 +186,10 @@ def run(args: argparse.Namespace) -> int:
         "motions_by_kind": kinds,
         "flow_consistency": consistency,
         "errors_by_kind": {k: s.as_dict() for k, s in by_kind.items()},
+        "reached_over": pipeline.flow.reached_over,
         "fallbacks": [{"seq": p.motion.seq, "seq_next": p.motion.seq_next, "kind": p.motion.kind,
-                       "reason": p.motion.reason} for p in result.pairs if p.motion.kind in ("rotation", "bridge")],
+                       "reason": p.motion.reason} for p in result.pairs
+                      if p.motion.kind in ("rotation", "bridge") or p.span is not None],
         "bad_frames": result.failures,
         "invalid_motions": invalid,
     }
@@ -234,7 +239,8 @@ def run(args: argparse.Namespace) -> int:
         say(f"{row['bin']:>9} {row['pairs']:>6} {row['fb_rejected']:>7.3f} {row['lk_rejected']:>7.3f} "
             f"{row['kept']:>7.3f} {row['rot_median_deg']:>8.4f}")
     say("\nmotions by how they were known (docs/method.md 2.4): "
-        + ", ".join(f"{k} {n}" for k, n in kinds.items()))
+        + ", ".join(f"{k} {n}" for k, n in kinds.items())
+        + f"; frames reached over {report['reached_over']} ({len(reached)} motions a part of a flow across them)")
     for rec in report["fallbacks"][:10]:
         say(f"{rec['kind']} {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
     if len(report["fallbacks"]) > 10:

@@ -184,6 +184,7 @@ def _run(args: argparse.Namespace) -> int:
         "uncorrected_frames": sum(r["uncorrected"] for r in records),
         "bordered_frames": stab.render.filler.bordered,  # output pixels no source reached (the renderer's own count)
         "frames_by_motion": {k: n for k in CORRECTION_MOTIONS if (n := sum(r["motion"] == k for r in records))},
+        "frames_reached_over": stab.flow.reached_over,  # their own flow starved: the motion across them split
         "frames": records,
     }
     seqs = [r["seq"] for r in records]
@@ -224,7 +225,8 @@ def _run(args: argparse.Namespace) -> int:
           f"flagged frames: {len(report['flagged_frames'])}, uncorrected frames: {report['uncorrected_frames']}, "
           f"frames with a border: {report['bordered_frames']}")
     print("frames by how their motion was known (docs/method.md 2.4): "
-          + ", ".join(f"{k} {n}" for k, n in report["frames_by_motion"].items()))
+          + ", ".join(f"{k} {n}" for k, n in report["frames_by_motion"].items())
+          + f"; frames reached over (their own flow starved) {report['frames_reached_over']}")
     if "shake" in report:
         a, b = report["shake"]["input"], report["shake"]["stabilized"]
         print(f"high-frequency shake (vs ground truth): rotation {a['rot_deg']:.3f} -> {b['rot_deg']:.4f} deg "

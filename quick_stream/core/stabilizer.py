@@ -26,6 +26,7 @@ from .path.planner import Correction, PathPlanner
 from .release import RenderDriver
 from .release_tags import Tag
 from .render_stage import RenderStage, StabilizedFrame
+from .sceneflow import SceneFlowResult
 from .stages import FlowStage, MotionDriver, MotionStage
 from .timing import StageTimer
 
@@ -67,7 +68,7 @@ class Stabilizer:
             return []
         try:
             t0 = time.perf_counter()
-            flow = self.flow.push(frame)
+            flows = self.flow.push(frame)
             t1 = time.perf_counter()
         except ValueError as e:
             self.bad_frames.append({"seq": frame.seq, "origin": frame.origin, "error": str(e)})
@@ -76,19 +77,26 @@ class Stabilizer:
             self.render_driver.add_frame(frame.seq, frame)
             return []
         self.render_driver.add_frame(frame.seq, frame)
-        if flow is None:
+        if self.flow.began:
             return self._render(self.motion_driver.start(frame.seq))
         self.timer.add("flow", (t1 - t0) * 1e3)
-        out = self.motion_driver.push(flow)
-        if out is None:
-            return []
-        if self.keep_motions:
-            self.motions.extend(out[0])
-        return self._render(out[1])
+        return self._motion(flows)
+
+    def _motion(self, flows: list[SceneFlowResult]) -> list[StabilizedFrame]:
+        out: list[StabilizedFrame] = []
+        for flow in flows:
+            pushed = self.motion_driver.push(flow)
+            if pushed is None:
+                continue
+            if self.keep_motions:
+                self.motions.extend(pushed[0])
+            out += self._render(pushed[1])
+        return out
 
     def finish(self) -> list[StabilizedFrame]:
         """End of stream: close the last segment and render what is left."""
-        frames = self._render(self.motion_driver.finish())
+        frames = self._motion(self.flow.finish())
+        frames += self._render(self.motion_driver.finish())
         self.render_driver.end()
         for _, group in self.render_driver.finish():
             frames += [r.frame for r in group]

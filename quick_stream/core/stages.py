@@ -34,13 +34,14 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from typing import Collection
 
 from .continuity import AheadHold, ContinuityCheck, ContinuityParams, breaks_stream, published_after, restarts_numbering
 from .frame import RGBDFrame
 from .logs import log_or_quiet
 from .motion import KINDS, MotionEstimate, MotionEstimator, MotionParams, invalid_motion
-from .motion.chain import MotionBridge
+from .motion.chain import MotionBridge, split_over
 from .params import check_groups
 from .path.frame_model import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
@@ -54,7 +55,10 @@ class FlowStage:
     """Scene flow between each good frame and the previous one (one instance per stream).
 
     Each frame first passes :class:`~quick_stream.core.continuity.ContinuityCheck` (counted in
-    ``check.counts``); ``notes`` holds what it reported of the last frame pushed.
+    ``check.counts``); ``notes`` holds what it reported of the last frame pushed. A frame whose flow
+    starves (fewer than ``reach_min_pairs`` pairs: smeared by motion blur, blank) is reached over: the
+    flow to the next frame starts from the frame before it, for at most ``reach_over`` frames
+    (docs/method.md 2.4); ``reached_over`` counts them.
     """
 
     def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None) -> None:
@@ -63,9 +67,16 @@ class FlowStage:
         self.notes: list[str] = []
         self._prev: RGBDFrame | None = None
         self._prev_pub: int | None = None  # when the previous good frame was published (None: unknown)
+        self._anchor: RGBDFrame | None = None  # while frames are reached over: the frame before them
+        self._pending: SceneFlowResult | None = None  # ... and the starved flow from it to the newest of them
+        self._from_good = True  # whether the flow into the last frame had pairs enough (a reach may start there)
+        self.reached_over = 0  # frames reached over, over the stage's life
+        self.began = False  # whether the last frame pushed began a chain (the first of a stream)
 
-    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> SceneFlowResult | None:
-        """Add the next frame; returns the flow from the previous good frame to it (None for the first).
+    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> list[SceneFlowResult]:
+        """Add the next frame; returns the flows it completes, in order: none for the first frame of a
+        chain or one reached over, else the flow into it (from the frame before those reached over,
+        naming them in ``over``), after a discontinuity the held starved flow first.
 
         A frame the check refuses (no valid depth, duplicate, out of order) raises
         :class:`~quick_stream.core.continuity.FrameRefused` (a ValueError) and is not used. Across a
@@ -82,15 +93,45 @@ class FlowStage:
         verdict = self.check.inspect(prev, frame, published_after(pub_ns, self._prev_pub), shed=n_shed)
         self.notes = verdict.notes
         self._prev, self._prev_pub = frame, pub_ns
+        self.began = prev is None
         if prev is None:
-            return None
+            return []
         if verdict.brk:
-            return SceneFlowResult.empty(prev, frame, verdict.brk)
-        return self.flow.compute(prev, frame)
+            held = self.finish()
+            self._from_good = True  # the frame after a break starts afresh
+            return held + [SceneFlowResult.empty(prev, frame, verdict.brk)]
+        start = self._anchor or prev
+        flow = self.flow.compute(start, frame)
+        if self._pending is not None:
+            flow = replace(flow, over=(*self._pending.over, self._pending.seq_next))
+        p = self.flow.params
+        starved = len(flow) < p.reach_min_pairs
+        # reach over the frame, unless the reach is spent or the frame it would start from is itself the
+        # starved one (the flow into it starved: reaching past its successor could not help)
+        if starved and len(flow.over) < p.reach_over and (self._pending is not None or self._from_good):
+            self._anchor, self._pending = start, flow
+            self.notes = [*self.notes, f"frame {frame.seq}: its flow from frame {start.seq} starved "
+                                       f"({flow.problem or f'{len(flow)} pairs'}): reached over, the next "
+                                       f"flow starts from frame {start.seq}"]
+            return []
+        self._anchor = self._pending = None
+        self._from_good = not starved
+        self.reached_over += len(flow.over)
+        return [flow]
+
+    def finish(self) -> list[SceneFlowResult]:
+        """The held starved flow, if frames are being reached over (the end of a stream or a break
+        ends the reach): the motion stage bridges it."""
+        held = [] if self._pending is None else [self._pending]
+        self.reached_over += sum(len(f.over) for f in held)
+        self._anchor = self._pending = None
+        self._from_good = not held
+        return held
 
     def restart(self) -> None:
-        """End of stream: the next frame starts a new chain (the counters go on)."""
-        self._prev = self._prev_pub = None
+        """End of stream: the next frame starts a new chain (the counters go on); call :meth:`finish` first."""
+        self._prev = self._prev_pub = self._anchor = self._pending = None
+        self._from_good = True
 
 
 class MotionStage:
@@ -196,14 +237,12 @@ class MotionStage:
             motions.append(gap)
             released.append(self.planner.push(gap))
         t0 = time.perf_counter()
-        m = self.estimator.estimate(flow)
-        if breaks_stream(flow.problem):  # a discontinuity: nothing may be guessed across it (method.md 2.4)
-            self.bridge.reset()
-        else:
-            m = self.bridge.take(m, flow.seq_next - flow.seq)
+        parts = known_motions(flow, self.estimator, self.bridge)
         t1 = time.perf_counter()
-        motions.append(m)
-        released += split_numberings(self.planner.push(m, self.frame_model(flow)))
+        motions += parts
+        for part in parts:  # the crop budget's model of the flow's second frame goes with the last part
+            model = self.frame_model(flow) if part.seq_next == flow.seq_next else None
+            released += split_numberings(self.planner.push(part, model))
         self.timer.add("motion", (t1 - t0) * 1e3)
         self.timer.add("path", (time.perf_counter() - t1) * 1e3)
         self._last = flow.seq_next
@@ -233,6 +272,19 @@ class MotionStage:
         return [b] if b else []
 
 
+def known_motions(flow: SceneFlowResult, estimator: MotionEstimator, bridge: MotionBridge) -> list[MotionEstimate]:
+    """The motions of ``flow`` as the path takes them (docs/method.md 2.4): the estimator's fit, bridged by
+    ``bridge`` when nothing could be fitted (never across a discontinuity), split across the frames the flow
+    reached over (each part remembered by the bridge as a motion of its own)."""
+    m = estimator.estimate(flow)
+    if breaks_stream(flow.problem):  # a discontinuity: nothing may be guessed across it
+        bridge.reset()
+        return [m]
+    if m.valid:
+        return [bridge.take(part, part.seq_next - part.seq) for part in split_over(m, flow.over)]
+    return split_over(bridge.take(m, flow.seq_next - flow.seq), flow.over)
+
+
 def split_numberings(release: list[Correction]) -> list[list[Correction]]:
     """``release`` cut where its seqs go back (a path closed by a renumbering and restarted in the new
     numbering), so no release mixes two numberings."""
@@ -252,30 +304,42 @@ class FlowDriver:
         self.refused = self.empty = 0
         self.taken: int | None = None  # the seq of the frame the last push took (None: it was refused)
 
-    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> SceneFlowResult | None:
-        """The flow from the previous good frame to ``frame`` (:meth:`FlowStage.push`; ``shed``: the
-        frames shed before it); None for the first frame of a stream and for a refused one."""
+    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> list[SceneFlowResult]:
+        """The flows ``frame`` completes (:meth:`FlowStage.push`; ``shed``: the frames shed before it);
+        none for the first frame of a stream, one reached over and a refused one."""
         self.taken = None
         try:
-            flow = self.stage.push(frame, pub_ns, shed)
+            flows = self.stage.push(frame, pub_ns, shed)
         except ValueError as e:
             self.refused += 1
             self.log.log(logging.ERROR, "refused: %s", e)
-            return None
+            return []
         self.taken = frame.seq
         for note in self.stage.notes:
             self.log.log(logging.WARNING, "%s", note)
-        if flow is not None and flow.problem:
-            self.empty += 1
-            self.log.log(logging.WARNING, "flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
-        return flow
+        return self._said(flows)
+
+    def finish(self) -> list[SceneFlowResult]:
+        """The end of a stream: the flow held while frames were reached over (:meth:`FlowStage.finish`)."""
+        return self._said(self.stage.finish())
+
+    def _said(self, flows: list[SceneFlowResult]) -> list[SceneFlowResult]:
+        for flow in flows:
+            if flow.over:
+                self.log.log(logging.WARNING, "flow %d->%d reaches over frame%s %s (their own flow starved)",
+                             flow.seq, flow.seq_next, "s" * (len(flow.over) > 1), ", ".join(map(str, flow.over)))
+            if flow.problem:
+                self.empty += 1
+                self.log.log(logging.WARNING, "flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
+        return flows
 
     def restart(self) -> None:
-        """End of stream: the next frame starts a new chain (the counters go on)."""
+        """End of stream: the next frame starts a new chain (the counters go on); :meth:`finish` first."""
         self.stage.restart()
 
     def stats(self) -> dict[str, int]:
-        return {"refused_frames": self.refused, "empty_flows": self.empty, **self.stage.check.counts}
+        return {"refused_frames": self.refused, "empty_flows": self.empty, "reached_over": self.stage.reached_over,
+                **self.stage.check.counts}
 
 
 class MotionDriver:

@@ -112,15 +112,24 @@ def test_replaying_the_recording_reproduces_the_output(live_run, tmp_path):
 def test_a_tum_folder_streamed_as_jpeg_is_stabilized_as_its_recording_is_offline(tmp_path):
     # the capture streams a TUM folder (its own ``stop`` is not the device's stop event) with the colour as JPEG
     # (the default): the flow service decodes each JPEG's own grey only, the in-process stabilizer reads the
-    # recorded frames with that grey too (mcap source), and the output agrees bit for bit
+    # recorded frames with that grey too (mcap source), and the output agrees bit for bit; frame 12 is one
+    # flat grey (no flow into or out of it): the flow service reaches over it, as the stabilizer does
     from tests.unit.test_cli_motion import write_tum_clip
 
-    write_tum_clip(tmp_path / "clip", n=30)
+    names = [line.split()[1] for line in write_tum_clip(tmp_path / "clip", n=30)]
+    cv2.imwrite(str(tmp_path / "clip" / names[12]), np.full((240, 320, 3), 128, np.uint8))
     out = tmp_path / "up"
     run_up(out, "--source", f"tum:{tmp_path / 'clip'}", "--pace", "fast", "--png", str(out / "png"))
     got, offline = pngs(out / "png"), offline_images(f"mcap:{out / 'recording.mcap'}")
     assert sorted(got) == sorted(offline) == list(range(30))
     assert [s for s in offline if not np.array_equal(got[s], offline[s])] == []
+    recorded = [decode(data) for _, _, data in read_messages(out / "recording.mcap",
+                                                              ["quick/@v1/cam0/flow", "quick/@v1/cam0/motion"])]
+    flows = [d.obj for d in recorded if d.type == "flow"]
+    assert [(f.seq, f.seq_next, f.over) for f in flows if f.over] == [(11, 13, (12,))]
+    motions = [d.obj for d in recorded if d.type == "motion"]
+    assert [(m.seq, m.seq_next) for m in motions] == [(s, s + 1) for s in range(29)]
+    assert all(m.kind == "fit" for m in motions)
 
 
 def test_recording_has_every_stage_and_valid_foxglove_channels(live_run):

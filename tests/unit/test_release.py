@@ -115,7 +115,7 @@ def test_a_restarted_render_skips_what_its_predecessor_rendered(frames):
 
 def test_the_motion_driver_takes_over_tags_releases_and_carries_counters_over_streams(frames):
     flow = FlowStage()
-    flows = [x for f in frames[:20] if (x := flow.push(f)) is not None]
+    flows = [x for f in frames[:20] for x in flow.push(f)]
     d = MotionDriver(resume_after=5)
     outs = [d.push(x) for x in flows]
     assert outs[:6] == [None] * 6 and d.stats()["taken_over"] == 6  # flows 0->1 .. 5->6: corrected before

@@ -82,15 +82,13 @@ def make_recording(path: Path) -> dict[str, int]:
         last = frame.seq
         if frame.seq == SKIPPED:
             continue
-        result = flow.push(frame)
-        if result is None:
-            continue
-        fdata = encode_flow(result, STREAM)
-        log.put("flow", fdata)
-        motions, batches = motion.push(decode(fdata).obj)
-        for m in motions:
-            log.put("motion", encode_motion(m, STREAM))
-        publish_batches(batches, result.seq_next)
+        for result in flow.push(frame):
+            fdata = encode_flow(result, STREAM)
+            log.put("flow", fdata)
+            motions, batches = motion.push(decode(fdata).obj)
+            for m in motions:
+                log.put("motion", encode_motion(m, STREAM))
+            publish_batches(batches, result.seq_next)
     end = encode_end(EndOfStream(last, "source exhausted"), STREAM)
     log.put("frame", end)
     log.put("flow", end)

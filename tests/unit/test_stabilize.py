@@ -55,28 +55,31 @@ def test_auto_framing_keeps_borders_out():
         assert np.mean(edges.max(axis=1) == 0) < 0.01, f.seq
 
 
-@pytest.mark.parametrize("bridge", [3, 0])
-def test_textureless_frame_falls_back_visibly(bridge):
-    """A black frame leaves two flows with nothing in them (docs/method.md 2.4): bridged at constant
-    velocity (or, with no bridge, a restart at each), corrected and named, not flagged, not snapped back."""
+@pytest.mark.parametrize("bridge,reach", [(3, 2), (3, 0), (0, 0)])
+def test_textureless_frame_falls_back_visibly(bridge, reach):
+    """A black frame leaves two flows with nothing in them (docs/method.md 2.4): reached over (the flow from
+    the frame before it to the frame after it, split across it), or with no reach bridged at constant
+    velocity, or with no bridge either, a restart at each; corrected and named, not flagged, not snapped back."""
     frames = list(SyntheticSource(width=320, height=240, frames=50, seed=2))
     frames[20] = frames[20].with_(color=np.zeros_like(frames[20].color))  # black frame: no flow
     frames[30] = BadFrame(30, frames[30].timestamp_ns, "synthetic", "unreadable")
     params = StabilizerParams()
     params.motion.bridge_frames = bridge
+    params.flow.reach_over = reach
     st, out = stabilize(frames, params)
     seqs = [f.seq for f in out]
     assert seqs == [s for s in range(50) if s != 30]
     by_seq = {f.seq: f for f in out}
-    kind = "bridge" if bridge else "restart"
+    kind = "fit" if reach else "bridge" if bridge else "restart"
     for s in (20, 21):
         c = by_seq[s].correction
-        assert c.valid and c.motion == kind and "contrast" in c.reason, (c.motion, c.reason)
+        assert c.valid and c.motion == kind and (reach or "contrast" in c.reason), (c.motion, c.reason)
         assert not np.array_equal(c.matrix, np.eye(4))  # corrected, not left as it came
     assert st.bad_frames == [{"seq": 30, "origin": "synthetic", "error": "unreadable"}]
     assert not any(f.flags for f in out)
     assert {f.correction.motion for f in out if f.seq not in (20, 21)} <= {"fit", "start"}
-    assert st.motion.bridge.bridges == (2 if bridge else 0)
+    assert st.motion.bridge.bridges == (2 if bridge and not reach else 0)
+    assert st.flow.reached_over == (1 if reach else 0)
 
 
 def test_stabilize_command_writes_video_report_and_plot(tmp_path, capsys):

@@ -19,8 +19,8 @@ def frames():
 
 def test_flow_stage_refuses_frames_out_of_order(frames):
     st = FlowStage()
-    assert st.push(frames[3]) is None
-    assert st.push(frames[4]).seq_next == 4
+    assert st.push(frames[3]) == []
+    assert [f.seq_next for f in st.push(frames[4])] == [4]
     with pytest.raises(ValueError, match="not after"):
         st.push(frames[2])
 
@@ -36,11 +36,10 @@ def run_with_gap(frames, skip: range, restart: bool):
             continue
         if restart and f.seq == skip.stop:
             flow = FlowStage()  # the restarted service starts over
-        fl = flow.push(f)
-        if fl is None:
-            batches = [] if motion.started else [motion.start(f.seq)]
-        else:
-            _, batches = motion.push(fl)
+        fls = flow.push(f)
+        batches = [] if motion.started or not flow.began else [motion.start(f.seq)]
+        for fl in fls:
+            batches += motion.push(fl)[1]
         for b in batches:
             out += list(render.iter_release(b))
     for b in motion.finish():
@@ -88,7 +87,7 @@ def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, br
     out, batches = [], [motion.start(sent[0].seq)]
     for f in sent:
         render.add_frame(f.seq, f)
-        if (fl := flow.push(f)) is not None:
+        for fl in flow.push(f):
             batches += motion.push(fl)[1]
     batches += motion.finish()
     for b in batches:
@@ -103,7 +102,7 @@ def test_frames_shed_at_the_capture_of_a_fast_camera_are_bridged_by_time(fps, br
 def test_motion_stage_refuses_staleflows_of(frames):
     flow, motion = FlowStage(), MotionStage()
     flow.push(frames[0])
-    f01 = flow.push(frames[1])
+    [f01] = flow.push(frames[1])
     motion.push(f01)
     with pytest.raises(ValueError, match="stale or duplicate"):
         motion.push(f01)
@@ -139,7 +138,7 @@ def test_frames_shed_by_flow_are_bridged_named_on_the_next_correction_and_not_co
     flow.push(frames[0])
     named = {}
     for seq, shed in ((3, (1, 2)), (6, (5,)), (7, ())):
-        fl = flow.push(frames[seq], shed=shed)
+        [fl] = flow.push(frames[seq], shed=shed)
         assert fl.problem == ""
         for c, _ in motion.push(fl, shed)[1]:
             named[c.seq] = c.shed
@@ -219,13 +218,13 @@ def test_flow_refuses_one_far_future_frame_and_breaks_at_a_confirmed_renumbering
     st.push(frames[0])
     with pytest.raises(FrameRefused, match="frames ahead of frame 0"):
         st.push(frames[1].with_(seq=10**12))
-    f = st.push(frames[1])  # the stream goes on from frame 0
+    [f] = st.push(frames[1])  # the stream goes on from frame 0
     assert (f.seq, f.seq_next, f.problem) == (0, 1, "")
     renumbered = [frames[2 + i].with_(seq=7000 + i) for i in range(5)]
     for fr in renumbered[:4]:
         with pytest.raises(FrameRefused, match="ahead"):
             st.push(fr)
-    f = st.push(renumbered[4])  # the fifth in a row: a discontinuity, the path restarts there
+    [f] = st.push(renumbered[4])  # the fifth in a row: a discontinuity, the path restarts there
     assert (f.seq, f.seq_next) == (1, 7004) and "missing" in f.problem
     assert st.check.counts["seq_jumps"] == 5
 

@@ -16,8 +16,10 @@ from collections import deque
 from dataclasses import replace
 
 import numpy as np
+import scipy.linalg
 
 from ..lie import get_group
+from ..lie.expm import expm
 from . import UNKNOWN_VARIANCE, MotionEstimate
 
 RECENT = 5  # the bridge's velocity: the mean twist of this many last known motions
@@ -75,3 +77,31 @@ def bridge_covariance(recent: list[MotionEstimate], steps: int, bridged: int) ->
     tw = np.array([r.twist for r in recent])
     spread = np.maximum(np.var(tw, axis=0), np.mean(tw, axis=0) ** 2) if len(recent) > 1 else tw[0] ** 2
     return base * steps ** 2 + np.diag(np.maximum(spread, 1e-8)) * float(bridged) * steps
+
+
+def split_over(m: MotionEstimate, over: tuple[int, ...]) -> list[MotionEstimate]:
+    """``m`` (frame ``seq`` to ``seq_next``) cut at the frames ``over`` that the flow stage reached over
+    (docs/method.md 2.4): at constant velocity, the part over a fraction a of its frame steps m^a =
+    expm(a logm(m)) with covariance a Sigma, so the parts compose to ``m`` and their covariances sum to its
+    own; an invalid ``m`` into invalid parts (each frame then restarts the path, as its own flow would
+    have). Without ``over``, [m]."""
+    if not over:
+        return [m]
+    cuts = [m.seq, *over, m.seq_next]
+    steps = m.seq_next - m.seq
+    g = get_group(m.group)
+    generator = np.real(scipy.linalg.logm(m.matrix)) if m.valid else None  # m = expm(generator): the
+    # one-parameter subgroup through m, along which the parts compose to m exactly
+    parts = []
+    for a, b in zip(cuts, cuts[1:]):
+        why = (f"{m.reason}; " if m.reason else "") + (
+            f"split at constant velocity across frame{'s' * (len(over) > 1)} {', '.join(map(str, over))} "
+            f"(reached over: their own flow starved)")
+        if not m.valid:
+            parts.append(replace(m, seq=a, seq_next=b, reason=why))
+            continue
+        frac = (b - a) / steps
+        mat = g.project(expm(generator * frac))
+        parts.append(replace(m, seq=a, seq_next=b, matrix=mat, twist=g.log(mat), zeta_bar=g.log(g.inverse(mat)),
+                             covariance=None if m.covariance is None else m.covariance * frac, reason=why))
+    return parts

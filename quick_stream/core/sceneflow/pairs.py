@@ -17,7 +17,9 @@ class SceneFlowResult:
 
     ``pixels`` are the sampled pixel positions in frame t and ``pixels_next`` where
     the flow puts them in frame t+1 (full-resolution coordinates). ``counts``
-    reports how many samples each mask removed.
+    reports how many samples each mask removed. ``over``: the frames between ``seq`` and ``seq_next``
+    the flow stage reached over (their own flow starved, docs/method.md 2.4): they were not skipped, the
+    motion is split across them.
     """
 
     seq: int
@@ -31,6 +33,7 @@ class SceneFlowResult:
     intrinsics_next: Intrinsics
     counts: dict[str, int] = field(default_factory=dict)
     problem: str = ""  # why the pair gave no usable flow (empty when it did)
+    over: tuple[int, ...] = ()  # frames reached over, increasing, strictly between seq and seq_next
 
     def __len__(self) -> int:
         return len(self.points)
@@ -41,7 +44,7 @@ class SceneFlowResult:
             self.seq, self.seq_next, self.points[keep], self.displacements[keep], self.weights[keep],
             self.pixels[keep], self.pixels_next[keep], self.intrinsics, self.intrinsics_next,
             dict(self.counts, kept=int(np.count_nonzero(keep) if np.asarray(keep).dtype == bool else len(keep))),
-            self.problem,
+            self.problem, self.over,
         )
 
     @classmethod

@@ -43,6 +43,10 @@ class SceneFlowParams:
     lk_eps_px: float = 0.03  # LK stops once an iteration moves the sample less than this (px)
     lk_max_shift_px: float = 2.0  # LK moving a sample further than this from DIS: sample dropped
     lk_budget: float = 1.25  # LK refines at most lk_budget x max_points samples, evenly spaced (0: all)
+    reach_over: int = 2  # a frame whose flow has fewer than reach_min_pairs pairs (smeared, blank) is reached
+    # over: the next frames' flow starts from the frame before it, for at most this many frames (0: off;
+    # docs/method.md 2.4, the flow stage's FlowStage)
+    reach_min_pairs: int = 8  # ... fewer pairs than this: a flow the motion could fit nothing to (its min_rotation_points)
 
     def validate(self) -> None:
         if self.preset not in DIS_PRESETS:
@@ -66,6 +70,9 @@ class SceneFlowParams:
             raise ValueError(f"sceneflow refine must be 'lk' or 'none', got {self.refine!r}")
         if self.lk_window < 3 or self.lk_window % 2 == 0 or self.lk_iters < 1 or not self.lk_max_shift_px > 0:
             raise ValueError("sceneflow lk_window must be odd >= 3, lk_iters >= 1 and lk_max_shift_px > 0")
+        if self.reach_over < 0 or self.reach_min_pairs < 1:
+            raise ValueError(f"sceneflow reach_over must be >= 0 and reach_min_pairs >= 1, got {self.reach_over}, "
+                             f"{self.reach_min_pairs}")
         if not 0 < self.lk_eps_px <= 1:
             raise ValueError(f"sceneflow lk_eps_px must be in (0, 1] px, got {self.lk_eps_px}")
 

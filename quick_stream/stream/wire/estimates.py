@@ -11,7 +11,7 @@ from ...core.path.planner import CORRECTION_MOTIONS, Correction
 from ...core.release_tags import Tag
 from ...core.sceneflow import SceneFlowResult
 from . import ranges
-from .codec import Reader, WireError, encode_array, float_list, pack, seq_list
+from .codec import MAX_SEQ_LIST, Reader, WireError, encode_array, float_list, pack, seq_list
 from .fields import Decoded, intrinsics_fields, read_intrinsics, text
 from .flowpack import compact_fields, decode_compact
 
@@ -42,6 +42,8 @@ def encode_flow(flow: SceneFlowResult, stream: str, shed: Any = ()) -> bytes:
     f["intrinsics_next"] = intrinsics_fields(flow.intrinsics_next)
     f["counts"] = {str(k): int(v) for k, v in flow.counts.items()}
     f["problem"] = text("problem", flow.problem)
+    if flow.over:
+        f["over"] = over_list(flow, stream)
     return pack(f, "flow", stream, flow.seq, version=1 if compact is None else 2)
 
 
@@ -67,9 +69,31 @@ def _decode_flow(r: Reader) -> Decoded:
     seq_next = r.int("seq_next", min=0)
     flow = SceneFlowResult(
         r.seq, seq_next, arrays["points"], arrays["displacements"], arrays["weights"],
-        arrays["pixels"], arrays["pixels_next"], K0, K1, counts, r.str("problem"),
+        arrays["pixels"], arrays["pixels_next"], K0, K1, counts, r.str("problem"), read_over(r, seq_next),
     )
     return Decoded("flow", flow, r.stream, r.seq, version=r.version, shed=r.seqs("shed", max(r.seq, seq_next)))
+
+
+def over_list(flow: SceneFlowResult, stream: str) -> list[int]:
+    """A flow's ``over`` for the wire: increasing frame seqs strictly between its ``seq`` and ``seq_next``."""
+    out = [int(x) for x in flow.over]
+    if not _between(out, int(flow.seq), int(flow.seq_next)):
+        raise WireError(f"expected increasing frame seqs strictly between {flow.seq} and {flow.seq_next}, got "
+                        f"{out[:5]}", field="over", stream=stream, seq=flow.seq)
+    return out
+
+
+def read_over(r: Reader, seq_next: int) -> tuple[int, ...]:
+    """A flow's ``over`` (() when absent), checked as :func:`over_list` writes it."""
+    over = r.seqs("over", max(r.seq, seq_next))
+    if not _between(list(over), r.seq, seq_next):
+        raise r.error("over", f"expected increasing frame seqs strictly between {r.seq} and {seq_next}, got "
+                              f"{list(over[:5])!r}")
+    return over
+
+
+def _between(seqs: list[int], lo: int, hi: int) -> bool:
+    return len(seqs) <= MAX_SEQ_LIST and all(lo < a < b for a, b in zip(seqs, seqs[1:] + [hi]))
 
 
 # --- motion -------------------------------------------------------------------------------------
