@@ -149,13 +149,14 @@ def run_vidstab(frames: list[np.ndarray], window: int = VIDSTAB_WINDOW) -> PeerR
 
 
 def run_vidgear(frames: list[np.ndarray], radius: int = VIDGEAR_RADIUS) -> PeerRun:
-    """vidgear ``Stabilizer()`` (ASW) on every frame with its defaults, aligned (module docstring)."""
+    """vidgear ``Stabilizer(smoothing_radius=radius)`` (ASW) on every frame, its other settings the defaults,
+    aligned (module docstring; ``radius`` 25 is its default)."""
     if not frames:
         return PeerRun([], 0.0, 0)
     Stabilizer = import_vidgear_stabilizer()
     n = len(frames)
     t0 = time.perf_counter()
-    stab = Stabilizer()
+    stab = Stabilizer(smoothing_radius=radius)
     out: list[np.ndarray] = []
     fed = [frames[0], *frames, *([frames[-1]] * (radius - 1))]
     for f in fed:

@@ -62,7 +62,7 @@ from ..core.stabilizer import Stabilizer
 from ..io.sources import SourceError
 from ..io.sources.tum import TumSource
 from ..quality.evaluate import run_timed
-from . import ffmpeg_baselines, peers
+from . import ffmpeg_baselines, latency_curve, peers
 from .degrade_clips import DEFAULT_TOOL as DEFAULT_DEGRADE_TOOL, DegradeCell
 from .quality_clips import DEFAULT_REAL, Clip, ShakeClip, default_shake_clips, load_frames, prepare_clips
 from .quality_peers import peer_rows
@@ -92,6 +92,7 @@ class QualityConfig:
     variants: list[Variant] = field(default_factory=list)
     baselines: bool = True  # FFmpeg, vidstab, vidgear, LK moving average
     notes: list[str] = field(default_factory=list)  # e.g. default clips skipped (no folder)
+    lookaheads: list[float] = field(default_factory=list)  # s: the latency curve's points (none: no curve)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -144,7 +145,8 @@ def run_ours(folder: Path, variant: Variant, frames: int | None, inputs: dict[in
     row: dict = scorer.result() if scorer is not None else {}
     row.update(status="ok", ms_per_frame=1e3 * t / max(n_in, 1), seconds=t, frames_in=n_in,
                frames_out=len(corrections), flagged_frames=flagged, bad_frames=len(st.bad_frames),
-               segments=st.planner.segment_count, renderer_bordered=st.render.filler.bordered, **counts.as_dict())
+               segments=st.planner.segment_count, renderer_bordered=st.render.filler.bordered,
+               reached_over=st.flow.reached_over, **counts.as_dict())
     if inputs is not None and len(corrections) != len(inputs):
         row["notes"] = [f"{len(corrections)} output frames for {len(inputs)} readable inputs"]
     return row, corrections
@@ -195,13 +197,17 @@ def run_clip(clip: Clip, cfg: QualityConfig, progress: Progress | None = None) -
             shake_scores[label] = {"without_reference": plain, "with_reference": with_ref,
                                    "corrections": str(est), "reference_corrections": str(ref),
                                    "reference_run": {k: ref_row[k] for k in ("frames_out", "uncorrected",
-                                                                             "motion_kinds")}}
+                                                                             "motion_kinds", "reached_over")}}
         except (RuntimeError, ValueError, OSError) as e:
             shake_scores[label] = {"error": str(e)}
     if cfg.baselines:
         rows, commands = peer_rows(images, fps, Path(cfg.work) / "ffmpeg" / clip.name, say)
         out["methods"].update(rows)
         out["ffmpeg_commands"] = commands
+    if cfg.lookaheads and (clip.cell is None or clip.cell.is_clean):  # the curve: real and known-shake clips
+        out["latency_curve"] = latency_curve.curve(
+            images, fps, cfg.lookaheads, lambda v: run_ours(clip.folder, v, cfg.frames, inputs, fps)[0],
+            Path(cfg.work) / "ffmpeg" / clip.name / "latency", cfg.baselines, say)
     say("input (unstabilized)")
     row = score_frames(images, images, fps)
     row.update(status="ok", ms_per_frame=0.0)
@@ -258,6 +264,11 @@ def run(cfg: QualityConfig, progress: Progress | None = None) -> dict:
         r["clips"].append(run_clip(clip, cfg, progress))
     if any(c.cell is not None and not c.cell.is_clean for c in clips):
         r["robustness"] = robustness_rows(r)
+    if cfg.lookaheads:
+        r["settings"]["lookaheads_s"] = list(cfg.lookaheads)
+        plot = Path(cfg.work) / "latency_curve.png"
+        latency_curve.plot(r["clips"], plot)
+        r["latency_plot"] = str(plot)
     r["seconds"] = time.time() - started
     return r
 

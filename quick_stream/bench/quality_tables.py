@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .latency_curve import format_curve
+
 from .quality_robustness import AXES, format_robustness
 
 COLUMNS = (("jitter_px", "jitter px", "{:10.3f}"), ("jitter_deg", "jitter deg", "{:10.4f}"),
@@ -32,7 +34,7 @@ def motion_lines(methods: dict) -> list[str]:
         kinds = m.get("motion_kinds")
         if m.get("status") == "ok" and kinds is not None:
             out.append(f"  {name}: frames by motion: " + ", ".join(f"{k} {n}" for k, n in kinds.items())
-                       + f"; not corrected {m.get('uncorrected', 0)}")
+                       + f"; reached over {m.get('reached_over', 0)}; not corrected {m.get('uncorrected', 0)}")
     return out
 
 
@@ -72,7 +74,7 @@ def format_clip(c: dict) -> str:
             if run:
                 lines.append(f"  {name} on the unshaken reference: frames by motion: "
                              + ", ".join(f"{k} {n}" for k, n in run["motion_kinds"].items())
-                             + f"; not corrected {run['uncorrected']}")
+                             + f"; reached over {run.get('reached_over', 0)}; not corrected {run['uncorrected']}")
             for key in ("without_reference", "with_reference"):
                 if "warning" in s[key]:
                     lines.append(f"  {name} ({key.replace('_', ' ')}): WARNING {s[key]['warning']}")
@@ -87,6 +89,9 @@ def format_tables(r: dict) -> str:
     out = [format_clip(c) for c in r["clips"]]
     if r.get("robustness"):
         out.append(format_robustness(r["robustness"]))
+    out += ["\n".join(format_curve(c["name"], c["latency_curve"])) for c in r["clips"] if c.get("latency_curve")]
+    if r.get("latency_plot"):
+        out.append(f"latency curve plot: {r['latency_plot']}")
     out += [f"note: {n}" for n in r.get("settings", {}).get("notes", [])]
     v = r["versions"]
     out.append("versions: " + ", ".join(f"{k} {v[k]}" for k in ("ffmpeg", "vidstab", "vidgear", "opencv") if v.get(k)))

@@ -103,8 +103,24 @@ def add_arguments(q: argparse.ArgumentParser) -> None:
                    help="skip the peers (FFmpeg, vidstab, vidgear, LK moving average) and ours 'bordered' (ours leaving "
                         "black borders as those peers mostly do, run with them to compare like for like): ours and "
                         "the input only")
+    q.add_argument("--latency-curve", nargs="?", const=_lookaheads(DEFAULT_LOOKAHEADS), default=None,
+                   type=at.checked(_lookaheads, "latency-curve"), metavar="S,S,...",
+                   help="also the quality-against-latency curve on the real and known-shake clips: ours at each "
+                   "look-ahead (seconds; its keyframe interval that many frames) and the latency presets, against "
+                   "each online peer set to look as many frames ahead; a table per clip and a plot WORK/"
+                   "latency_curve.png (default look-aheads: " + DEFAULT_LOOKAHEADS + ")")
     add_json(q, "everything (settings, commands, versions, per-clip metrics, the robustness grid)")
     at.add_force(q)
+
+
+DEFAULT_LOOKAHEADS = "0.1,0.2,0.333,0.5,1"
+
+
+def _lookaheads(text: str) -> list[float]:
+    vals = [float(v) for v in text.split(",") if v.strip()]
+    if not vals or not all(0 < v <= 10 for v in vals):
+        raise ValueError(f"expected look-aheads in seconds, each in (0, 10], comma-separated; got {text!r}")
+    return vals
 
 
 def _error(msg: str) -> int:
@@ -159,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = quality.QualityConfig(data=args.data, frames=args.frames, real=real, clips=shakes,
                                 shake_tool=args.shake_tool, degrade=cells, degrade_tool=args.degrade_tool,
                                 work=Path(args.work), variants=variant_list, baselines=not args.no_baselines,
-                                notes=notes)
+                                notes=notes, lookaheads=args.latency_curve or [])
     r = quality.run(cfg, quality.progress_to_stderr())
     print(quality_tables.format_tables(r), file=text_out(args))
     if args.json:

@@ -58,3 +58,49 @@ def plot_paths(series: dict[str, np.ndarray], fps: float, path: str, width: int 
     if not ok:
         raise OSError(f"cannot encode plot {path}")
     write_file(path, png.tobytes())
+
+
+PALETTE = [(40, 40, 200), (200, 120, 30), (40, 160, 40), (160, 60, 160), (30, 160, 200), (120, 120, 120)]  # BGR
+
+
+def plot_xy(panels: list[tuple[str, dict[str, tuple[np.ndarray, np.ndarray]]]], path: str, width: int = 900,
+            row_height: int = 220) -> None:
+    """One row per panel (title, {series: (xs, ys)}), a line with point markers per series, the same colour
+    for a series name in every panel, its legend in the panel; x and y ranges per panel."""
+    names = list(dict.fromkeys(n for _, series in panels for n in series))
+    colour = {n: PALETTE[i % len(PALETTE)] for i, n in enumerate(names)}
+    margin_l, margin_r, margin_t = 80, 20, 10
+    H = margin_t + row_height * len(panels) + 10
+    img = np.full((H, width, 3), 255, np.uint8)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for r, (title, series) in enumerate(panels):
+        top = margin_t + r * row_height
+        x0, x1, y0, y1 = margin_l, width - margin_r, top + 30, top + row_height - 30
+        cv2.putText(img, title, (x0, top + 20), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.rectangle(img, (x0, y0), (x1, y1), (200, 200, 200), 1)
+        if not series:
+            continue
+        xs_all = np.concatenate([np.asarray(x, float) for x, _ in series.values()])
+        ys_all = np.concatenate([np.asarray(y, float) for _, y in series.values()])
+        xlo, xhi = float(xs_all.min()), float(xs_all.max())
+        ylo, yhi = 0.0, float(ys_all.max()) * 1.05
+        xhi, yhi = (xhi if xhi > xlo else xlo + 1), (yhi if yhi > ylo else ylo + 1)
+        for v, y in ((ylo, y1), (yhi, y0)):
+            cv2.putText(img, f"{v:.3g}", (8, y + 4), font, 0.4, (90, 90, 90), 1, cv2.LINE_AA)
+        for xv in np.unique(xs_all):
+            px = int(round(x0 + (xv - xlo) / (xhi - xlo) * (x1 - x0)))
+            cv2.putText(img, f"{xv:.2f}", (px - 14, y1 + 16), font, 0.4, (90, 90, 90), 1, cv2.LINE_AA)
+        for i, (name, (x, y)) in enumerate(series.items()):
+            pts = np.column_stack([x0 + (np.asarray(x, float) - xlo) / (xhi - xlo) * (x1 - x0),
+                                   y1 - (np.asarray(y, float) - ylo) / (yhi - ylo) * (y1 - y0)]).round().astype(np.int32)
+            col = colour[name]
+            cv2.polylines(img, [pts], False, col, 2 if name == "ours" else 1, cv2.LINE_AA)
+            for p in pts:
+                cv2.circle(img, (int(p[0]), int(p[1])), 3, col, -1, cv2.LINE_AA)
+            lx, ly = x1 - 200, y0 + 14 + 15 * i
+            cv2.line(img, (lx, ly - 4), (lx + 20, ly - 4), col, 2)
+            cv2.putText(img, name, (lx + 26, ly), font, 0.4, col, 1, cv2.LINE_AA)
+    ok, png = cv2.imencode(Path(path).suffix or ".png", img)
+    if not ok:
+        raise OSError(f"cannot encode plot {path}")
+    write_file(path, png.tobytes())
