@@ -6,7 +6,7 @@ a frame that arrives beyond the pace at which flow, the motion stage and the sta
 up (while no capture of ours is up: it paces or sheds itself), one taken from the inbox with more than ``--queue`` frames (default 30) waiting behind it, or one
 the inbox (twice ``--queue``) drops for room is shed (``shed``; the next flow spans the gap) and
 named in the next flow's ``shed`` (or the ``end``'s), so that motion and render let it go too. It runs
-:class:`quick_stream.core.stages.FlowDriver` and publishes each pair's ``flow`` message (lossless: the motion stage needs every pair it can
+:class:`quick_stream.core.flow_stage.FlowDriver` and publishes each pair's ``flow`` message (lossless: the motion stage needs every pair it can
 get; a receiver whose link dropped flows fetches them back from the publisher's
 cache, and no subscriber can make the put wait). Undecodable or out-of-order frames
 are logged and counted; a stream whose numbering restarts lower is followed once a
@@ -24,7 +24,7 @@ import zenoh
 
 from quick_stream.core.admission import MAX_NAMED, FlowAdmission, split_named
 from quick_stream.core.settings import settings_digest
-from quick_stream.core.stages import FlowDriver
+from quick_stream.core.flow_stage import FlowDriver
 from quick_stream.stream import argtypes as at, keys
 from quick_stream.stream.gate import FrameGate
 from quick_stream.stream.meters import RateMeter

@@ -39,7 +39,7 @@ def stabilize(frames, params=None) -> tuple[Stabilizer, list]:
 def flows_of(frames: list) -> list:
     """The flows a flow stage makes of ``frames``, the frames it refuses skipped."""
     from quick_stream.core.continuity import FrameRefused
-    from quick_stream.core.stages import FlowStage
+    from quick_stream.core.flow_stage import FlowStage
 
     st, out = FlowStage(), []
     for f in frames:

@@ -32,7 +32,8 @@ from ..core.lie import get_group
 from ..core.motion import MotionEstimate
 from ..core.motion.chain import split_over
 from ..core.stabilizer import Stabilizer, StabilizerParams
-from ..core.stages import FlowStage, MotionStage
+from ..core.flow_stage import FlowStage
+from ..core.stages import MotionStage
 from ..io.sources.tum import TumSource
 from .quality_clips import source_folder
 from .variants import parse_settings

@@ -1,6 +1,6 @@
 """In-process motion pipeline: source -> scene flow -> motion -> camera path.
 
-The same per-stage objects (:class:`~quick_stream.core.stages.FlowStage`,
+The same per-stage objects (:class:`~quick_stream.core.flow_stage.FlowStage`,
 :class:`~quick_stream.core.motion.MotionEstimator` through the motion stage's
 :func:`~quick_stream.core.stages.known_motions`) are what the streaming services
 call; this module only chains them and keeps books (timings, failures, the ground-truth
@@ -28,7 +28,8 @@ from .motion import MotionEstimate, MotionEstimator, MotionParams
 from .continuity import FrameRefused
 from .motion.chain import MotionBridge
 from .sceneflow import SceneFlowParams, SceneFlowResult
-from .stages import FlowStage, known_motions
+from .flow_stage import FlowStage
+from .stages import known_motions
 from .timing import StageTimer, timed_iter
 
 
@@ -51,7 +52,7 @@ class PairRecord:
 
 class MotionPipeline:
     """Scene flow + motion over a stream of frames (one instance per stream): the flow stage's
-    :class:`~quick_stream.core.stages.FlowStage` (its continuity check, frames reached over) and the
+    :class:`~quick_stream.core.flow_stage.FlowStage` (its continuity check, frames reached over) and the
     motion stage's :func:`~quick_stream.core.stages.known_motions`, without the path."""
 
     def __init__(self, flow_params: SceneFlowParams | None = None, motion_params: MotionParams | None = None):

@@ -27,7 +27,8 @@ from .release import RenderDriver
 from .release_tags import Tag
 from .render_stage import RenderStage, StabilizedFrame
 from .sceneflow import SceneFlowResult
-from .stages import FlowStage, MotionDriver, MotionStage
+from .flow_stage import FlowStage
+from .stages import MotionDriver, MotionStage
 from .timing import StageTimer
 
 __all__ = ["Stabilizer", "StabilizerParams", "StabilizedFrame"]

@@ -1,6 +1,6 @@
 """The pipeline's three stateful stages, shared by the in-process stabilizer and the services.
 
-    frames -> FlowStage -> SceneFlowResult -> MotionStage -> MotionEstimate + releases
+    frames -> FlowStage -> SceneFlowResult -> MotionStage -> MotionEstimate + releases   (FlowStage: flow_stage.py)
     frames + releases -> RenderStage -> StabilizedFrame   (quick_stream/core/render_stage.py)
 
 :class:`~quick_stream.core.stabilizer.Stabilizer` chains them in one process; the
@@ -15,7 +15,7 @@ the restart frame). The renderer frames each release as a whole (one zoom track,
 :func:`~quick_stream.core.render.segment_zooms`), so the releases travel as releases: tagged as
 releases (:mod:`quick_stream.core.release`).
 
-:class:`FlowDriver` and :class:`MotionDriver` are the flow and motion stages over a service's life
+:class:`~quick_stream.core.flow_stage.FlowDriver` and :class:`MotionDriver` are the flow and motion stages over a service's life
 (what each refuses, counted and reported; taking over after a restarted service's predecessor; one
 stream after another, the counters going on); the services, the in-process
 :class:`~quick_stream.core.stabilizer.Stabilizer` and ``quick-stream rerun`` run them
@@ -34,11 +34,9 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
 from typing import Collection
 
-from .continuity import AheadHold, ContinuityCheck, ContinuityParams, breaks_stream, published_after, restarts_numbering
-from .frame import RGBDFrame
+from .continuity import AheadHold, breaks_stream, restarts_numbering
 from .logs import log_or_quiet
 from .motion import KINDS, MotionEstimate, MotionEstimator, MotionParams, invalid_motion
 from .motion.chain import MotionBridge, split_over
@@ -47,91 +45,8 @@ from .path.frame_model import FrameModel
 from .path.planner import Correction, PathPlanner, PlannerParams
 from .release_tags import ReleaseNumbering, Tag
 from .render.warp import WarpParams
-from .sceneflow import SceneFlow, SceneFlowParams, SceneFlowResult
+from .sceneflow import SceneFlowResult
 from .timing import StageTimer
-
-
-class FlowStage:
-    """Scene flow between each good frame and the previous one (one instance per stream).
-
-    Each frame first passes :class:`~quick_stream.core.continuity.ContinuityCheck` (counted in
-    ``check.counts``); ``notes`` holds what it reported of the last frame pushed. A frame whose flow
-    starves (fewer than ``reach_min_pairs`` pairs: smeared by motion blur, blank) is reached over: the
-    flow to the next frame starts from the frame before it, for at most ``reach_over`` frames
-    (docs/method.md 2.4); ``reached_over`` counts them.
-    """
-
-    def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None) -> None:
-        self.flow = SceneFlow(params)
-        self.check = ContinuityCheck(continuity)
-        self.notes: list[str] = []
-        self._prev: RGBDFrame | None = None
-        self._prev_pub: int | None = None  # when the previous good frame was published (None: unknown)
-        self._anchor: RGBDFrame | None = None  # while frames are reached over: the frame before them
-        self._pending: SceneFlowResult | None = None  # ... and the starved flow from it to the newest of them
-        self._from_good = True  # whether the flow into the last frame had pairs enough (a reach may start there)
-        self.reached_over = 0  # frames reached over, over the stage's life
-        self.began = False  # whether the last frame pushed began a chain (the first of a stream)
-
-    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> list[SceneFlowResult]:
-        """Add the next frame; returns the flows it completes, in order: none for the first frame of a
-        chain or one reached over, else the flow into it (from the frame before those reached over,
-        naming them in ``over``), after a discontinuity the held starved flow first.
-
-        A frame the check refuses (no valid depth, duplicate, out of order) raises
-        :class:`~quick_stream.core.continuity.FrameRefused` (a ValueError) and is not used. Across a
-        discontinuity (too many missing frames, a timestamp jump, a size change, a confirmed
-        renumbering: the flow then goes back, ``seq_next < seq``) the flow is empty and its
-        ``problem`` names the discontinuity, so the path restarts there. ``pub_ns``: when the frame
-        was published (a frame message's ``pub_ns``), so a history replay of older frames never
-        passes for a new numbering (:func:`~quick_stream.core.continuity.published_after`). ``shed``:
-        frames this stage shed (:mod:`~quick_stream.core.admission`); those between the previous good
-        frame and this one are bridged as any missing frame but not counted missing.
-        """
-        prev = self._prev
-        n_shed = 0 if prev is None else sum(prev.seq < s < frame.seq for s in shed)
-        verdict = self.check.inspect(prev, frame, published_after(pub_ns, self._prev_pub), shed=n_shed)
-        self.notes = verdict.notes
-        self._prev, self._prev_pub = frame, pub_ns
-        self.began = prev is None
-        if prev is None:
-            return []
-        if verdict.brk:
-            held = self.finish()
-            self._from_good = True  # the frame after a break starts afresh
-            return held + [SceneFlowResult.empty(prev, frame, verdict.brk)]
-        start = self._anchor or prev
-        flow = self.flow.compute(start, frame)
-        if self._pending is not None:
-            flow = replace(flow, over=(*self._pending.over, self._pending.seq_next))
-        p = self.flow.params
-        starved = len(flow) < p.reach_min_pairs
-        # reach over the frame, unless the reach is spent or the frame it would start from is itself the
-        # starved one (the flow into it starved: reaching past its successor could not help)
-        if starved and len(flow.over) < p.reach_over and (self._pending is not None or self._from_good):
-            self._anchor, self._pending = start, flow
-            self.notes = [*self.notes, f"frame {frame.seq}: its flow from frame {start.seq} starved "
-                                       f"({flow.problem or f'{len(flow)} pairs'}): reached over, the next "
-                                       f"flow starts from frame {start.seq}"]
-            return []
-        self._anchor = self._pending = None
-        self._from_good = not starved
-        self.reached_over += len(flow.over)
-        return [flow]
-
-    def finish(self) -> list[SceneFlowResult]:
-        """The held starved flow, if frames are being reached over (the end of a stream or a break
-        ends the reach): the motion stage bridges it."""
-        held = [] if self._pending is None else [self._pending]
-        self.reached_over += sum(len(f.over) for f in held)
-        self._anchor = self._pending = None
-        self._from_good = not held
-        return held
-
-    def restart(self) -> None:
-        """End of stream: the next frame starts a new chain (the counters go on); call :meth:`finish` first."""
-        self._prev = self._prev_pub = self._anchor = self._pending = None
-        self._from_good = True
 
 
 class MotionStage:
@@ -290,56 +205,6 @@ def split_numberings(release: list[Correction]) -> list[list[Correction]]:
     numbering), so no release mixes two numberings."""
     cuts = [i for i in range(1, len(release)) if release[i].seq <= release[i - 1].seq]
     return [release[a:b] for a, b in zip([0, *cuts], [*cuts, len(release)])]
-
-
-class FlowDriver:
-    """The flow stage over a service's life: a frame refused (``refused_frames``) or a flow made empty
-    by a discontinuity (``empty_flows``) is counted and reported on ``log`` (None: silent), with what
-    the continuity check noted; one stream after another (:meth:`restart`)."""
-
-    def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None,
-                 log: logging.Logger | None = None) -> None:
-        self.stage = FlowStage(params, continuity)
-        self.log = log_or_quiet(log)
-        self.refused = self.empty = 0
-        self.taken: int | None = None  # the seq of the frame the last push took (None: it was refused)
-
-    def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> list[SceneFlowResult]:
-        """The flows ``frame`` completes (:meth:`FlowStage.push`; ``shed``: the frames shed before it);
-        none for the first frame of a stream, one reached over and a refused one."""
-        self.taken = None
-        try:
-            flows = self.stage.push(frame, pub_ns, shed)
-        except ValueError as e:
-            self.refused += 1
-            self.log.log(logging.ERROR, "refused: %s", e)
-            return []
-        self.taken = frame.seq
-        for note in self.stage.notes:
-            self.log.log(logging.WARNING, "%s", note)
-        return self._said(flows)
-
-    def finish(self) -> list[SceneFlowResult]:
-        """The end of a stream: the flow held while frames were reached over (:meth:`FlowStage.finish`)."""
-        return self._said(self.stage.finish())
-
-    def _said(self, flows: list[SceneFlowResult]) -> list[SceneFlowResult]:
-        for flow in flows:
-            if flow.over:
-                self.log.log(logging.WARNING, "flow %d->%d reaches over frame%s %s (their own flow starved)",
-                             flow.seq, flow.seq_next, "s" * (len(flow.over) > 1), ", ".join(map(str, flow.over)))
-            if flow.problem:
-                self.empty += 1
-                self.log.log(logging.WARNING, "flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
-        return flows
-
-    def restart(self) -> None:
-        """End of stream: the next frame starts a new chain (the counters go on); :meth:`finish` first."""
-        self.stage.restart()
-
-    def stats(self) -> dict[str, int]:
-        return {"refused_frames": self.refused, "empty_flows": self.empty, "reached_over": self.stage.reached_over,
-                **self.stage.check.counts}
 
 
 class MotionDriver:

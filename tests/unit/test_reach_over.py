@@ -1,5 +1,5 @@
 """A frame whose flow starves is reached over: the flow to the next frame starts from the frame before
-it, and the motion is split across it (docs/method.md 2.4; quick_stream/core/stages.py FlowStage,
+it, and the motion is split across it (docs/method.md 2.4; quick_stream/core/flow_stage.py FlowStage,
 quick_stream/core/motion/chain.py split_over)."""
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from quick_stream.core.lie import get_group
 from quick_stream.core.motion import MotionParams
 from quick_stream.core.motion.chain import split_over
 from quick_stream.core.sceneflow import SceneFlowParams
-from quick_stream.core.stages import FlowDriver, FlowStage, MotionStage
+from quick_stream.core.flow_stage import FlowDriver, FlowStage
+from quick_stream.core.stages import MotionStage
 from quick_stream.io.sources.synthetic import SyntheticSource
 from quick_stream.stream.wire import WireError, decode, encode_flow
 

@@ -9,7 +9,8 @@ import pytest
 from quick_stream.core.path.planner import Correction
 from quick_stream.core.release import RenderDriver
 from quick_stream.core.release_tags import ReleaseNumbering
-from quick_stream.core.stages import FlowStage, MotionDriver
+from quick_stream.core.flow_stage import FlowStage
+from quick_stream.core.stages import MotionDriver
 from quick_stream.io.sources import open_source
 from quick_stream.stream.wire import EndOfStream
 

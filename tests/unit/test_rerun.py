@@ -22,7 +22,8 @@ from quick_stream.quality.rerun import RerunError, rerun_stage
 from quick_stream.io.sources import open_source
 from quick_stream.core.render_stage import RenderStage
 from quick_stream.core.sceneflow import lift_pairs
-from quick_stream.core.stages import FlowStage, MotionStage
+from quick_stream.core.flow_stage import FlowStage
+from quick_stream.core.stages import MotionStage
 from quick_stream.stream.wire import (EndOfStream, StabilizedImage, decode, encode_correction, encode_end, encode_flow,
                                       encode_frame, encode_motion, encode_stabilized)
 

@@ -16,7 +16,8 @@ from quick_stream.core.path.planner import Correction
 from quick_stream.core.release import ReleaseGroups
 from quick_stream.core.render_stage import RenderStage, STALE
 from quick_stream.core.stabilizer import Stabilizer
-from quick_stream.core.stages import FlowStage, MotionStage
+from quick_stream.core.flow_stage import FlowStage
+from quick_stream.core.stages import MotionStage
 from quick_stream.io.sources import open_source
 from quick_stream.io.sources.synthetic import SyntheticSource
 from quick_stream.stream.arrivals import ArrivalLedger

@@ -7,7 +7,8 @@ import pytest
 from quick_stream.bench.variants import parse_settings
 from quick_stream.core.path.planner import Correction
 from quick_stream.core.render_stage import RenderStage
-from quick_stream.core.stages import FlowStage, MotionStage
+from quick_stream.core.flow_stage import FlowStage
+from quick_stream.core.stages import MotionStage
 from quick_stream.io.sources import open_source
 from tests.helpers import flows_of, stabilize
 

@@ -31,30 +31,30 @@ def _target() -> str | None:
 
 
 def _lose(first: int, last: int) -> None:
-    from quick_stream.core import stages
+    from quick_stream.core import flow_stage
 
-    push = stages.FlowDriver.push
+    push = flow_stage.FlowDriver.push
 
     def lossy(self, frame, *args, **kw):
         if first <= frame.seq <= last:
-            return None
+            return []
         return push(self, frame, *args, **kw)
 
-    stages.FlowDriver.push = lossy
+    flow_stage.FlowDriver.push = lossy
 
 
 def _slow(ms: float) -> None:
     import time
 
-    from quick_stream.core import stages
+    from quick_stream.core import flow_stage
 
-    push = stages.FlowDriver.push
+    push = flow_stage.FlowDriver.push
 
     def slow(self, frame, *args, **kw):
         time.sleep(ms / 1000)
         return push(self, frame, *args, **kw)
 
-    stages.FlowDriver.push = slow
+    flow_stage.FlowDriver.push = slow
 
 
 def _apply(spec: str) -> None:
