@@ -51,7 +51,8 @@ from ..stream.launcher import StatusBoard, Supervisor, router_spec
 from ..stream.stream_specs import stream_specs
 from ..stream.wire import WireError
 from ..stream.wire.codec import unpack
-from .pipeline_profile import PROFILE_ENV, format_profile, stat_cpu, summarise, thread_cpu, thread_shares
+from .pipeline_profile import PROFILE_ENV, stat_cpu, summarise, thread_cpu, thread_shares
+from .pipeline_report import DEFAULT_PRESET, format_presets, format_report
 from .release_steps import release_steps
 
 
@@ -140,13 +141,15 @@ def prerecord(path: Path, spec: str) -> str:
 
 def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640, height: int = 480,
                  record: bool = True, warmup_s: float = 5.0, replay: bool = False, streams: int = 1,
-                 progress: Callable[[str], None] | None = None, profile: bool = False) -> dict:
+                 progress: Callable[[str], None] | None = None, profile: bool = False,
+                 latency: str | None = None) -> dict:
     """One measured run; ``fps`` None = capture as fast as possible; ``replay``: the capture sends a
     pre-encoded recording instead of rendering synthetic frames live; ``streams``: that many cameras
     side by side (``cam0``, ``cam1``, ...; each its own capture, flow, motion and render, synthetic
     seeds 1, 2, ...; one recorder of all). ``progress`` is told once a second how far it is.
     ``profile``: each process's CPU by thread, and each service's main thread under cProfile
-    (:mod:`.pipeline_profile`; ``out/profile``). Returns the report dict."""
+    (:mod:`.pipeline_profile`; ``out/profile``). ``latency``: the motion service's ``--latency`` preset
+    (None: its default). Returns the report dict."""
     from ..stream.launcher import free_port, open_when_up
 
     out.mkdir(parents=True, exist_ok=True)
@@ -163,7 +166,8 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
             src = prerecord(out / f"source-{cam}.mcap", src)
         cap = ["--source", src, *(["--pace", "fast"] if fps is None else ["--pace", "realtime", "--fps", str(fps)])]
         own = {"recorder": ["--output", str(recording)] + (["--all-streams"] if streams > 1 else []),
-               "render": ["--output", str(out / f"stabilized-{cam}.avi")], "capture": cap}
+               "render": ["--output", str(out / f"stabilized-{cam}.avi")], "capture": cap,
+               "motion": ["--latency", latency] if latency else []}
         # one recorder, of cam0 (its liveliness token is under its own stream even when it records all):
         # cam0's capture waits for it too
         run = [s for s in topology.SERVICES if s != topology.RECORDER or (record and cam == "cam0")]
@@ -237,7 +241,7 @@ def run_pipeline(out: Path, fps: float | None, seconds: float, width: int = 640,
                 per[cam]["release_steps_ms"] = {"error": str(e)}
     capture = "replay of a pre-encoded recording" if replay else "synthetic, rendered live"
     rate = sum(x["stabilized_fps"] for x in per.values())
-    common = {"processes": procs, "queues": qs, "capture": capture,
+    common = {"processes": procs, "queues": qs, "capture": capture, "latency_preset": latency or DEFAULT_PRESET,
               "cpu_per_frame": cpu_per_frame(procs, rate, len(os.sched_getaffinity(0)))}
     if profile:
         common["profile"] = {"threads": {k: thread_shares(v) for k, v in threads.items()},
@@ -329,49 +333,6 @@ def _report(fps, seconds, warmup_s, width, height, mon: Monitor, stats, record, 
             "drops": drops, "latency": lat}
 
 
-def format_report(r: dict) -> str:
-    per = r["streams"] if "streams" in r else {"": r}
-    lines = []
-    for cam, x in per.items():
-        lines.append(f"pipeline {cam + ' ' if cam else ''}{r['size']} at {r['fps_target']} fps for {r['seconds']:g} s "
-                     f"({r['capture']}), recording {'on' if r['recording'] else 'off'}: sent {x['frames_sent']}, "
-                     f"stabilized {x['frames_stabilized']} ({x['stabilized_fps']} fps), flagged {x['frames_flagged']}, "
-                     f"drops {x['drops'] or 'none'}")
-        for k, v in x["latency"].items():
-            if v:
-                lines.append(f"  latency {k:<29} p50 {v['p50']:7.1f}  p90 {v['p90']:7.1f}  p99 {v['p99']:7.1f}  "
-                             f"max {v['max']:7.1f} ms  (n={v['n']})")
-        steps = x.get("release_steps_ms")
-        if steps:
-            lines.append("  first frame of a release, by step (the recorder's arrival times): " + (
-                steps["error"] if "error" in steps else ", ".join(
-                    f"{k} p50 {v['p50']:.1f} p90 {v['p90']:.1f} ms" for k, v in steps.items())
-                + f" (n={max(v['n'] for v in steps.values())})"))
-        if len(x.get("latency_p99_per_minute", [])) > 1:
-            lines.append("  total latency p99 per minute (ms): "
-                         + " ".join(f"{w['total_p99_ms']:.0f}" for w in x["latency_p99_per_minute"]))
-    cpu = r.get("cpu_per_frame") or {}
-    lines.append(f"  {'process':<15} {'CPU %':>6} {'ms/frame':>8} {'core fps':>8} {'RSS warm':>9} {'RSS end':>8} "
-                 f"{'growth':>7} {'peak RSS':>9} (MB)   RSS over the run, from start-up")
-    for name, p in r["processes"].items():
-        per = cpu.get("ms", {}).get(name)
-        alone = f"{1000.0 / per:.0f}" if per else "-"  # frames/s on a core of its own, if its CPU bounds it
-        lines.append(f"  {name:<15} {p['cpu_pct']:>6.1f} {'-' if per is None else f'{per:.1f}':>8} {alone:>8} "
-                     f"{p['rss_mb_warm']:>9.1f} {p['rss_mb_end']:>8.1f} {p['rss_growth_pct']:>6.1f}% "
-                     f"{p['peak_rss_mb']:>9.1f}        {' '.join(f'{x:.0f}' for x in p['rss_mb_series'])}")
-    if cpu:
-        lines.append(f"  CPU per stabilized frame: {cpu['total_ms']:.1f} ms of the {cpu['budget_ms']:.1f} ms that "
-                     f"{cpu['cores']} cores give per frame at {cpu['rate_fps']:g} fps "
-                     f"({100.0 * cpu['total_ms'] / cpu['budget_ms']:.0f} % used)")
-    if r.get("queues"):
-        lines.append("  queue lengths after warm-up, sampled each second (max in the first half/max in the second "
-                     "half/mean): " + ", ".join(f"{k} {q['max_first_half']:.0f}/{q['max_second_half']:.0f}/"
-                                                f"{q['mean']:g}" for k, q in r["queues"].items()))
-    if r.get("profile"):
-        lines.append(format_profile(r["profile"]["threads"], r["profile"]["functions"]))
-    return "\n".join(lines)
-
-
 def _files(folder: Path) -> dict[Path, int]:
     """Every file under ``folder`` and its size."""
     out = {}
@@ -397,33 +358,39 @@ def _size(n: int) -> str:
 
 def main(fps_list: list[float | None], seconds: float, out: str, json_path: str | None,
          record: bool = True, replay: bool = False, streams: int = 1, size: str = "640x480",
-         progress: Callable[[str], None] | None = None, keep: bool = False, profile: bool = False) -> int:
-    """Run each rate and print its report; ``json_path``: also the reports as JSON there (``-``: on
-    standard output, the reports then going to stderr). Each rate's recordings and videos are deleted
-    once measured (scratch: ~1 GB a 120 s run) unless ``keep``; either way the last line says where
-    they were and how much."""
+         progress: Callable[[str], None] | None = None, keep: bool = False, profile: bool = False,
+         presets: list[str] | None = None) -> int:
+    """Run each rate (with each ``--latency`` preset of ``presets``, None: the default only) and print
+    its report; with several presets, then a table of each one's delay as the viewer sees it
+    (:func:`format_presets`). ``json_path``: also the reports as JSON there (``-``: on standard
+    output, the reports then going to stderr). Each run's recordings and videos are deleted once
+    measured (scratch: ~1 GB a 120 s run) unless ``keep``; either way the last line says where they
+    were and how much."""
     reports = []
     w, h = (int(x) for x in size.split("x"))
     text = sys.stderr if json_path == "-" else sys.stdout
     for fps in fps_list:
-        folder = Path(out) / f"fps-{fps or 'fast'}"
-        before = _files(folder)
-        try:
-            r = run_pipeline(folder, fps, seconds, width=w, height=h, record=record, replay=replay, streams=streams,
-                             progress=progress, profile=profile)
-        finally:
-            scratch = scratch_files(folder, before)
-            total = sum(scratch.values())
-            if not keep:
-                for p in scratch:
-                    p.unlink(missing_ok=True)
-            what = ", ".join(sorted({p.suffix.lstrip('.') for p in scratch})) or "nothing"
-            note = (f"wrote {_size(total)} in {folder} ({what}; kept: delete {folder} when done)" if keep else
-                    f"deleted {_size(total)} of scratch files ({what}) from {folder} (--keep keeps them)")
-        reports.append(r)
-        print(format_report(r), file=text, flush=True)
-        print(f"{note}; logs in {folder / 'logs'}" + (f", profiles in {folder / 'profile'}" if profile else ""),
-              file=text, flush=True)
+        for preset in presets or [None]:
+            folder = Path(out) / (f"fps-{fps or 'fast'}" + (f"-latency-{preset}" if preset else ""))
+            before = _files(folder)
+            try:
+                r = run_pipeline(folder, fps, seconds, width=w, height=h, record=record, replay=replay,
+                                 streams=streams, progress=progress, profile=profile, latency=preset)
+            finally:
+                scratch = scratch_files(folder, before)
+                total = sum(scratch.values())
+                if not keep:
+                    for p in scratch:
+                        p.unlink(missing_ok=True)
+                what = ", ".join(sorted({p.suffix.lstrip('.') for p in scratch})) or "nothing"
+                note = (f"wrote {_size(total)} in {folder} ({what}; kept: delete {folder} when done)" if keep else
+                        f"deleted {_size(total)} of scratch files ({what}) from {folder} (--keep keeps them)")
+            reports.append(r)
+            print(format_report(r), file=text, flush=True)
+            print(f"{note}; logs in {folder / 'logs'}" + (f", profiles in {folder / 'profile'}" if profile else ""),
+                  file=text, flush=True)
+    if presets and len(presets) > 1:
+        print(format_presets(reports), file=text, flush=True)
     if json_path == "-":
         print(json.dumps(reports, indent=1), flush=True)
     elif json_path:

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..core.lie import GROUPS
+from ..core.params import LATENCY_PRESETS
 from ..io.sources import SourceError
 from ..stream import argtypes as at
 from . import bench_quality_cmd
@@ -100,8 +101,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     help="also where the CPU goes: each process's by thread, and each service's main thread under "
                     "cProfile on its CPU clock, its functions by own time per stabilized frame (slows the services "
                     "by about half; the profiles in DIR/fps-RATE/profile)")
+    pl.add_argument("--latency", type=at.checked(_presets, "latency"), default=None, metavar="PRESET[,PRESET...]",
+                    help="run each rate with each of these --latency presets of the motion service (%s) and end "
+                    "with a table of each one's delay from capture to publication (default: the default "
+                    "preset only)" % ", ".join(sorted(LATENCY_PRESETS)))
     add_json(pl, "the reports")
     at.add_force(pl)
+
+
+def _presets(text: str) -> list[str]:
+    """``--latency`` for ``bench pipeline``: comma-separated preset names, each a known one."""
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    bad = [n for n in names if n not in LATENCY_PRESETS]
+    if not names or bad:
+        raise ValueError(f"unknown presets {bad or [text]}; known: {sorted(LATENCY_PRESETS)}")
+    return names
 
 
 def _shake(text: str) -> tuple[float, float]:
@@ -138,7 +152,7 @@ def _run(args: argparse.Namespace) -> int:
         with progress:
             return pipeline.main(args.fps, args.seconds, args.out, args.json, record=not args.no_record,
                                  streams=args.streams, size=args.size, replay=args.replay, progress=progress,
-                                 keep=args.keep, profile=args.profile)
+                                 keep=args.keep, profile=args.profile, presets=args.latency)
     if args.bench == "quality":
         return bench_quality_cmd.run(args)
     with progress:

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-from quick_stream.bench.pipeline import cpu_per_frame, format_report
+from quick_stream.bench.pipeline import cpu_per_frame
+from quick_stream.bench.pipeline_report import format_report
 
 
 def proc(cpu_pct: float) -> dict:
@@ -64,3 +65,54 @@ def test_bench_pipeline_says_where_it_wrote_and_how_much_and_deletes_its_scratch
         assert f"deleted 2.5 MB of scratch files (avi, mcap) from {folder} (--keep keeps them)" in text
         assert left == ["logs/render.log", "recording.mcap"]
     assert text.index("REPORT") < text.index(str(folder))
+
+
+class _Started(Exception):
+    pass
+
+
+@pytest.mark.parametrize("preset", [None, "low"])
+def test_a_latency_preset_goes_to_the_motion_service_only(tmp_path, monkeypatch, preset):
+    from quick_stream.bench import pipeline
+
+    seen = {}
+
+    def supervisor(specs, *a, **k):
+        seen.update({s.name: s.argv for s in specs})
+        raise _Started
+
+    monkeypatch.setattr(pipeline, "Supervisor", supervisor)
+    with pytest.raises(_Started):
+        pipeline.run_pipeline(tmp_path, 30.0, 1.0, latency=preset)
+    flagged = [name for name, argv in seen.items() if "--latency" in argv]
+    if preset is None:
+        assert flagged == []
+    else:
+        assert flagged == ["motion"]
+        argv = seen["motion"]
+        assert argv[argv.index("--latency") + 1] == preset
+
+
+def test_bench_pipeline_runs_each_rate_with_each_preset_and_tables_their_delay(tmp_path, monkeypatch, capsys):
+    from quick_stream.bench import pipeline
+
+    runs = []
+
+    def run(folder, fps, seconds, **k):
+        runs.append((folder.name, fps, k["latency"]))
+        wait = {"low": 400.0, "normal": 900.0}[k["latency"]]
+        lat = {"total_ms": {"p50": wait + 60.0, "p90": wait + 90.0, "p99": wait + 130.0, "max": wait + 200.0, "n": 10},
+               "segment_wait_ms": {"p50": wait, "p90": wait, "p99": wait, "max": wait, "n": 10},
+               "processing_ms": {"p50": 60.0, "p90": 90.0, "p99": 130.0, "max": 200.0, "n": 10}}
+        return {"fps_target": fps, "latency_preset": k["latency"], "latency": lat, "frames_stabilized": 300,
+                "frames_flagged": 0, "drops": {"capture.shed": 2}}
+
+    monkeypatch.setattr(pipeline, "run_pipeline", run)
+    monkeypatch.setattr(pipeline, "format_report", lambda r: "REPORT")
+    assert pipeline.main([30.0], 1.0, str(tmp_path), None, presets=["low", "normal"]) == 0
+    assert runs == [("fps-30.0-latency-low", 30.0, "low"), ("fps-30.0-latency-normal", 30.0, "normal")]
+    text = capsys.readouterr().out
+    rows = {ln.split()[0]: ln.split()[1:] for ln in text.splitlines() if ln.strip().startswith(("low", "normal"))}
+    # fps, total p50 / p99 / max, wait p50, processing p99, stabilized, flagged, shed
+    assert rows == {"low": ["30.0", "460", "530", "600", "400", "130", "300", "0", "2"],
+                    "normal": ["30.0", "960", "1030", "1100", "900", "130", "300", "0", "2"]}

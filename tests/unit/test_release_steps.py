@@ -2,7 +2,7 @@
 (quick_stream.bench.release_steps)."""
 from __future__ import annotations
 
-from quick_stream.bench.pipeline import format_report
+from quick_stream.bench.pipeline_report import format_report
 from quick_stream.bench.release_steps import STEPS, release_steps, step_times
 from quick_stream.io.recording import Recorder
 from quick_stream.stream import keys
