@@ -6,7 +6,7 @@ A look-ahead of L seconds is D = round(L x fps) frames (at least 2). At D:
 * ours: ``--keyframe-interval D`` (a frame's correction is released at most D frames after the frame;
   the planner re-plans the window's last D/2 frames with the next segment, the share the default keeps,
   docs/method.md 4.3), every other setting the default; and the latency presets at their own intervals
-  (``--latency low``: 15 frames, ``normal``: 30);
+  (``--latency 0.5s``: 15 frames, ``1s``: 30);
 * python vidstab with ``smoothing_window=D`` (it returns frame k - D at call k), vidgear's Stabilizer
   with ``smoothing_radius=D`` (D - 1 calls behind), the LK moving average over +-D frames, and FFmpeg
   vid.stab with ``smoothing=D`` (its Gaussian over +-D frames; two passes, so it reads the whole clip,
@@ -23,11 +23,12 @@ from typing import Callable
 
 import numpy as np
 
+from ..core.params import LATENCY_PRESETS
 from .quality_peers import peer_rows
 from .variants import Variant, parse_settings
 
 DEFAULT_LOOKAHEADS_S = (0.1, 0.2, 1 / 3, 0.5, 1.0)
-PRESETS = {"low": 15, "normal": 30}  # --latency presets: the keyframe interval, their delay in frames
+PRESETS = {name: p[0] for name, p in LATENCY_PRESETS.items()}  # --latency presets: their delay in frames
 PEERS = ("vid.stab 2-pass (ffmpeg)", "vidstab (python)", "vidgear Stabilizer", "LK moving average")
 COLUMNS = ("jitter_px", "jitter_deg", "border_free_cropping", "distortion")
 

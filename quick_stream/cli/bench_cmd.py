@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..core.lie import GROUPS
-from ..core.params import LATENCY_PRESETS
+from ..core.params import LATENCY_NAMES, LATENCY_PRESETS
 from ..io.sources import SourceError
 from ..stream import argtypes as at
 from . import bench_quality_cmd
@@ -104,7 +104,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--latency", type=at.checked(_presets, "latency"), default=None, metavar="PRESET[,PRESET...]",
                     help="run each rate with each of these --latency presets of the motion service (%s) and end "
                     "with a table of each one's delay from capture to publication (default: the default "
-                    "preset only)" % ", ".join(sorted(LATENCY_PRESETS)))
+                    "preset only)" % ", ".join(LATENCY_PRESETS))
     add_json(pl, "the reports")
     at.add_force(pl)
 
@@ -112,9 +112,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _presets(text: str) -> list[str]:
     """``--latency`` for ``bench pipeline``: comma-separated preset names, each a known one."""
     names = [x.strip() for x in text.split(",") if x.strip()]
-    bad = [n for n in names if n not in LATENCY_PRESETS]
+    bad = [n for n in names if n not in LATENCY_NAMES]
     if not names or bad:
-        raise ValueError(f"unknown presets {bad or [text]}; known: {sorted(LATENCY_PRESETS)}")
+        raise ValueError(f"unknown presets {bad or [text]}; known: {list(LATENCY_NAMES)}")
     return names
 
 

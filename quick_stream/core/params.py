@@ -23,8 +23,8 @@ from .render.framing import FramingParams
 from .render.warp import WarpParams
 from .sceneflow import SceneFlowParams
 
-__all__ = ["StabilizerParams", "LATENCY_PRESETS", "USER_SETTINGS", "STABILIZER_TRANSLATION_PRIOR_MM",
-           "check_groups", "stabilizer_motion_params", "stabilizer_framing_params", "user_defaults", "with_user_settings"]
+__all__ = ["StabilizerParams", "LATENCY_PRESETS", "LATENCY_ALIASES", "LATENCY_NAMES", "USER_SETTINGS", "STABILIZER_TRANSLATION_PRIOR_MM",
+           "check_groups", "latency_preset", "stabilizer_motion_params", "stabilizer_framing_params", "user_defaults", "with_user_settings"]
 
 
 STABILIZER_TRANSLATION_PRIOR_MM = 0.2  # the stabilizer's fit takes hand-held jitter as rotation (docs/method.md (3n))
@@ -63,12 +63,24 @@ class StabilizerParams:
         check_groups(self.motion, self.planner)
 
 
-# latency presets: (keyframe interval, look-ahead, smoothness); the interval is the longest wait
-# (frames) a frame has before its correction is released (docs/method.md 4.3). A shorter window
-# sees less of the future, so it smooths less.
+# latency presets, named by the delay they give at 30 fps: (keyframe interval, look-ahead, smoothness).
+# The interval is the longest wait (frames) a frame has before its correction is released (docs/method.md
+# 4.3), so the delay is fixed in frames: at 60 fps "1s" waits 0.5 s. A shorter window sees less of the
+# future, so it smooths less. "normal" and "low" are the earlier names of "1s" and "0.5s".
 LATENCY_PRESETS: dict[str, tuple[int, int, float]] = {
-    "normal": (KeyframeParams.interval, PlannerParams.lookahead, PlannerParams.smoothness),
-    "low": (15, 10, 3000.0)}
+    "1s": (KeyframeParams.interval, PlannerParams.lookahead, PlannerParams.smoothness),
+    "0.5s": (15, 10, 3000.0)}
+LATENCY_ALIASES = {"normal": "1s", "low": "0.5s"}
+LATENCY_NAMES = (*LATENCY_PRESETS, *LATENCY_ALIASES)  # what --latency accepts
+
+
+def latency_preset(name: str) -> tuple[int, int, float]:
+    """The preset ``name`` (a name of :data:`LATENCY_PRESETS` or an alias): (interval, look-ahead, smoothness)."""
+    key = LATENCY_ALIASES.get(name, name)
+    if key not in LATENCY_PRESETS:
+        raise ValueError(f"unknown latency preset {name!r}; known: {list(LATENCY_NAMES)}")
+    return LATENCY_PRESETS[key]
+
 
 # the user-facing settings (a flag each: --max-zoom for max_zoom), in the order they are applied
 USER_SETTINGS = ("group", "estimator", "latency", "keyframe_interval", "lookahead", "end", "lowpass_sigma",
@@ -79,7 +91,7 @@ def user_defaults() -> dict[str, object]:
     """The user-facing settings' values in :class:`StabilizerParams` (those with a default of their own:
     the window's settings come from ``latency``, the path weights are the identity)."""
     p = StabilizerParams()
-    return {"group": p.motion.group, "estimator": p.motion.estimator, "latency": "normal", "end": p.planner.end,
+    return {"group": p.motion.group, "estimator": p.motion.estimator, "latency": "1s", "end": p.planner.end,
             "lowpass_sigma": p.planner.lowpass_sigma, "path": p.planner.mode, "max_zoom": p.planner.budget.max_zoom,
             "fill_frames": p.framing.fill_frames, "fill_band": p.planner.budget.fill, "framing": p.framing.mode,
             "crop_zoom": p.framing.crop_zoom}
@@ -106,7 +118,7 @@ def with_user_settings(params: StabilizerParams, given: Mapping[str, object]) ->
     if "estimator" in f:
         motion = replace(motion, estimator=f["estimator"])
     if "latency" in f:
-        interval, lookahead, smoothness = LATENCY_PRESETS[str(f["latency"])]
+        interval, lookahead, smoothness = latency_preset(str(f["latency"]))
         kf = replace(kf, interval=interval, min_interval=_min_interval(interval))
         planner = replace(planner, lookahead=lookahead, smoothness=smoothness)
     if "keyframe_interval" in f:

@@ -14,7 +14,7 @@ from typing import Callable
 
 from ..core.lie import GROUPS
 from ..core.motion import ESTIMATORS
-from ..core.params import LATENCY_PRESETS, USER_SETTINGS, StabilizerParams, user_defaults, with_user_settings
+from ..core.params import LATENCY_ALIASES, LATENCY_NAMES, LATENCY_PRESETS, USER_SETTINGS, StabilizerParams, user_defaults, with_user_settings
 from ..core.path.constraints import END_MODES
 from ..core.path.planner import PATH_MODES, PlannerParams
 from ..core.settings import SettingsError
@@ -43,11 +43,12 @@ def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--estimator", choices=ESTIMATORS,
                    help="motion estimator: exact = robust fit of the group element, induced = the paper's mean "
                         f"of induced twists (default {d['estimator']})")
-    g.add_argument("--latency", choices=sorted(LATENCY_PRESETS),
-                   help="path latency preset: normal = keyframe interval %d, look-ahead %d, smoothness %g "
-                        "(1 s at 30 fps); low = interval %d, look-ahead %d, smoothness %g (0.5 s); "
-                        "--keyframe-interval/--lookahead/--smoothness override it (default %s)"
-                        % (*LATENCY_PRESETS["normal"], *LATENCY_PRESETS["low"], d["latency"]))
+    g.add_argument("--latency", choices=LATENCY_NAMES, metavar="{%s}" % ",".join(LATENCY_PRESETS),
+                   help="path latency preset, named by the delay it gives at 30 fps (the window is in frames): "
+                        + "; ".join(f"{name} = keyframe interval {i}, look-ahead {la}, smoothness {sm:g}"
+                                    for name, (i, la, sm) in LATENCY_PRESETS.items())
+                        + " (" + ", ".join(f"{a} = {n}" for a, n in LATENCY_ALIASES.items())
+                        + f"); --keyframe-interval/--lookahead/--smoothness override it (default {d['latency']})")
     g.add_argument("--keyframe-interval", type=int,
                    help="frames per path window (the longest a frame waits for its correction), >= 2 "
                         "(default from --latency)")

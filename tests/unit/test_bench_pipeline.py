@@ -71,7 +71,7 @@ class _Started(Exception):
     pass
 
 
-@pytest.mark.parametrize("preset", [None, "low"])
+@pytest.mark.parametrize("preset", [None, "0.5s"])
 def test_a_latency_preset_goes_to_the_motion_service_only(tmp_path, monkeypatch, preset):
     from quick_stream.bench import pipeline
 
@@ -100,7 +100,7 @@ def test_bench_pipeline_runs_each_rate_with_each_preset_and_tables_their_delay(t
 
     def run(folder, fps, seconds, **k):
         runs.append((folder.name, fps, k["latency"]))
-        wait = {"low": 400.0, "normal": 900.0}[k["latency"]]
+        wait = {"0.5s": 400.0, "1s": 900.0}[k["latency"]]
         lat = {"total_ms": {"p50": wait + 60.0, "p90": wait + 90.0, "p99": wait + 130.0, "max": wait + 200.0, "n": 10},
                "segment_wait_ms": {"p50": wait, "p90": wait, "p99": wait, "max": wait, "n": 10},
                "processing_ms": {"p50": 60.0, "p90": 90.0, "p99": 130.0, "max": 200.0, "n": 10}}
@@ -109,10 +109,10 @@ def test_bench_pipeline_runs_each_rate_with_each_preset_and_tables_their_delay(t
 
     monkeypatch.setattr(pipeline, "run_pipeline", run)
     monkeypatch.setattr(pipeline, "format_report", lambda r: "REPORT")
-    assert pipeline.main([30.0], 1.0, str(tmp_path), None, presets=["low", "normal"]) == 0
-    assert runs == [("fps-30.0-latency-low", 30.0, "low"), ("fps-30.0-latency-normal", 30.0, "normal")]
+    assert pipeline.main([30.0], 1.0, str(tmp_path), None, presets=["0.5s", "1s"]) == 0
+    assert runs == [("fps-30.0-latency-0.5s", 30.0, "0.5s"), ("fps-30.0-latency-1s", 30.0, "1s")]
     text = capsys.readouterr().out
-    rows = {ln.split()[0]: ln.split()[1:] for ln in text.splitlines() if ln.strip().startswith(("low", "normal"))}
+    rows = {ln.split()[0]: ln.split()[1:] for ln in text.splitlines() if ln.strip().startswith(("0.5s", "1s"))}
     # fps, total p50 / p99 / max, wait p50, processing p99, stabilized, flagged, shed
-    assert rows == {"low": ["30.0", "460", "530", "600", "400", "130", "300", "0", "2"],
-                    "normal": ["30.0", "960", "1030", "1100", "900", "130", "300", "0", "2"]}
+    assert rows == {"0.5s": ["30.0", "460", "530", "600", "400", "130", "300", "0", "2"],
+                    "1s": ["30.0", "960", "1030", "1100", "900", "130", "300", "0", "2"]}

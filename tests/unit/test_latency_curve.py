@@ -92,9 +92,9 @@ def test_the_curve_of_a_clip_end_to_end(tmp_path):
         ours = p["methods"]["ours"]
         assert set(p["methods"]) == {"ours"} and np.isfinite(ours["jitter_px"]) and not ours["failed"]
         assert lc.wins(p) is None  # no peer ran
-    assert set(c["presets"]) == {"low", "normal"} and c["presets"]["normal"]["delay_frames"] == 30
+    assert set(c["presets"]) == {"0.5s", "1s"} and c["presets"]["1s"]["delay_frames"] == 30
     lines = lc.format_curve("clip", c)
-    assert lines[0].startswith("latency curve, clip") and "ours --latency low (15 frames" in "\n".join(lines)
+    assert lines[0].startswith("latency curve, clip") and "ours --latency 0.5s (15 frames" in "\n".join(lines)
     lc.plot([r], tmp_path / "curve.png")
     img = cv2.imread(str(tmp_path / "curve.png"))
     assert img is not None and img.shape[0] > 200

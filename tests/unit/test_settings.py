@@ -101,9 +101,14 @@ def test_no_flags_give_the_product_defaults_and_the_flags_keep_their_meaning():
     assert stabilizer_params(flags()) == default_settings()
     d = default_settings()
     assert (d.framing.mode, d.framing.max_zoom, d.planner.keyframes.interval, d.planner.lookahead) == ("auto", 1.15, 30, 15)
-    low = stabilizer_params(flags("--latency", "low"))
+    low = stabilizer_params(flags("--latency", "0.5s"))
     assert (low.planner.keyframes.interval, low.planner.lookahead, low.planner.smoothness) == (15, 10, 3000.0)
     assert low.planner.keyframes.min_interval == 10
+    # the presets are named by their delay at 30 fps; the earlier names still mean the same
+    assert stabilizer_params(flags("--latency", "low")) == low
+    assert stabilizer_params(flags("--latency", "normal")) == stabilizer_params(flags("--latency", "1s")) == d
+    with pytest.raises(SystemExit):
+        flags("--latency", "2s")
     k = stabilizer_params(flags("--keyframe-interval", "20"))  # the preset's share of the window re-planned
     assert (k.planner.keyframes.interval, k.planner.lookahead, k.planner.keyframes.min_interval) == (20, 10, 10)
     g = stabilizer_params(flags("--group", "ga3"))
