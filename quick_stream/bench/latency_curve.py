@@ -12,8 +12,11 @@ A look-ahead of L seconds is D = round(L x fps) frames (at least 2). At D:
   vid.stab with ``smoothing=D`` (its Gaussian over +-D frames; two passes, so it reads the whole clip,
   but no frame's correction uses more than D frames after it) (:func:`.quality_peers.peer_rows`).
 
-Rows per D: each method's jitter (px, deg), border-free cropping, distortion and whether it failed; the
-table marks the look-aheads where ours is below every scored peer in both jitters. The plot: jitter
+Rows per D: each method's jitter (px, deg), border-free cropping, distortion and whether it failed, and
+ours leaving black borders as most peers do (``ours [bordered]``: no budget, zoom or fill; the
+like-for-like row for a peer that shows borders). The table marks the look-aheads where ours is below
+every scored peer in both jitters (``*``), or below each peer like for like (``+``: ours against a peer
+whose border-free cropping is at least ours', ours bordered against one that shows more border). The plot: jitter
 against look-ahead, one panel per clip and jitter unit (:func:`quick_stream.io.plot.plot_xy`).
 """
 from __future__ import annotations
@@ -25,12 +28,13 @@ import numpy as np
 
 from ..core.params import LATENCY_PRESETS
 from .quality_peers import peer_rows
-from .variants import Variant, parse_settings
+from .variants import BORDERED, BORDERED_FLAGS, Variant, parse_settings
 
 DEFAULT_LOOKAHEADS_S = (0.1, 0.2, 1 / 3, 0.5, 1.0)
 PRESETS = {name: p[0] for name, p in LATENCY_PRESETS.items()}  # --latency presets: their delay in frames
 PEERS = ("vid.stab 2-pass (ffmpeg)", "vidstab (python)", "vidgear Stabilizer", "LK moving average")
 COLUMNS = ("jitter_px", "jitter_deg", "border_free_cropping", "distortion")
+OURS_BORDERED = f"ours [{BORDERED}]"
 
 RunOurs = Callable[[Variant], dict]
 Progress = Callable[[str], None]
@@ -41,9 +45,13 @@ def delay_frames(seconds: float, fps: float) -> int:
     return max(2, int(round(seconds * fps)))
 
 
-def ours_at(delay: int) -> Variant:
-    """Ours with corrections released at most ``delay`` frames after their frame (module docstring)."""
-    return parse_settings(["--keyframe-interval", str(delay)], name=f"ours {delay}f")
+def ours_at(delay: int, bordered: bool = False) -> Variant:
+    """Ours with corrections released at most ``delay`` frames after their frame (module docstring);
+    ``bordered``: leaving black borders (:data:`.variants.BORDERED_FLAGS`)."""
+    flags = ["--keyframe-interval", str(delay)]
+    if bordered:
+        return parse_settings([*flags, *BORDERED_FLAGS], name=f"ours {delay}f [{BORDERED}]")
+    return parse_settings(flags, name=f"ours {delay}f")
 
 
 def curve(images: list[np.ndarray], fps: float, lookaheads: list[float], run_ours: RunOurs, work: Path,
@@ -59,7 +67,9 @@ def curve(images: list[np.ndarray], fps: float, lookaheads: list[float], run_our
     for delay in sorted({delay_frames(s, fps) for s in lookaheads}):
         say(f"ours at {delay} frames")
         methods = {"ours": _kept(run_ours(ours_at(delay)))}
-        if baselines:
+        if baselines:  # the like-for-like row for a peer that shows borders
+            say(f"ours [{BORDERED}] at {delay} frames")
+            methods[OURS_BORDERED] = _kept(run_ours(ours_at(delay, bordered=True)))
             rows, _ = peer_rows(images, fps, Path(work) / f"d{delay}", lambda w: say(f"{w} at {delay} frames"),
                                 delay=delay)
             methods.update({k: _kept(v) for k, v in rows.items()})
@@ -77,13 +87,38 @@ def _kept(row: dict) -> dict:
     return keep
 
 
+def _peers(point: dict) -> list[dict]:
+    return [r for name, r in point["methods"].items() if not name.startswith("ours") and _scored(r)]
+
+
+def _below(a: dict, b: dict) -> bool:
+    return a["jitter_px"] < b["jitter_px"] and a["jitter_deg"] < b["jitter_deg"]
+
+
 def wins(point: dict) -> bool | None:
     """Whether ours is below every scored peer at this point in both jitters (None: no peer scored)."""
-    ours = point["methods"]["ours"]
-    peers = [r for name, r in point["methods"].items() if name != "ours" and _scored(r)]
+    ours, peers = point["methods"]["ours"], _peers(point)
     if not peers or not _scored(ours):
         return None
-    return all(ours["jitter_px"] < r["jitter_px"] and ours["jitter_deg"] < r["jitter_deg"] for r in peers)
+    return all(_below(ours, r) for r in peers)
+
+
+def wins_like_for_like(point: dict) -> bool | None:
+    """Whether ours is below each scored peer like for like: ours against a peer whose border-free cropping
+    is at least ours' (it keeps as much of the frame clear), ours bordered against a peer that shows more
+    border than ours crops (None: no peer scored, or a bordered comparison without ours bordered)."""
+    ours, bordered, peers = point["methods"]["ours"], point["methods"].get(OURS_BORDERED), _peers(point)
+    if not peers or not _scored(ours):
+        return None
+    verdicts = []
+    for r in peers:
+        if r["border_free_cropping"] >= ours["border_free_cropping"]:
+            verdicts.append(_below(ours, r))
+        elif bordered is None or not _scored(bordered):
+            return None
+        else:
+            verdicts.append(_below(bordered, r))
+    return all(verdicts)
 
 
 def _scored(row: dict) -> bool:
@@ -93,10 +128,11 @@ def _scored(row: dict) -> bool:
 def format_curve(name: str, c: dict) -> list[str]:
     """The curve's table for one clip."""
     short = {"vid.stab 2-pass (ffmpeg)": "vid.stab", "vidstab (python)": "vidstab.py", "vidgear Stabilizer": "vidgear",
-             "LK moving average": "LK avg"}
-    methods = ["ours", *[p for p in PEERS if any(p in pt["methods"] for pt in c["points"])]]
+             "LK moving average": "LK avg", OURS_BORDERED: "ours bordered"}
+    methods = ["ours", *[p for p in (OURS_BORDERED, *PEERS) if any(p in pt["methods"] for pt in c["points"])]]
     lines = [f"latency curve, {name}: jitter px / deg, border-free cropping, distortion at each look-ahead "
-             "(peers at the same look-ahead in frames); * ours below every scored peer in px and deg",
+             "(peers at the same look-ahead in frames); * ours below every scored peer in px and deg, + ours "
+             "below each like for like (ours bordered against a peer showing more border than ours crops)",
              f"{'look-ahead':<14}" + "".join(f"{short.get(m, m):>27}" for m in methods)]
     for pt in c["points"]:
         cells = []
@@ -108,7 +144,7 @@ def format_curve(name: str, c: dict) -> list[str]:
             else:
                 cells.append(f"{r['jitter_px']:7.3f} / {r['jitter_deg']:.4f} {r['border_free_cropping']:.2f} "
                              f"{r['distortion']:.2f}".rjust(27))
-        mark = {True: "*", False: " ", None: "?"}[wins(pt)]
+        mark = {True: "*", False: "+" if wins_like_for_like(pt) else " ", None: "?"}[wins(pt)]
         lines.append(f"{pt['lookahead_s']:5.2f} s {pt['delay_frames']:3d}f{mark}" + "".join(cells))
     for name_, p in c["presets"].items():
         if _scored(p):
@@ -129,7 +165,7 @@ def plot(clips: list[dict], path: Path) -> None:
             continue
         for col, unit in (("jitter_px", "px"), ("jitter_deg", "deg")):
             series = {}
-            for m in ["ours", *PEERS]:
+            for m in ["ours", OURS_BORDERED, *PEERS]:
                 pts = [(p["lookahead_s"], p["methods"][m][col]) for p in cv["points"]
                        if m in p["methods"] and _scored(p["methods"][m])]
                 if pts:

@@ -44,12 +44,13 @@ def default_settings() -> Variant:
 
 
 BORDERED = "bordered"
+BORDERED_FLAGS = ("--max-zoom", "0", "--framing", "black")  # no crop budget, no zoom, no border fill
 
 
 def bordered_variant() -> Variant:
     """Ours leaving black borders as most peers do (no crop budget, no zoom, no border fill): what a
     peer that shows borders is compared with like for like (its jitter is not charged for a crop)."""
-    return parse_settings(["--max-zoom", "0", "--framing", "black"], BORDERED)
+    return parse_settings(list(BORDERED_FLAGS), BORDERED)
 
 
 def parse_variant(text: str) -> Variant:

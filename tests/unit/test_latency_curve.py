@@ -38,6 +38,21 @@ def test_ours_wins_a_point_only_below_every_scored_peer_in_both_units():
     assert lc.wins(p) is None
 
 
+def test_like_for_like_a_peer_showing_borders_is_compared_with_ours_bordered():
+    p = point((1.0, 0.1), a=(0.8, 0.2))  # a has less px jitter than ours, at the same cropping: ours loses
+    assert lc.wins(p) is False and lc.wins_like_for_like(p) is False
+    p["methods"]["a"]["border_free_cropping"] = 0.2  # a shows black borders where ours crops
+    assert lc.wins_like_for_like(p) is None  # no bordered run of ours to set against it
+    p["methods"][lc.OURS_BORDERED] = dict(p["methods"]["ours"], jitter_px=0.7, jitter_deg=0.15, border_free_cropping=0.1)
+    assert lc.wins(p) is False and lc.wins_like_for_like(p) is True  # ours bordered is no peer of ours
+    p["methods"][lc.OURS_BORDERED]["jitter_px"] = 0.85
+    assert lc.wins_like_for_like(p) is False
+    assert "+" not in lc.format_curve("c", {"points": [p], "presets": {}})[2][:14]
+    p["methods"][lc.OURS_BORDERED]["jitter_px"] = 0.7
+    row = lc.format_curve("c", {"points": [p], "presets": {}})[2]
+    assert row[:14].rstrip().endswith("6f+") and "ours bordered" in lc.format_curve("c", {"points": [p], "presets": {}})[1]
+
+
 def test_the_peers_are_set_to_the_same_look_ahead(monkeypatch, tmp_path):
     seen: dict = {}
 
