@@ -3,10 +3,11 @@ stabiliser configured to see the same number of frames ahead, on the same clip, 
 
 A look-ahead of L seconds is D = round(L x fps) frames (at least 2). At D:
 
-* ours: ``--keyframe-interval D`` (a frame's correction is released at most D frames after the frame;
-  the planner re-plans the window's last D/2 frames with the next segment, the share the default keeps,
-  docs/method.md 4.3), every other setting the default; and the latency presets at their own intervals
-  (``--latency 0.5s``: 15 frames, ``1s``: 30);
+* ours: ``--keyframe-interval D`` (a frame's correction is released at most D frames after the frame),
+  with the look-ahead and smoothness that go with that window (:func:`quick_stream.core.params.window_settings`:
+  a preset's own at its window, between presets interpolated), every other setting the default; and the
+  latency presets at their own windows (``--latency 0.1s``: 3 frames ... ``1s``: 30; a preset whose
+  window is one of the points is that point's row, not run twice);
 * python vidstab with ``smoothing_window=D`` (it returns frame k - D at call k), vidgear's Stabilizer
   with ``smoothing_radius=D`` (D - 1 calls behind), the LK moving average over +-D frames, and FFmpeg
   vid.stab with ``smoothing=D`` (its Gaussian over +-D frames; two passes, so it reads the whole clip,
@@ -75,10 +76,12 @@ def curve(images: list[np.ndarray], fps: float, lookaheads: list[float], run_our
             methods.update({k: _kept(v) for k, v in rows.items()})
         points.append({"delay_frames": delay, "lookahead_s": delay / fps, "methods": methods})
     presets = {}
-    for name, delay in PRESETS.items():
-        say(f"ours --latency {name}")
-        presets[name] = {"delay_frames": delay, "lookahead_s": delay / fps,
-                         **_kept(run_ours(parse_settings(["--latency", name], name=f"latency {name}")))}
+    at = {pt["delay_frames"]: pt["methods"]["ours"] for pt in points}
+    for name, delay in PRESETS.items():  # a preset's window is ours at that delay (window_settings): run once
+        if delay not in at:
+            say(f"ours --latency {name}")
+        row = at.get(delay) or _kept(run_ours(parse_settings(["--latency", name], name=f"latency {name}")))
+        presets[name] = {"delay_frames": delay, "lookahead_s": delay / fps, **row}
     return {"points": points, "presets": presets}
 
 

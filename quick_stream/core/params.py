@@ -11,6 +11,7 @@ look-ahead and smoothness). This module imports parameter classes only, no stage
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Mapping
 
@@ -24,7 +25,7 @@ from .render.warp import WarpParams
 from .sceneflow import SceneFlowParams
 
 __all__ = ["StabilizerParams", "LATENCY_PRESETS", "LATENCY_ALIASES", "LATENCY_NAMES", "USER_SETTINGS", "STABILIZER_TRANSLATION_PRIOR_MM",
-           "check_groups", "latency_preset", "stabilizer_motion_params", "stabilizer_framing_params", "user_defaults", "with_user_settings"]
+           "check_groups", "latency_preset", "window_settings", "stabilizer_motion_params", "stabilizer_framing_params", "user_defaults", "with_user_settings"]
 
 
 STABILIZER_TRANSLATION_PRIOR_MM = 0.2  # the stabilizer's fit takes hand-held jitter as rotation (docs/method.md (3n))
@@ -67,9 +68,15 @@ class StabilizerParams:
 # The interval is the longest wait (frames) a frame has before its correction is released (docs/method.md
 # 4.3), so the delay is fixed in frames: at 60 fps "1s" waits 0.5 s. A shorter window sees less of the
 # future, so it smooths less. "normal" and "low" are the earlier names of "1s" and "0.5s".
+# Shorter windows re-plan a larger share and smooth less (lambda falls about as the window cubed, the
+# look-ahead keeps a quarter or less released per close): measured on real and known-shake clips,
+# docs/method.md 4.3 (Latency presets).
 LATENCY_PRESETS: dict[str, tuple[int, int, float]] = {
     "1s": (KeyframeParams.interval, PlannerParams.lookahead, PlannerParams.smoothness),
-    "0.5s": (15, 10, 3000.0)}
+    "0.5s": (15, 10, 3000.0),
+    "0.33s": (10, 7, 300.0),
+    "0.2s": (6, 5, 100.0),
+    "0.1s": (3, 2, 10.0)}
 LATENCY_ALIASES = {"normal": "1s", "low": "0.5s"}
 LATENCY_NAMES = (*LATENCY_PRESETS, *LATENCY_ALIASES)  # what --latency accepts
 
@@ -101,11 +108,31 @@ def _min_interval(interval: int) -> int:
     return max(1, min(10, interval - 1))
 
 
+def window_settings(interval: int) -> tuple[int, float]:
+    """(look-ahead, smoothness) for a window of ``interval`` frames given alone, from the presets'
+    windows: between two presets, the smoothness interpolated on log-log scales and the share of the
+    window re-planned linearly in the log of the window; beyond them, the nearest preset's share and
+    its smoothness scaled with the window cubed (docs/method.md (9): the cut-off goes as
+    lambda^(-1/4)). A preset's own window gives the preset; the look-ahead is at most ``interval`` - 1."""
+    pts = sorted(LATENCY_PRESETS.values())
+    n = max(int(interval), 1)
+    lo = max((p for p in pts if p[0] <= n), default=pts[0])
+    hi = min((p for p in pts if p[0] >= n), default=pts[-1])
+    if lo[0] == hi[0]:  # a preset's window, or beyond the presets
+        share, lam = lo[1] / lo[0], lo[2] * (n / lo[0]) ** 3
+    else:
+        t = math.log(n / lo[0]) / math.log(hi[0] / lo[0])
+        share = (1 - t) * lo[1] / lo[0] + t * hi[1] / hi[0]
+        lam = math.exp((1 - t) * math.log(lo[2]) + t * math.log(hi[2]))
+    return max(0, min(n - 1, int(round(share * n)))), lam
+
+
 def with_user_settings(params: StabilizerParams, given: Mapping[str, object]) -> StabilizerParams:
     """``params`` with the user-facing settings ``given`` (names of :data:`USER_SETTINGS`; ``path_weights`` a
     sequence of numbers). One setting may set several fields: ``group`` the motion's and the path's,
     ``max_zoom`` the crop budget's and the framing's, ``latency`` the window, look-ahead and smoothness, a
-    ``keyframe_interval`` alone keeps the share of the window re-planned. Values are not checked here: each
+    ``keyframe_interval`` the look-ahead and smoothness that go with it (:func:`window_settings`; a
+    ``lookahead`` or ``smoothness`` given wins). Values are not checked here: each
     part's ``validate`` does that."""
     f = given
     unknown = set(f) - set(USER_SETTINGS)
@@ -123,8 +150,9 @@ def with_user_settings(params: StabilizerParams, given: Mapping[str, object]) ->
         planner = replace(planner, lookahead=lookahead, smoothness=smoothness)
     if "keyframe_interval" in f:
         interval = int(f["keyframe_interval"])  # type: ignore[call-overload]
-        if "lookahead" not in f and kf.interval > 0:  # keep the share of the window re-planned
-            planner = replace(planner, lookahead=(interval * planner.lookahead) // kf.interval)
+        if interval > 0:  # the look-ahead and smoothness that go with the window (unless given)
+            lookahead, smoothness = window_settings(interval)
+            planner = replace(planner, lookahead=lookahead, smoothness=smoothness)
         kf = replace(kf, interval=interval, min_interval=_min_interval(interval))
     for name, fld in (("lookahead", "lookahead"), ("smoothness", "smoothness"), ("end", "end"),
                       ("lowpass_sigma", "lowpass_sigma"), ("path", "mode")):

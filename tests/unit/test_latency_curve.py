@@ -10,6 +10,7 @@ import pytest
 
 from quick_stream.bench import latency_curve as lc, quality, quality_peers, quality_tables
 from quick_stream.cli import main
+from quick_stream.core.params import window_settings
 
 
 def test_a_look_ahead_is_frames_at_the_clip_s_rate_and_ours_releases_within_it():
@@ -17,7 +18,7 @@ def test_a_look_ahead_is_frames_at_the_clip_s_rate_and_ours_releases_within_it()
     assert lc.delay_frames(0.01, 30.0) == 2 and lc.delay_frames(0.5, 15.0) == 8
     for d in (3, 10, 30):
         p = lc.ours_at(d).params.planner
-        assert p.keyframes.interval == d and p.lookahead == d // 2  # the share the default re-plans
+        assert p.keyframes.interval == d and (p.lookahead, p.smoothness) == window_settings(d)  # its preset's
 
 
 def point(ours: tuple[float, float], **peers: tuple[float, float]) -> dict:
@@ -107,7 +108,10 @@ def test_the_curve_of_a_clip_end_to_end(tmp_path):
         ours = p["methods"]["ours"]
         assert set(p["methods"]) == {"ours"} and np.isfinite(ours["jitter_px"]) and not ours["failed"]
         assert lc.wins(p) is None  # no peer ran
-    assert set(c["presets"]) == {"0.5s", "1s"} and c["presets"]["1s"]["delay_frames"] == 30
+    assert set(c["presets"]) == set(lc.PRESETS) and c["presets"]["1s"]["delay_frames"] == 30
+    for name, pr in c["presets"].items():  # a preset at a point's window is that point's row
+        same = [p for p in c["points"] if p["delay_frames"] == pr["delay_frames"]]
+        assert not same or pr["jitter_px"] == same[0]["methods"]["ours"]["jitter_px"]
     lines = lc.format_curve("clip", c)
     assert lines[0].startswith("latency curve, clip") and "ours --latency 0.5s (15 frames" in "\n".join(lines)
     lc.plot([r], tmp_path / "curve.png")

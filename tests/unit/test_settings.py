@@ -109,14 +109,31 @@ def test_no_flags_give_the_product_defaults_and_the_flags_keep_their_meaning():
     assert stabilizer_params(flags("--latency", "normal")) == stabilizer_params(flags("--latency", "1s")) == d
     with pytest.raises(SystemExit):
         flags("--latency", "2s")
-    k = stabilizer_params(flags("--keyframe-interval", "20"))  # the preset's share of the window re-planned
-    assert (k.planner.keyframes.interval, k.planner.lookahead, k.planner.keyframes.min_interval) == (20, 10, 10)
+    k = stabilizer_params(flags("--keyframe-interval", "20"))  # between the 0.5s and 1s presets' windows
+    assert (k.planner.keyframes.interval, k.planner.lookahead, k.planner.keyframes.min_interval) == (20, 12, 10)
+    assert 3000.0 < k.planner.smoothness < 1e4
+    k = stabilizer_params(flags("--keyframe-interval", "20", "--lookahead", "5", "--smoothness", "50"))
+    assert (k.planner.lookahead, k.planner.smoothness) == (5, 50.0)  # given wins
     g = stabilizer_params(flags("--group", "ga3"))
     assert g.motion.group == g.planner.group == "ga3"
     nofill = stabilizer_params(flags("--fill-frames", "0"))
     assert (nofill.framing.fill_frames, nofill.planner.budget.fill, nofill.planner.budget.fill_reach) == (0, 0.0, 0)
     nobudget = stabilizer_params(flags("--max-zoom", "0"))
     assert nobudget.planner.budget.max_zoom == 0 and nobudget.framing.max_zoom > 1
+
+
+def test_a_window_given_alone_takes_the_look_ahead_and_smoothness_between_the_presets():
+    from quick_stream.core.params import LATENCY_PRESETS, window_settings
+
+    for interval, lookahead, smoothness in LATENCY_PRESETS.values():  # a preset's own window: the preset
+        assert window_settings(interval) == (lookahead, smoothness)
+        p = stabilizer_params(flags("--keyframe-interval", str(interval)))
+        assert (p.planner.lookahead, p.planner.smoothness) == (lookahead, smoothness)
+    got = [window_settings(n) for n in range(1, 91)]
+    lam = [x[1] for x in got]
+    assert all(b > a for a, b in zip(lam, lam[1:]))  # a longer window smooths more
+    assert all(0 <= la < max(n, 2) for n, (la, _) in zip(range(1, 91), got))  # a look-ahead is inside its window
+    assert got[59] == (30, 1e4 * 8)  # beyond the presets: the nearest one's share, lambda with the window cubed
 
 
 def test_flags_override_the_file_which_overrides_the_recording(tmp_path: Path):
