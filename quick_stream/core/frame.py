@@ -177,13 +177,14 @@ def quantize_depth(depth: np.ndarray, scale: float = 1000.0) -> np.ndarray:
     """Metres -> uint16 units of 1/scale m: depth x scale (exact in float64 for float32 depth) rounded
     half to even; non-finite, <= 0 or out-of-range values become 0 (invalid)."""
     d = np.multiply(depth, scale, dtype=np.float64)
-    # OpenCV's conversion rounds half to even (as np.rint) and saturates: NaN, -inf and anything
-    # rounding below 0 give 0, as they must; what rounds above 65535 saturates and is zeroed below
-    # (two thirds of the time of rint, a range mask and a masked copy)
+    # OpenCV's conversion rounds half to even (as np.rint) and saturates: -inf and anything rounding
+    # below 0 give 0, as they must; what rounds above 65535 saturates and is zeroed below, and so is
+    # NaN (OpenCV 4 cast it to 0, OpenCV 5.1 to 65535) (two thirds of the time of rint, a range mask
+    # and a masked copy)
     if d.size == 0:
         return np.zeros(d.shape, np.uint16)
     out = cv2.multiply(d.reshape(1, -1), 1.0, dtype=cv2.CV_16U).reshape(d.shape)
-    high = d >= 65535.5  # rounds to 65536 or more (inf too)
+    high = ~(d < 65535.5)  # rounds to 65536 or more (inf too), or NaN
     if high.any():
         out[high] = 0
     return out
