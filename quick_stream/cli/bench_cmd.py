@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..core.lie import GROUPS
-from ..core.params import LATENCY_NAMES, LATENCY_PRESETS
+from ..core.params import LATENCY_NAMES, LATENCY_PRESETS, latency_preset
 from ..io.sources import SourceError
 from ..stream import argtypes as at
 from . import bench_quality_cmd
@@ -112,9 +112,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def _presets(text: str) -> list[str]:
     """``--latency`` for ``bench pipeline``: comma-separated preset names, each a known one."""
     names = [x.strip() for x in text.split(",") if x.strip()]
-    bad = [n for n in names if n not in LATENCY_NAMES]
-    if not names or bad:
-        raise ValueError(f"unknown presets {bad or [text]}; known: {list(LATENCY_NAMES)}")
+    if not names:
+        raise ValueError(f"expected PRESET[,PRESET...], got {text!r}; known: {list(LATENCY_NAMES)}")
+    for n in names:
+        latency_preset(n)  # ValueError naming an unknown one
     return names
 
 

@@ -67,10 +67,9 @@ class StabilizerParams:
 # latency presets, named by the delay they give at 30 fps: (keyframe interval, look-ahead, smoothness).
 # The interval is the longest wait (frames) a frame has before its correction is released (docs/method.md
 # 4.3), so the delay is fixed in frames: at 60 fps "1s" waits 0.5 s. A shorter window sees less of the
-# future, so it smooths less. "normal" and "low" are the earlier names of "1s" and "0.5s".
-# Shorter windows re-plan a larger share and smooth less (lambda falls about as the window cubed, the
-# look-ahead keeps a quarter or less released per close): measured on real and known-shake clips,
-# docs/method.md 4.3 (Latency presets).
+# future: it re-plans a larger share and smooths less (lambda falls about as the window cubed), as
+# measured on real and known-shake clips (docs/method.md 4.3). "normal" and "low" are the earlier
+# names of "1s" and "0.5s".
 LATENCY_PRESETS: dict[str, tuple[int, int, float]] = {
     "1s": (KeyframeParams.interval, PlannerParams.lookahead, PlannerParams.smoothness),
     "0.5s": (15, 10, 3000.0),
