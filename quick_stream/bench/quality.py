@@ -146,7 +146,7 @@ def run_ours(folder: Path, variant: Variant, frames: int | None, inputs: dict[in
     row.update(status="ok", ms_per_frame=1e3 * t / max(n_in, 1), seconds=t, frames_in=n_in,
                frames_out=len(corrections), flagged_frames=flagged, bad_frames=len(st.bad_frames),
                segments=st.planner.segment_count, renderer_bordered=st.render.filler.bordered,
-               reached_over=st.flow.reached_over, **counts.as_dict())
+               reached_over=st.flow.reached_over, loose_flows=st.flow.loose, **counts.as_dict())
     if inputs is not None and len(corrections) != len(inputs):
         row["notes"] = [f"{len(corrections)} output frames for {len(inputs)} readable inputs"]
     return row, corrections
@@ -197,7 +197,8 @@ def run_clip(clip: Clip, cfg: QualityConfig, progress: Progress | None = None) -
             shake_scores[label] = {"without_reference": plain, "with_reference": with_ref,
                                    "corrections": str(est), "reference_corrections": str(ref),
                                    "reference_run": {k: ref_row[k] for k in ("frames_out", "uncorrected",
-                                                                             "motion_kinds", "reached_over")}}
+                                                                             "motion_kinds", "reached_over",
+                                                                             "loose_flows")}}
         except (RuntimeError, ValueError, OSError) as e:
             shake_scores[label] = {"error": str(e)}
     if cfg.baselines:

@@ -34,7 +34,8 @@ def motion_lines(methods: dict) -> list[str]:
         kinds = m.get("motion_kinds")
         if m.get("status") == "ok" and kinds is not None:
             out.append(f"  {name}: frames by motion: " + ", ".join(f"{k} {n}" for k, n in kinds.items())
-                       + f"; reached over {m.get('reached_over', 0)}; not corrected {m.get('uncorrected', 0)}")
+                       + f"; reached over {m.get('reached_over', 0)}; lifted loose {m.get('loose_flows', 0)}"
+                       + f"; not corrected {m.get('uncorrected', 0)}")
     return out
 
 
@@ -74,7 +75,8 @@ def format_clip(c: dict) -> str:
             if run:
                 lines.append(f"  {name} on the unshaken reference: frames by motion: "
                              + ", ".join(f"{k} {n}" for k, n in run["motion_kinds"].items())
-                             + f"; reached over {run.get('reached_over', 0)}; not corrected {run['uncorrected']}")
+                             + f"; reached over {run.get('reached_over', 0)}; lifted loose {run.get('loose_flows', 0)}"
+                             + f"; not corrected {run['uncorrected']}")
             for key in ("without_reference", "with_reference"):
                 if "warning" in s[key]:
                     lines.append(f"  {name} ({key.replace('_', ' ')}): WARNING {s[key]['warning']}")

@@ -172,6 +172,9 @@ def run(args: argparse.Namespace) -> int:
     reached = [p for p in result.pairs if p.span is not None]  # parts of a flow that reached over frames
     if reached:
         by_kind["reached over"] = pair_error_stats(reached)
+    loose = [p for p in result.pairs if p.counts.get("loose")]  # motions of flows lifted loose (motion blur)
+    if loose:
+        by_kind["lifted loose"] = pair_error_stats(loose)
     report: dict = {
         "source": args.source,
         "group": args.group,
@@ -187,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
         "flow_consistency": consistency,
         "errors_by_kind": {k: s.as_dict() for k, s in by_kind.items()},
         "reached_over": pipeline.flow.reached_over,
+        "loose_flows": pipeline.flow.loose,
         "fallbacks": [{"seq": p.motion.seq, "seq_next": p.motion.seq_next, "kind": p.motion.kind,
                        "reason": p.motion.reason} for p in result.pairs
                       if p.motion.kind in ("rotation", "bridge") or p.span is not None],
@@ -240,7 +244,8 @@ def run(args: argparse.Namespace) -> int:
             f"{row['kept']:>7.3f} {row['rot_median_deg']:>8.4f}")
     say("\nmotions by how they were known (docs/method.md 2.4): "
         + ", ".join(f"{k} {n}" for k, n in kinds.items())
-        + f"; frames reached over {report['reached_over']} ({len(reached)} motions a part of a flow across them)")
+        + f"; frames reached over {report['reached_over']} ({len(reached)} motions a part of a flow across them)"
+        + f"; flows lifted loose {report['loose_flows']} (docs/method.md (1c))")
     for rec in report["fallbacks"][:10]:
         say(f"{rec['kind']} {rec['seq']}->{rec['seq_next']}: {rec['reason']}")
     if len(report["fallbacks"]) > 10:

@@ -21,7 +21,9 @@ class FlowStage:
     ``check.counts``); ``notes`` holds what it reported of the last frame pushed. A frame whose flow
     starves (fewer than ``reach_min_pairs`` pairs: smeared by motion blur, blank) is reached over: the
     flow to the next frame starts from the frame before it, for at most ``reach_over`` frames
-    (docs/method.md 2.4); ``reached_over`` counts them.
+    (docs/method.md 2.4); ``reached_over`` counts them. A weak flow (fewer than ``reach_back_pairs``, or
+    lifted loose) is held one frame: when the flow out of its frame starves, the smeared frame is that one, and the flow
+    from the frame before it to the next is tried in place of both (reached back over it).
     """
 
     def __init__(self, params: SceneFlowParams | None = None, continuity: ContinuityParams | None = None) -> None:
@@ -33,10 +35,21 @@ class FlowStage:
         self._anchor: RGBDFrame | None = None  # while frames are reached over: the frame before them
         self._pending: SceneFlowResult | None = None  # ... and the starved flow from it to the newest of them
         self._from_good = True  # whether the flow into the last frame had pairs enough (a reach may start there)
+        self._weak: SceneFlowResult | None = None  # a weak flow into the last frame, held one frame ...
+        self._weak_from: RGBDFrame | None = None  # ... and the frame it starts from
         self.reached_over = 0  # frames reached over, over the stage's life
+        self.loose = 0  # flows passed on lifted loose (docs/method.md (1c)), over the stage's life
         self.began = False  # whether the last frame pushed began a chain (the first of a stream)
 
     def push(self, frame: RGBDFrame, pub_ns: int | None = None, shed: Collection[int] = ()) -> list[SceneFlowResult]:
+        """Add the next frame (:meth:`_push`); counts the flows it passes on lifted loose."""
+        return self._counted(self._push(frame, pub_ns, shed))
+
+    def _counted(self, flows: list[SceneFlowResult]) -> list[SceneFlowResult]:
+        self.loose += sum(bool(f.counts.get("loose")) for f in flows)
+        return flows
+
+    def _push(self, frame: RGBDFrame, pub_ns: int | None, shed: Collection[int]) -> list[SceneFlowResult]:
         """Add the next frame; returns the flows it completes, in order: none for the first frame of a
         chain or one reached over, else the flow into it (from the frame before those reached over,
         naming them in ``over``), after a discontinuity the held starved flow first.
@@ -60,7 +73,7 @@ class FlowStage:
         if prev is None:
             return []
         if verdict.brk:
-            held = self.finish()
+            held = self._finish()
             self._from_good = True  # the frame after a break starts afresh
             return held + [SceneFlowResult.empty(prev, frame, verdict.brk)]
         start = self._anchor or prev
@@ -68,6 +81,15 @@ class FlowStage:
         if self._pending is not None:
             flow = replace(flow, over=(*self._pending.over, self._pending.seq_next))
         p = self.flow.params
+        out: list[SceneFlowResult] = []
+        weak, weak_from, self._weak = self._weak, self._weak_from, None
+        if weak is not None:
+            back = self._reach_back(weak, weak_from, flow, frame) if len(flow) < p.reach_min_pairs else None
+            if back is None:
+                out.append(weak)  # its frame holds: the weak flow goes on as it is
+                self.reached_over += len(weak.over)
+            else:
+                start, flow = weak_from, back
         starved = len(flow) < p.reach_min_pairs
         # reach over the frame, unless the reach is spent or the frame it would start from is itself the
         # starved one (the flow into it starved: reaching past its successor could not help)
@@ -76,25 +98,51 @@ class FlowStage:
             self.notes = [*self.notes, f"frame {frame.seq}: its flow from frame {start.seq} starved "
                                        f"({flow.problem or f'{len(flow)} pairs'}): reached over, the next "
                                        f"flow starts from frame {start.seq}"]
-            return []
+            return out
         self._anchor = self._pending = None
         self._from_good = not starved
+        weak = len(flow) < p.reach_back_pairs or bool(flow.counts.get("loose"))
+        if not starved and weak and p.reach_back_pairs and len(flow.over) < p.reach_over:
+            self._weak, self._weak_from = flow, start  # held: the next flow tells whether its frame is smeared
+            return out
         self.reached_over += len(flow.over)
-        return [flow]
+        return [*out, flow]
+
+    def _reach_back(self, weak: SceneFlowResult, weak_from: RGBDFrame, flow: SceneFlowResult,
+                    frame: RGBDFrame) -> SceneFlowResult | None:
+        """The flow from the frame before a weak flow's (``weak_from``) to ``frame``, over the weak flow's
+        frame, when the flow out of that frame (``flow``) starved and the one over it is better than the weak
+        one (:func:`rank`: that frame is the smeared one); else None."""
+        back = self.flow.compute(weak_from, frame)
+        if rank(back) <= rank(weak):
+            return None
+        self.notes = [*self.notes, f"frame {weak.seq_next}: the flow out of it to frame {frame.seq} starved "
+                                   f"({flow.problem or f'{len(flow)} pairs'}) after a weak one into it ({len(weak)} "
+                                   f"pairs): reached back over it, the flow from frame {weak_from.seq} has "
+                                   f"{len(back)} pairs"]
+        return replace(back, over=(*weak.over, weak.seq_next))
 
     def finish(self) -> list[SceneFlowResult]:
-        """The held starved flow, if frames are being reached over (the end of a stream or a break
-        ends the reach): the motion stage bridges it."""
-        held = [] if self._pending is None else [self._pending]
+        """The held flows: a weak one, and the starved one if frames are being reached over (the end of a
+        stream or a break ends the reach: the motion stage bridges it)."""
+        return self._counted(self._finish())
+
+    def _finish(self) -> list[SceneFlowResult]:
+        held = [f for f in (self._weak, self._pending) if f is not None]
         self.reached_over += sum(len(f.over) for f in held)
-        self._anchor = self._pending = None
-        self._from_good = not held
+        self._from_good = self._pending is None
+        self._anchor = self._pending = self._weak = self._weak_from = None
         return held
 
     def restart(self) -> None:
         """End of stream: the next frame starts a new chain (the counters go on); call :meth:`finish` first."""
-        self._prev = self._prev_pub = self._anchor = self._pending = None
+        self._prev = self._prev_pub = self._anchor = self._pending = self._weak = self._weak_from = None
         self._from_good = True
+
+
+def rank(flow: SceneFlowResult) -> tuple[bool, int]:
+    """How much a flow tells, for comparing two flows: a strict one before one lifted loose, then by pairs."""
+    return not flow.counts.get("loose"), len(flow)
 
 
 class FlowDriver:
@@ -133,6 +181,9 @@ class FlowDriver:
             if flow.over:
                 self.log.log(logging.WARNING, "flow %d->%d reaches over frame%s %s (their own flow starved)",
                              flow.seq, flow.seq_next, "s" * (len(flow.over) > 1), ", ".join(map(str, flow.over)))
+            if flow.counts.get("loose"):
+                self.log.log(logging.WARNING, "flow %d->%d lifted loose (%d pairs; the strict tests kept too few: "
+                             "motion blur)", flow.seq, flow.seq_next, len(flow))
             if flow.problem:
                 self.empty += 1
                 self.log.log(logging.WARNING, "flow %d->%d: %s", flow.seq, flow.seq_next, flow.problem)
@@ -144,4 +195,4 @@ class FlowDriver:
 
     def stats(self) -> dict[str, int]:
         return {"refused_frames": self.refused, "empty_flows": self.empty, "reached_over": self.stage.reached_over,
-                **self.stage.check.counts}
+                "loose_flows": self.stage.loose, **self.stage.check.counts}

@@ -307,7 +307,7 @@ def test_robustness_grid_and_its_table():
     full = quality_tables.format_tables(r)
     assert full.index("robustness:") > full.rindex("LK moving average")
     assert "uncorrect." in full
-    assert "  ours: frames by motion: fit 7, restart 2, rotation 1; reached over 0; not corrected 2" in full
+    assert "  ours: frames by motion: fit 7, restart 2, rotation 1; reached over 0; lifted loose 0; not corrected 2" in full
     assert "note: default real clip x skipped" in full and "degrade cell blur1: degrade.py --seed SEED" in full
     json.dumps(r, default=quality_tables.json_default)
 

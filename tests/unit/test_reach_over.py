@@ -172,3 +172,82 @@ def test_the_stabilizer_renders_every_frame_of_a_stream_with_a_blank_frame_corre
     assert [sf.seq for sf in out] == list(range(20)) and st.flow.reached_over == 1
     assert not any(sf.flags for sf in out) and all(sf.correction.valid for sf in out)
     assert [sf.correction.motion for sf in out[9:11]] == ["fit", "fit"]
+
+
+class CountedFlow:
+    """A scene flow whose pair counts are set per (seq, seq_next) (default 500): the flow stage's schedule
+    alone, without images."""
+
+    def __init__(self, pairs: dict[tuple[int, int], int], params: SceneFlowParams | None = None,
+                 loose: frozenset = frozenset()) -> None:
+        self.params = params or SceneFlowParams()
+        self.pairs, self.loose = pairs, loose
+        self.calls: list[tuple[int, int]] = []
+
+    def compute(self, f0, f1):
+        from quick_stream.core.sceneflow import SceneFlowResult
+
+        self.calls.append((f0.seq, f1.seq))
+        n = self.pairs.get((f0.seq, f1.seq), 500)
+        z3, z2 = np.zeros((n, 3)), np.zeros((n, 2))
+        counts = {"kept": n, **({"loose": 1} if (f0.seq, f1.seq) in self.loose else {})}
+        return SceneFlowResult(f0.seq, f1.seq, z3, z3, np.ones(n), z2, z2, f0.intrinsics, f1.intrinsics, counts)
+
+
+def counted_run(frames, pairs, upto=None, params=None, loose=frozenset()):
+    st = FlowStage()
+    st.flow = CountedFlow(pairs, params, loose)
+    out, st.said = [], []
+    for fr in frames[:upto]:
+        out.append([(f.seq, f.seq_next, f.over, len(f)) for f in st.push(fr)])
+        st.said.append(st.notes)
+    return st, out
+
+
+def test_a_smeared_frame_after_a_weak_flow_is_reached_back_over(frames):
+    """docs/method.md 2.4: the flow into frame 4 is weak (30 pairs) and the one out of it starves: frame 4 is
+    the smeared one, so the flow from frame 3 to 5 is taken in place of both; the weak flow waits one frame."""
+    st, out = counted_run(frames, {(3, 4): 30, (4, 5): 3, (3, 5): 400}, upto=8)
+    assert out[4] == [] and out[5] == [(3, 5, (4,), 400)]
+    assert [s for o in out for s in o] == [(0, 1, (), 500), (1, 2, (), 500), (2, 3, (), 500), (3, 5, (4,), 400),
+                                           (5, 6, (), 500), (6, 7, (), 500)]
+    assert st.reached_over == 1 and any("reached back over" in n for n in st.said[5])
+
+
+def test_a_weak_flow_goes_on_when_its_frame_holds(frames):
+    """Weak but followed by a good flow: both go out, in order, one frame late; a weak flow whose successor
+    starves and whose frame the reach back does not beat goes out as it is, and the frame after it is
+    reached over as before."""
+    _, out = counted_run(frames, {(3, 4): 30}, upto=7)
+    assert out[4] == [] and out[5] == [(3, 4, (), 30), (4, 5, (), 500)]
+    st, out = counted_run(frames, {(3, 4): 30, (4, 5): 3, (3, 5): 20}, upto=8)
+    assert out[5] == [(3, 4, (), 30)] and out[6] == [(4, 6, (5,), 500)]
+    assert st.reached_over == 1 and (3, 5) in st.flow.calls
+
+
+def test_a_stream_ending_on_a_weak_flow_gives_it_at_the_end(frames):
+    st, out = counted_run(frames, {(4, 5): 30}, upto=6)
+    assert out[5] == []
+    assert [(f.seq, f.seq_next, len(f)) for f in st.finish()] == [(4, 5, 30)] and st.finish() == []
+
+
+def test_the_reach_back_is_off_at_zero_and_bounded_by_the_reach(frames):
+    _, out = counted_run(frames, {(3, 4): 30, (4, 5): 3, (3, 5): 400}, upto=7, params=SceneFlowParams(reach_back_pairs=0))
+    assert out[4] == [(3, 4, (), 30)] and out[5] == [] and out[6] == [(4, 6, (5,), 500)]
+    # a weak flow that already reaches over reach_over - 1 frames is not held: a reach back would pass the bound
+    st, out = counted_run(frames, {(3, 4): 2, (3, 5): 2, (3, 6): 30, (6, 7): 2, (3, 7): 400}, upto=9)
+    assert [s[:3] for o in out for s in o][3:5] == [(3, 6, (4, 5)), (6, 8, (7,))]
+
+
+def test_a_flow_lifted_loose_is_held_as_a_weak_one_and_counted(frames):
+    """Lifted loose (docs/method.md (1c)) its frame is smeared whatever its pair count: held, and reached back
+    over when the flow out of it starves; the stage counts the loose flows it passes on."""
+    st, out = counted_run(frames, {(4, 5): 3}, upto=7, loose=frozenset({(3, 4)}))
+    assert out[4] == [] and out[5] == [(3, 5, (4,), 500)] and st.loose == 0 and st.reached_over == 1
+    # loose both: the one over the frame is taken when it holds more pairs (and, loose, is held in turn)
+    st, out = counted_run(frames, {(4, 5): 3, (3, 5): 900}, upto=7, loose=frozenset({(3, 4), (3, 5)}))
+    assert out[4] == out[5] == [] and out[6] == [(3, 5, (4,), 900), (5, 6, (), 500)] and st.loose == 1
+    st, out = counted_run(frames, {(4, 5): 3, (3, 5): 400}, upto=7, loose=frozenset({(3, 4), (3, 5)}))
+    assert out[5] == [(3, 4, (), 500)] and st.loose == 1
+    st, out = counted_run(frames, {}, upto=6, loose=frozenset({(2, 3)}))
+    assert out[3] == [] and out[4] == [(2, 3, (), 500), (3, 4, (), 500)] and st.loose == 1

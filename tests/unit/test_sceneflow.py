@@ -232,3 +232,33 @@ def test_a_720p_pair_flows_at_half_scale_and_its_samples_still_follow_ground_tru
     err = np.linalg.norm(r.points + r.displacements - (r.points @ M[:3, :3].T + M[:3, 3]), axis=1)
     assert np.median(err) < 0.003  # metres, as at 640x480 and full scale (test_lifted_pairs_follow_ground_truth)
     assert r.pixels[:, 0].max() > 700  # the samples are the frame's own pixels, in its full-size units
+
+
+def test_a_flow_the_strict_tests_starve_under_motion_blur_is_lifted_loose():
+    """docs/method.md (1c): a frame and its copy turned by a known rotation and smeared by a 61 px motion blur:
+    LK and the 1.5 px forward-backward limit keep fewer than loose_below (50) samples; the same flow
+    fields lifted loose keep thousands, marked ``loose``, and still follow the exact flow K R K^-1 to
+    a few pixels. A sharp pair keeps its strict flow, bit for bit."""
+    import cv2
+
+    from quick_stream.core.lie import so3
+
+    a = SyntheticSource(frames=1, seed=4).frame(0)
+    K = a.intrinsics.K
+    H = K @ so3.exp(np.array([0.005, 0.03, 0.01])) @ np.linalg.inv(K)
+    h, w = a.depth.shape
+    c1 = cv2.filter2D(cv2.warpPerspective(a.color, H, (w, h)), -1, np.full((1, 61), 1 / 61, np.float32))
+    d1 = cv2.warpPerspective(a.depth, H, (w, h), flags=cv2.INTER_NEAREST)
+    f1 = a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000)
+    strict = SceneFlow(SceneFlowParams(loose_below=0)).compute(a, f1)
+    loose = SceneFlow().compute(a, f1)
+    assert len(strict) < 50 and "loose" not in strict.counts
+    assert len(loose) > 1000 and loose.counts["loose"] == 1
+    q = np.c_[loose.pixels, np.ones(len(loose))] @ H.T
+    assert np.median(np.linalg.norm(loose.pixels_next - q[:, :2] / q[:, 2:], axis=1)) < 3.0
+    sharp = a.with_(color=cv2.warpPerspective(a.color, H, (w, h)), depth=d1, seq=1,
+                    timestamp_ns=a.timestamp_ns + 33_000_000)
+    r0, r1 = SceneFlow(SceneFlowParams(loose_below=0)).compute(a, sharp), SceneFlow().compute(a, sharp)
+    assert "loose" not in r1.counts and np.array_equal(r0.pixels_next, r1.pixels_next) and len(r1) >= 50
+    with pytest.raises(ValueError, match="loose_below"):
+        SceneFlowParams(loose_below=-1).validate()

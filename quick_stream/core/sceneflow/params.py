@@ -43,10 +43,18 @@ class SceneFlowParams:
     lk_eps_px: float = 0.03  # LK stops once an iteration moves the sample less than this (px)
     lk_max_shift_px: float = 2.0  # LK moving a sample further than this from DIS: sample dropped
     lk_budget: float = 1.25  # LK refines at most lk_budget x max_points samples, evenly spaced (0: all)
+    loose_below: int = 50  # a flow keeping fewer pairs than this (the motion's min_points) is lifted again loose:
+    # no LK refinement and a forward-backward limit of loose_fb_px, kept when that gives this many (motion
+    # blur: LK and the tight limit drop smeared samples; docs/method.md (1c)); 0: off
+    loose_fb_px: float = 4.0
+    loose_min_std: float = 3.0  # ... and only samples with this much grey-level std around them in both frames
     reach_over: int = 2  # a frame whose flow has fewer than reach_min_pairs pairs (smeared, blank) is reached
     # over: the next frames' flow starts from the frame before it, for at most this many frames (0: off;
     # docs/method.md 2.4, the flow stage's FlowStage)
     reach_min_pairs: int = 8  # ... fewer pairs than this: a flow the motion could fit nothing to (its min_rotation_points)
+    reach_back_pairs: int = 50  # a flow with fewer pairs than this (the motion's min_points: below it only a
+    # rotation-only fit) is held one frame: if the flow out of its frame starves, that frame is the smeared one
+    # and the flow from the frame before it is tried, reaching over it (0: off; docs/method.md 2.4)
 
     def validate(self) -> None:
         if self.preset not in DIS_PRESETS:
@@ -70,9 +78,12 @@ class SceneFlowParams:
             raise ValueError(f"sceneflow refine must be 'lk' or 'none', got {self.refine!r}")
         if self.lk_window < 3 or self.lk_window % 2 == 0 or self.lk_iters < 1 or not self.lk_max_shift_px > 0:
             raise ValueError("sceneflow lk_window must be odd >= 3, lk_iters >= 1 and lk_max_shift_px > 0")
-        if self.reach_over < 0 or self.reach_min_pairs < 1:
-            raise ValueError(f"sceneflow reach_over must be >= 0 and reach_min_pairs >= 1, got {self.reach_over}, "
-                             f"{self.reach_min_pairs}")
+        if self.reach_over < 0 or self.reach_min_pairs < 1 or self.reach_back_pairs < 0:
+            raise ValueError(f"sceneflow reach_over and reach_back_pairs must be >= 0 and reach_min_pairs >= 1, got "
+                             f"{self.reach_over}, {self.reach_back_pairs}, {self.reach_min_pairs}")
+        if self.loose_below < 0 or not self.loose_fb_px > 0 or not self.loose_min_std >= 0:
+            raise ValueError(f"sceneflow loose_below must be >= 0, loose_fb_px > 0 and loose_min_std >= 0, got "
+                             f"{self.loose_below}, {self.loose_fb_px}, {self.loose_min_std}")
         if not 0 < self.lk_eps_px <= 1:
             raise ValueError(f"sceneflow lk_eps_px must be in (0, 1] px, got {self.lk_eps_px}")
 
