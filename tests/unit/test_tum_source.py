@@ -462,3 +462,17 @@ def test_groundtruth_interpolation(tmp_path):
     assert frames[3].pose is None  # after the last ground-truth sample
     # a window wholly outside the ground truth has none
     assert not TumSource(root, start=3).has_ground_truth
+
+
+def test_a_folder_whose_name_has_a_comma_opens_with_and_without_options(tmp_path):
+    """The known-shake and degraded clips the benchmarks make are named like ``..._sh4,2_lag1_...``: the
+    spec's options are the ``key=value`` items at its end, and a spec naming an existing folder is a path."""
+    from quick_stream.io.sources import open_source
+
+    root = make_tum(tmp_path / "clip_sh4,2_lag1")
+    assert len(list(open_source(f"tum:{root}"))) == 4
+    assert len(list(open_source(f"tum:{root},count=2"))) == 2
+    with pytest.raises(SourceError, match="nowhere,2"):
+        open_source(f"tum:{tmp_path / 'nowhere,2'}")
+    with pytest.raises(SourceError, match="bogus"):
+        open_source(f"tum:{root},bogus=1")

@@ -8,6 +8,8 @@ folder) and ``mcap:FILE`` or ``mcap:FILE,stream=ID`` (replay of a recording's
 """
 from __future__ import annotations
 
+import os
+import re
 from typing import TYPE_CHECKING
 
 from .base import FrameOrGap, Source, SourceError
@@ -16,6 +18,7 @@ if TYPE_CHECKING:
     from ...core.params import StabilizerParams
 
 SOURCE_KINDS = ("synthetic", "tum", "mcap", "depthai")
+_OPTION = re.compile(r"[A-Za-z_][A-Za-z0-9_]*=.*")  # a key=value option of a tum: or mcap: spec
 
 
 def _split_options(text: str) -> tuple[list[str], dict[str, str]]:
@@ -32,8 +35,16 @@ def _split_options(text: str) -> tuple[list[str], dict[str, str]]:
 
 def _path_and_options(rest: str, extra: dict[str, str], usage: str) -> tuple[str, dict[str, str]]:
     """``PATH[,key=value...]``: (path, options with ``extra`` on top); SourceError ``usage`` without a
-    path. The path may contain commas only when no options follow them."""
-    path, _, opt_text = rest.partition(",")
+    path. The path may contain commas (the folders the benchmarks make do): the options are the
+    longest run of ``key=value`` items at the end, and a ``rest`` that names an existing file or
+    folder is a path whole."""
+    path, opt_text = rest, ""
+    if not os.path.exists(rest):
+        parts = rest.split(",")
+        i = len(parts)
+        while i > 1 and _OPTION.fullmatch(parts[i - 1].strip()):
+            i -= 1
+        path, opt_text = ",".join(parts[:i]), ",".join(parts[i:])
     _, options = _split_options(opt_text)
     options.update(extra)
     if not path:
