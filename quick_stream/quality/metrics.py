@@ -47,9 +47,11 @@ of them (bins 2..6 of the spectrum for 5) over their sum.
 ``stability_translation`` and ``stability_rotation`` are those two scores and
 ``stability`` is their MEAN (as the DIFRINT script prints). Ours beyond the
 scripts: a signal with no variation at all (identical frames) scores 1 instead
-of 0/0; pairs whose homography cannot be fitted are filled by linear
-interpolation of the neighbouring pairs' (centred, normalised) homographies and
-counted in ``warnings`` (the scripts reuse the previous pair's matrix).
+of 0/0; pairs whose homography cannot be fitted (or whose fit is degenerate, or
+turns more than ``max_pair_turn_deg``, 30 deg: repeated texture under blur matched
+a shifted copy, e.g. a striped carpet fitted as a 67 deg turn with 291 inliers) are
+filled by linear interpolation of the neighbouring pairs' (centred, normalised)
+homographies and counted in ``warnings`` (the scripts reuse the previous pair's matrix).
 Properties worth knowing (measured, docs/method.md section 6): the score is
 scale-free, so a still camera is scored on its feature-estimation noise alone;
 per-pair estimation noise accumulates into a random walk, whose spectrum falls
@@ -118,6 +120,7 @@ class MetricParams:
     min_inliers: int = 12  # fewer RANSAC inliers: likewise
     min_scale: float = 0.1  # input-output scale outside [min_scale, max_scale]: degenerate fit (failure)
     max_scale: float = 10.0
+    max_pair_turn_deg: float = 30.0  # a consecutive pair fitted as turning more than this: taken as unmatched
     black_level: int = 10  # grey level at or below which a pixel counts as black
     max_black_fraction: float = 0.9  # output frame blacker than this: "mapped out of view" (failure)
     low_bins: int = 5  # stability: bins 2..(low_bins+1) of the spectrum (DC excluded)
@@ -345,6 +348,8 @@ class MetricsAccumulator:
                                      ("input", "input_motion_to_next", self._prev[0], fin)):
                 fit = self.matcher.fit(a, b)
                 H = fit.H if fit.H is not None and sound(fit.H, p) else None  # degenerate: as if unmatched
+                if H is not None and abs(motion_of(H)[2]) > p.max_pair_turn_deg:
+                    H = None  # no camera turns that far in a frame: repeated texture matched a shifted copy
                 setattr(prev_fm, attr, None if H is None else motion_of(H))
                 self._pair_h[name].append(H)
         self._prev = (fin, fout)

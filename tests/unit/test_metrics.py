@@ -287,3 +287,37 @@ def test_a_degenerate_pair_homography_counts_as_unmatched_not_as_a_huge_jitter(s
     assert not m.failed and m.per_frame[4].motion_to_next is None
     assert any("1 of 11 consecutive output pairs had no homography" in w for w in m.warnings)
     assert m.jitter_px < 2 * clean.jitter_px + 0.05 and m.jitter_deg < 2 * clean.jitter_deg + 0.05
+
+
+def test_a_consecutive_pair_fitted_as_a_turn_beyond_reach_counts_as_unmatched(smooth12, monkeypatch):
+    """Repeated texture under motion blur (a striped carpet) can give a sound homography for the wrong copy:
+    measured, a 67 deg turn with 291 inliers between two stabilized frames that are 1 px apart, which put
+    the clip's jitter at 16 px. A consecutive pair fitted as turning more than max_pair_turn_deg is taken
+    as unmatched and interpolated; a real turn below it is kept."""
+    from quick_stream.quality import metrics as mm
+
+    def turned(deg: float) -> np.ndarray:
+        c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+        return np.array([[c, -s, -113.8], [s, c, 139.6], [0.0, 0.0, 1.0]])
+
+    p = MetricParams()
+    assert mm.sound(turned(67.3), p) and mm.motion_of(turned(67.3))[2] > p.max_pair_turn_deg
+    clean = evaluate_sequence(smooth12, smooth12)
+    fit = mm.FeatureMatcher.fit
+
+    def with_pair(H):
+        calls = {"n": 0}
+
+        def one_pair(self, a, b):
+            r = fit(self, a, b)
+            calls["n"] += 1
+            return mm.PairFit(H, r.matches, r.inliers) if calls["n"] == 15 else r
+        return one_pair
+
+    monkeypatch.setattr(mm.FeatureMatcher, "fit", with_pair(turned(67.3)))
+    m = evaluate_sequence(smooth12, smooth12)
+    assert not m.failed and m.per_frame[4].motion_to_next is None
+    assert m.jitter_px < 2 * clean.jitter_px + 0.05 and m.jitter_deg < 2 * clean.jitter_deg + 0.05
+    monkeypatch.setattr(mm.FeatureMatcher, "fit", with_pair(turned(20.0)))
+    m = evaluate_sequence(smooth12, smooth12)
+    assert m.per_frame[4].motion_to_next is not None and m.jitter_deg > 1.0
