@@ -101,8 +101,8 @@ class FlowStage:
             return out
         self._anchor = self._pending = None
         self._from_good = not starved
-        weak = len(flow) < p.reach_back_pairs or bool(flow.counts.get("loose"))
-        if not starved and weak and p.reach_back_pairs and len(flow.over) < p.reach_over:
+        holds_little = len(flow) < p.reach_back_pairs or bool(flow.counts.get("loose"))
+        if not starved and holds_little and p.reach_back_pairs and len(flow.over) < p.reach_over:
             self._weak, self._weak_from = flow, start  # held: the next flow tells whether its frame is smeared
             return out
         self.reached_over += len(flow.over)
