@@ -13,6 +13,7 @@ from .quality_robustness import AXES, format_robustness
 
 COLUMNS = (("jitter_px", "jitter px", "{:10.3f}"), ("jitter_deg", "jitter deg", "{:10.4f}"),
            ("jitter_px_border_free", "bf jit px", "{:10.3f}"),
+           ("jitter_bound_px", "bound px", "{:10.3f}"), ("jitter_bound_deg", "bound deg", "{:10.4f}"),
            ("cropping", "cropping", "{:10.3f}"), ("border_free_cropping", "bf crop", "{:10.3f}"),
            ("distortion", "distortion", "{:10.3f}"), ("stability", "stability", "{:10.3f}"),
            ("ms_per_frame", "ms/frame", "{:10.1f}"), ("failed", "failed", "{!s:>10}"),

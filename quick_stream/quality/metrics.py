@@ -320,7 +320,8 @@ class MetricsAccumulator:
         t0 = time.perf_counter()
         p = self.params
         fin = self.matcher.describe(input_frame)
-        fout = self.matcher.describe(output_frame)
+        # the input scored as its own output (the benchmarks' input row): one description, one pair fit
+        fout = fin if output_frame is input_frame else self.matcher.describe(output_frame)
         for name, img in (("input", input_frame), ("output", output_frame)):
             self._centre.setdefault(name, ((img.shape[1] - 1) / 2.0, (img.shape[0] - 1) / 2.0))
         fm = FrameMetrics(len(self.frames), black_fraction=fout.black_fraction)
@@ -344,9 +345,10 @@ class MetricsAccumulator:
             self._failure = f"frame {fm.index}: {fm.problem}"
         if self._prev is not None:
             prev_fm = self.frames[-1]
-            for name, attr, a, b in (("output", "motion_to_next", self._prev[1], fout),
-                                     ("input", "input_motion_to_next", self._prev[0], fin)):
-                fit = self.matcher.fit(a, b)
+            out_fit = self.matcher.fit(self._prev[1], fout)
+            same = self._prev[0] is self._prev[1] and fin is fout
+            in_fit = out_fit if same else self.matcher.fit(self._prev[0], fin)
+            for name, attr, fit in (("output", "motion_to_next", out_fit), ("input", "input_motion_to_next", in_fit)):
                 H = fit.H if fit.H is not None and sound(fit.H, p) else None  # degenerate: as if unmatched
                 if H is not None and abs(motion_of(H)[2]) > p.max_pair_turn_deg:
                     H = None  # no camera turns that far in a frame: repeated texture matched a shifted copy
@@ -357,12 +359,22 @@ class MetricsAccumulator:
         self._seconds += time.perf_counter() - t0
         return fm
 
+    @property
+    def jitter_sigma(self) -> float:
+        """Gaussian sigma (frames) of the jitter high-pass."""
+        p = self.params
+        return p.jitter_sigma_frames if p.jitter_sigma_frames is not None else self.fps / 6.0
+
+    def input_motions(self) -> np.ndarray:
+        """(N - 1, 3) per-pair input motions (tx px, ty px, angle deg), missing pairs interpolated as for jitter."""
+        return _fill([f.input_motion_to_next for f in self.frames[:-1]])[0]
+
     def result(self) -> SequenceMetrics:
         p = self.params
         n = len(self.frames)
         if n < 2:
             raise ValueError(f"metrics need at least 2 frames, got {n}")
-        sigma = p.jitter_sigma_frames if p.jitter_sigma_frames is not None else self.fps / 6.0
+        sigma = self.jitter_sigma
         warnings: list[str] = []
         pairs = self.frames[:-1]
         out_m, out_missing = _fill([f.motion_to_next for f in pairs])

@@ -15,7 +15,7 @@ from quick_stream.stream.wire import WireError, decode
 from tests.helpers import pipeline, recorded, wait_for_log
 from tests.tools import repo_env
 
-FPS, SECONDS = 240, 4  # 960 frames of 320x240 from a foreign publisher, against a render slowed to ~20 frames/s
+FPS, SECONDS = 240, 2  # 480 frames of 320x240 from a foreign publisher, against a render slowed to ~20 frames/s
 # The publisher waits for a congested link (zenoh's default drops for it): every stage gets every
 # frame, so the account is exact. (A frame lost on flow's link alone is one flow never saw, not one
 # it shed: render renders it uncorrected and flagged, as any frame skipped upstream.)

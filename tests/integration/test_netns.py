@@ -167,9 +167,10 @@ def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path
         assert_same(tmp_path, single_host)  # everything allowed still flows, bit for bit
         key = "quick/@v1/cam9/frame"
         # control: a subscriber (monitor certificate) sees what cam9's capture certificate publishes
-        listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, key, "4", f"{good}/monitor",
+        # the subscriber listens until the publisher has finished (communicate() closes its stdin)
+        listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, key, "20", f"{good}/monitor",
                                    "monitor"],
-                                  stdout=subprocess.PIPE, text=True)
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         assert "subscribed" in listen.stdout.readline()  # wait for the subscriber itself, not a clock
         sent = hosts.probe("cam", "pub", ep, key, "1.5", f"{good}/cam9/capture", "capture")
         got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
@@ -180,8 +181,9 @@ def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path
         # valid certificates publishing where their name is not allowed get nothing through: the monitor, a
         # capture on another stage, a flow on frames (another stream's capture: tests/integration/test_acl.py)
         for who, where in (("monitor", key), ("cam9/capture", "quick/@v1/cam9/correction"), ("cam9/flow", key)):
-            listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, where, "4",
-                                       f"{good}/monitor", "monitor"], stdout=subprocess.PIPE, text=True)
+            listen = subprocess.Popen([*hosts.prefix("view"), sys.executable, PROBE, "sub", ep, where, "20",
+                                       f"{good}/monitor", "monitor"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      text=True)
             assert "subscribed" in listen.stdout.readline()
             sent = hosts.probe("compute", "pub", ep, where, "1.5", f"{good}/{who}", who.rpartition("/")[2])
             got = json.loads(listen.communicate(timeout=30)[0].strip().splitlines()[-1])
@@ -193,7 +195,7 @@ def test_tls_and_access_control_across_hosts(hosts, single_host, certs, tmp_path
                                   f"{good}/cam9/capture", "capture"], stdout=subprocess.PIPE, text=True)
         try:
             assert "published" in cache.stdout.readline()
-            got = hosts.probe("compute", "history", ep, key, "3", f"{good}/cam9/flow", "flow")
+            got = hosts.probe("compute", "history", ep, key, "10:20", f"{good}/cam9/flow", "flow")
             assert got["opened"] and got["received"] == 20, got  # the whole cache, as on TCP
             got = hosts.probe("view", "history", ep, key, "3", f"{good}/monitor", "monitor")
             assert got["received"] == 0, got  # the monitor only watches live data

@@ -20,7 +20,8 @@ import sys
 from tests.helpers import pipeline, recorded, wait_for_log
 from tests.tools import repo_env
 
-FRAMES = 150  # 10 s at 15 frames/s: the viewer's links back up within the first seconds
+FRAMES = 105  # 7 s at 15 frames/s: the viewer's links back up within the first second, and the
+# publishers' old 5 s wait for a congested link (wait_before_close) would fall inside it
 
 
 def test_slow_peer_viewer_costs_the_pipeline_nothing(tmp_path):

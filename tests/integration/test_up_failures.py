@@ -183,7 +183,7 @@ def test_a_run_stopped_by_duration_lets_every_frame_sent_reach_the_video(tmp_pat
 
     out, port = tmp_path / "out", free_port()
     p = start_up(out, port, "--source", "synthetic:frames=100000,width=160,height=120", "--pace", "fast",
-                 "--duration", "8", "--quiet", fault="flow:slow=40")
+                 "--duration", "5", "--quiet", fault="flow:slow=40")
     code, text, err = finish(p, out, port)
     no_leftovers(out, port)
     assert code == 0, text + err
@@ -191,7 +191,7 @@ def test_a_run_stopped_by_duration_lets_every_frame_sent_reach_the_video(tmp_pat
     assert frames["sent"] > 0 and frames["rendered"] == frames["sent"] and frames["lost"] == 0, frames
     assert video_frames(out / "stabilized.avi") == frames["sent"]
     assert "the capture has ended the stream; the frames it sent get up to 10 s to reach the outputs" in err
-    assert "stopped: --duration 8 s" in text and "0 lost in transit" in text
+    assert "stopped: --duration 5 s" in text and "0 lost in transit" in text
 
 
 def test_a_run_that_produced_nothing_exits_non_zero(tmp_path):

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 
 import ast
+import functools
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -115,6 +116,19 @@ def check_import(importer: str, imported: str) -> str | None:
     return None
 
 
+@functools.lru_cache(maxsize=4096)
+def _parse_text(text: str) -> ast.Module:
+    return ast.parse(text)
+
+
+def _parse(text: str, name: str) -> ast.Module:
+    """A module's syntax tree, parsed once per text (the tests check many copies of one tree; read only)."""
+    try:
+        return _parse_text(text)
+    except SyntaxError:
+        return ast.parse(text, name)  # the error again, naming the file
+
+
 def check_tree(root: Path) -> list[Violation]:
     """Every violation in ``root``/quick_stream and ``root``/services."""
     found: list[Violation] = []
@@ -125,7 +139,7 @@ def check_tree(root: Path) -> list[Violation]:
         importer = layer_of(module)
         if importer == "root" and module not in (PACKAGE, f"{PACKAGE}.__main__"):
             found.append(Violation(str(rel), 1, "root", module, f"a module belongs to a layer ({', '.join(LAYERS)})"))
-        tree = ast.parse(path.read_text(), str(rel))
+        tree = _parse(path.read_text(), str(rel))
         for line, imported in imported_modules(tree, module, is_pkg):
             why = check_import(importer, imported)
             if why:
@@ -144,7 +158,7 @@ def import_graph(root: Path) -> dict[str, set[str]]:
     mods = _module_files(root)
     graph: dict[str, set[str]] = {}
     for module, (path, is_pkg) in mods.items():
-        tree = ast.parse(path.read_text(), str(path))
+        tree = _parse(path.read_text(), str(path))
         edges = set()
         for _, imported in imported_modules(tree, module, is_pkg):
             target = imported if imported in mods else imported.rpartition(".")[0]

@@ -2,11 +2,13 @@
 tests/integration/test_netns.py. Prints one JSON line: {"opened": bool, "received": n, "sent": n, "error": str}
 (a subscriber first prints {"subscribed": true} once its subscriber is declared).
 
-    python tests/tools/netns_probe.py sub|pub|cache|history ENDPOINT KEY SECONDS [TLS_DIR TLS_NAME]
+    python tests/tools/netns_probe.py sub|pub|cache|history ENDPOINT KEY SECONDS[:COUNT] [TLS_DIR TLS_NAME]
 
 ``cache``: an advanced publisher with a 20-message history cache puts 20 messages, prints
 {"published": 20}, then stays SECONDS; ``history``: an advanced subscriber that asks the
-publishers' caches for their history counts what it gets in SECONDS.
+publishers' caches for their history counts what it gets in SECONDS. ``sub`` and ``history`` stop
+early once COUNT samples arrived, and ``sub`` also when its stdin closes (the test closes it once
+the publisher it listens to has finished: the end of the publication, not a clock).
 """
 from __future__ import annotations
 
@@ -20,7 +22,9 @@ import zenoh.ext
 
 
 def main(argv: list[str]) -> int:
-    role, endpoint, key, seconds = argv[0], argv[1], argv[2], float(argv[3])
+    role, endpoint, key = argv[0], argv[1], argv[2]
+    seconds_s, _, count_s = argv[3].partition(":")
+    seconds, count = float(seconds_s), int(count_s) if count_s else None
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
@@ -40,10 +44,13 @@ def main(argv: list[str]) -> int:
         return 0
     out["opened"] = True
     lock = threading.Lock()
+    done = threading.Event()
 
     def on_sample(_sample: zenoh.Sample) -> None:
         with lock:
             out["received"] += 1
+            if count is not None and out["received"] >= count:
+                done.set()
 
     try:
         if role == "cache":
@@ -57,12 +64,13 @@ def main(argv: list[str]) -> int:
         elif role == "history":
             sub = zenoh.ext.declare_advanced_subscriber(
                 session, key, on_sample, history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
-            time.sleep(seconds)
+            done.wait(seconds)
             sub.undeclare()
         elif role == "sub":
             sub = session.declare_subscriber(key, on_sample)
+            threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
             print(json.dumps({"subscribed": True}), flush=True)  # the test starts publishing on this line
-            time.sleep(seconds)
+            done.wait(seconds)
             sub.undeclare()
         else:
             pub = session.declare_publisher(key)

@@ -83,6 +83,11 @@ def test_pixel_jitter_made_border_free_grows_by_the_crop():
     assert r["jitter_px_border_free"] == pytest.approx(r["jitter_px"] / r["border_free_scale"])
     same = score_frames(frames, frames, 30.0)
     assert same["border_free_scale"] == 1.0 and same["jitter_px_border_free"] == same["jitter_px"]
+    # the least jitter a border-free output at that cropping can have (docs/method.md 6.3): the LK average
+    # cropped border-free is such an output; the input (cropping ~1, no room) is at its own bound
+    assert 0 <= r["jitter_bound_px"] <= r["jitter_px_border_free"] and 0 <= r["jitter_bound_deg"] <= r["jitter_deg"]
+    assert r["jitter_bound_px"] < 0.5 * same["jitter_px"]
+    assert same["jitter_bound_px"] == pytest.approx(same["jitter_px"], rel=0.05)
 
 
 def test_lk_moving_average_pieces():

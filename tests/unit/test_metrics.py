@@ -81,6 +81,11 @@ def test_identity_output_is_perfect_and_jitter_matches_input(smooth12):
     assert len(m.per_frame) == 12 and all(f.inliers >= 50 for f in m.per_frame)
     d = m.as_dict()
     assert d["cropping"] == m.cropping and "per_frame" not in d and len(m.as_dict(per_frame=True)["per_frame"]) == 12
+    # the input scored as its own output shares its descriptions and pair fits: the same numbers as copies give
+    apart = evaluate_sequence(smooth12, [f.copy() for f in smooth12]).as_dict(per_frame=True)
+    same = m.as_dict(per_frame=True)
+    apart.pop("seconds"), same.pop("seconds")
+    assert same == apart
 
 
 def test_zoom_in_125_gives_cropping_08(smooth12):
@@ -147,8 +152,9 @@ def test_still_camera_is_stable_and_a_shaken_one_is_not():
     walk puts ~85 % of its power in bins 2-6 (measured 0.77-0.87 over noise seeds at 40
     frames). I.i.d. shake of the still camera accumulates into white positions: low.
     """
-    still = evaluate_sequence(_still(40, 0), _still(40, 0))
-    shaken = evaluate_sequence(_shaken_still(40, 0), _shaken_still(40, 0))
+    still_frames, shaken_frames = _still(40, 0), _shaken_still(40, 0)
+    still = evaluate_sequence(still_frames, still_frames)
+    shaken = evaluate_sequence(shaken_frames, shaken_frames)
     assert not still.failed and not shaken.failed
     assert still.stability >= 0.7 and shaken.stability <= 0.4
     assert still.stability > shaken.stability + 0.4
@@ -279,11 +285,12 @@ def test_a_degenerate_pair_homography_counts_as_unmatched_not_as_a_huge_jitter(s
         r = fit(self, a, b)
         calls["n"] += 1
         if calls["n"] == 15:  # frame k >= 1 makes calls 3k - 1 (input-output), 3k (output pair k-1 -> k), 3k + 1
+            # (the input pair; an output that IS its input shares the input's description and pair fit)
             return mm.PairFit(flipped, r.matches, r.inliers)
         return r
 
     monkeypatch.setattr(mm.FeatureMatcher, "fit", one_flipped_pair)
-    m = evaluate_sequence(smooth12, smooth12)
+    m = evaluate_sequence(smooth12, [f.copy() for f in smooth12])  # copies: input and output fitted apart
     assert not m.failed and m.per_frame[4].motion_to_next is None
     assert any("1 of 11 consecutive output pairs had no homography" in w for w in m.warnings)
     assert m.jitter_px < 2 * clean.jitter_px + 0.05 and m.jitter_deg < 2 * clean.jitter_deg + 0.05
@@ -314,10 +321,11 @@ def test_a_consecutive_pair_fitted_as_a_turn_beyond_reach_counts_as_unmatched(sm
             return mm.PairFit(H, r.matches, r.inliers) if calls["n"] == 15 else r
         return one_pair
 
+    copies = [f.copy() for f in smooth12]  # input and output fitted apart: three fits a frame
     monkeypatch.setattr(mm.FeatureMatcher, "fit", with_pair(turned(67.3)))
-    m = evaluate_sequence(smooth12, smooth12)
+    m = evaluate_sequence(smooth12, copies)
     assert not m.failed and m.per_frame[4].motion_to_next is None
     assert m.jitter_px < 2 * clean.jitter_px + 0.05 and m.jitter_deg < 2 * clean.jitter_deg + 0.05
     monkeypatch.setattr(mm.FeatureMatcher, "fit", with_pair(turned(20.0)))
-    m = evaluate_sequence(smooth12, smooth12)
+    m = evaluate_sequence(smooth12, copies)
     assert m.per_frame[4].motion_to_next is not None and m.jitter_deg > 1.0
