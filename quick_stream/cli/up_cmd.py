@@ -52,6 +52,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="stop the source after this many frames (default: all)")
     p.add_argument("--duration", type=at.positive_float, default=None, metavar="S",
                    help="stop everything after this many seconds (default: when the source is done)")
+    p.add_argument("--stop-grace", type=at.positive_float, default=5.0, metavar="S",
+                   help="seconds each process gets to finish after SIGTERM before it is killed (default: 5)")
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
                    help="realtime: frames sent at their own timestamps; fast: as fast as the pipeline takes "
                    "them (default: realtime)")
@@ -193,7 +195,7 @@ def _run(args: argparse.Namespace, params, stop: list[str]) -> int:
         final: list[str] = []
         order = [n for n in (*topology.SERVICES, "router") if n in sup.children]  # as the data flows
         try:
-            codes = sup.stop(order)
+            codes = sup.stop(order, grace_s=args.stop_grace)
             if board is not None:
                 board.drain()  # the services' last stats (the router stops last)
                 try:
@@ -257,7 +259,7 @@ def _drain(args: argparse.Namespace, sup: Supervisor, board: StatusBoard, stop: 
     signals = len(stop)
     ended = board.get(args.stream, "render").get("ended", 0)
     if "capture" in sup.children and not sup.children["capture"].finished:
-        sup.stop(["capture"])  # SIGTERM: it sends no more frames and ends the stream
+        sup.stop(["capture"], grace_s=args.stop_grace)  # SIGTERM: it sends no more frames and ends the stream
     board.drain()
     sent = int(board.totals(args.stream, "capture").get("sent", 0) or 0)
     if sent == 0 or args.stop_wait <= 0 or not sup.running("render"):

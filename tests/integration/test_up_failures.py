@@ -120,19 +120,20 @@ def test_a_router_that_exits_before_answering_ends_up_at_once_naming_why(tmp_pat
 def test_up_answers_sigterm_while_the_router_hangs(tmp_path):
     # before: SIGTERM waited for the router to answer (20 s, each try up to 30 s), then the run started
     out, port = tmp_path / "out", free_port()
-    p = start_up(out, port, fault="router:hang")
+    p = start_up(out, port, "--stop-grace", "1", fault="router:hang")  # killed 1 s after SIGTERM, not 5
     wait_for(lambda: any(" router " in c for c in ours(out, port).values()), "the router process")
     p.send_signal(signal.SIGTERM)
     code, text, err = finish(p, out, port)
     no_leftovers(out, port)  # the router ignored SIGTERM: killed
     assert code == 1 and "signal SIGTERM while the router was starting" in text, text + err
-    assert "exit codes: router -9" in err
+    assert "exit codes: router -9" in err and "router did not stop within 1 s of SIGTERM" in err, err
     assert not (out / "logs" / "flow.log").exists()
 
 
 def test_up_answers_sigterm_while_a_service_hangs(tmp_path):
     out, port = tmp_path / "out", free_port()
-    p = start_up(out, port, "--source", "synthetic:frames=100000,width=160,height=120", fault="motion:hang")
+    p = start_up(out, port, "--source", "synthetic:frames=100000,width=160,height=120", "--stop-grace", "1",
+                 fault="motion:hang")
     status = out / "logs" / "status.json"
     wait_for(lambda: status.exists() and json.loads(status.read_text() or "{}").get("services", {})
              .get("motion", {}).get("running"), "motion started")
@@ -140,6 +141,7 @@ def test_up_answers_sigterm_while_a_service_hangs(tmp_path):
     code, text, err = finish(p, out, port)
     no_leftovers(out, port)
     assert "stopped: signal SIGTERM" in text and "motion -9" in err, text + err
+    assert "motion did not stop within 1 s of SIGTERM" in err, err
     st = json.loads(status.read_text())
     assert st["stopped"] == "signal SIGTERM" and st["services"]["motion"]["exit_codes"] == [-9]
 
