@@ -20,7 +20,7 @@ class Sup:
                          for n in ("router", "recorder", "flow", "motion", "render", "capture")}
         self.events: list[str] = []
 
-    def stop(self, order):
+    def stop(self, order, grace_s=5.0):
         self.events.append(f"stop {','.join(order)}")
         for n in order:
             self.children[n].finished = True
@@ -56,7 +56,7 @@ class Board:
 
 
 def drain(tmp_path: Path, board: Board, stop: list[str], stop_wait: float = 10.0, on_sleep=None):
-    args = SimpleNamespace(stream="cam0", stop_wait=stop_wait, out=str(tmp_path))
+    args = SimpleNamespace(stream="cam0", stop_wait=stop_wait, stop_grace=5.0, out=str(tmp_path))
     sup, o, clock = Sup(), Outcome(reason="--duration 6 s"), [0.0]
 
     def sleep(s):
