@@ -20,18 +20,26 @@ from .metrics_jitter import smooth_trajectory
 
 
 def turn_room_deg(width: int, height: int, cropping: float) -> float:
-    """Largest turn (degrees) of a centred window of ``cropping`` times the frame that keeps it in the frame."""
+    """Largest turn (degrees) up to which a centred window of ``cropping`` times the frame, turned by
+    any smaller angle, stays in the frame (90 when every turn does)."""
     if not 0 < cropping <= 1:
         raise ValueError(f"cropping must be in (0, 1], got {cropping}")
     W, H = (width - 1) / 2.0, (height - 1) / 2.0
     w, h = W * cropping, H * cropping
-    lo, hi = 0.0, math.pi / 2
 
     def inside(t: float) -> bool:
         c, s = math.cos(t), math.sin(t)
         return w * c + h * s <= W + 1e-9 and w * s + h * c <= H + 1e-9
 
-    for _ in range(60):  # the corners' reach grows with the turn up to 45 degrees past the window's diagonal
+    # the corners' reach rises and falls with the turn, so the turns that fit need not be one interval:
+    # walk up in half degrees to the first that does not fit, then bisect that step
+    step, lo = math.radians(0.5), 0.0
+    while lo + step <= math.pi / 2 and inside(lo + step):
+        lo += step
+    if lo + step > math.pi / 2:
+        return 90.0
+    hi = lo + step
+    for _ in range(40):
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if inside(mid) else (lo, mid)
     return math.degrees(lo)

@@ -62,7 +62,7 @@ def test_a_full_disk_stops_the_run_with_one_clear_error_and_a_recoverable_file(t
     import json
     import resource
 
-    limit = 12 << 20  # bytes per file: the recording passes it within seconds, the logs do not
+    limit = 4 << 20  # bytes per file: the recording passes it within seconds, the logs do not
 
     def limit_files() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))

@@ -68,5 +68,7 @@ def test_turn_room_of_a_square_window_matches_its_closed_form() -> None:
         expected = math.degrees(math.asin(1 / (c * math.sqrt(2)))) - 45
         assert turn_room_deg(side, side, c) == pytest.approx(expected, abs=1e-6)
     assert turn_room_deg(W, H, 1.0) == pytest.approx(0.0, abs=1e-6)
+    # a square window of 0.75: turns up to ~25.5 deg fit, those around 45 do not, 90 fits again: the first
+    assert turn_room_deg(side, side, 0.75) < 30 and turn_room_deg(side, side, 0.7) == 90.0
     with pytest.raises(ValueError, match="cropping"):
         turn_room_deg(W, H, 0.0)
