@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import sparse
 from scipy.optimize import lsq_linear
 
 from .metrics_jitter import smooth_trajectory
@@ -45,10 +46,15 @@ def turn_room_deg(width: int, height: int, cropping: float) -> float:
     return math.degrees(lo)
 
 
-def high_pass_matrix(n: int, sigma_frames: float) -> np.ndarray:
-    """(n, n) matrix of 6.1's high-pass on a trajectory of n frames: identity minus its Gaussian smoothing."""
-    eye = np.eye(n)
-    return eye - smooth_trajectory(eye, sigma_frames)
+def high_pass_matrix(n: int, sigma_frames: float, chunk: int = 256) -> sparse.csr_matrix:
+    """(n, n) sparse matrix of 6.1's high-pass on a trajectory of n frames: identity minus its Gaussian
+    smoothing (zero beyond the kernel's reach, so banded; built a block of columns at a time)."""
+    eye = np.eye(n, min(chunk, n))
+    blocks = []
+    for j in range(0, n, chunk):
+        cols = np.roll(eye, j, axis=0)[:, :min(chunk, n - j)]  # e_j .. e_{j+chunk-1}
+        blocks.append(sparse.csc_matrix(cols - smooth_trajectory(cols, sigma_frames)))
+    return sparse.hstack(blocks).tocsr()
 
 
 def border_free_jitter_bound(input_motions: np.ndarray, cropping: float, width: int, height: int,
@@ -71,7 +77,9 @@ def border_free_jitter_bound(input_motions: np.ndarray, cropping: float, width: 
         if room <= 0:
             left.append(target)
             continue
-        shift = lsq_linear(hp, target, bounds=(-room, room), method="trf", lsmr_tol="auto").x
+        # tight tolerances: a bound must be the minimum, and any point short of it reads higher
+        shift = lsq_linear(hp, target, bounds=(-room, room), method="trf", tol=1e-12, lsmr_tol=1e-12,
+                           max_iter=1000).x
         left.append(hp @ (traj[:, k] - shift))
     px = math.sqrt(float(np.mean(left[0] ** 2 + left[1] ** 2))) / cropping
     deg = math.sqrt(float(np.mean(left[2] ** 2)))
