@@ -86,7 +86,8 @@ def curve(images: list[np.ndarray], fps: float, lookaheads: list[float], run_our
 
 
 def _kept(row: dict) -> dict:
-    keep = {k: row[k] for k in (*COLUMNS, "failed", "failure_reason", "status", "reason") if k in row}
+    keep = {k: row[k] for k in (*COLUMNS, "jitter_bound_px", "failed", "failure_reason", "status", "reason")
+            if k in row}
     return keep
 
 
@@ -149,6 +150,11 @@ def format_curve(name: str, c: dict) -> list[str]:
                              f"{r['distortion']:.2f}".rjust(27))
         mark = {True: "*", False: "+" if wins_like_for_like(pt) else " ", None: "?"}[wins(pt)]
         lines.append(f"{pt['lookahead_s']:5.2f} s {pt['delay_frames']:3d}f{mark}" + "".join(cells))
+    bounds = [(pt["lookahead_s"], pt["methods"]["ours"].get("jitter_bound_px")) for pt in c["points"]]
+    if any(b is not None and np.isfinite(b) for _, b in bounds):
+        lines.append("  least px any border-free output at ours' border-free cropping can have (docs/method.md 6.3): "
+                     + ", ".join(f"{s:.2f} s {b:.3f}" for s, b in bounds if b is not None and np.isfinite(b))
+                     + " (constant zoom)")
     for name_, p in c["presets"].items():
         if _scored(p):
             lines.append(f"  ours --latency {name_} ({p['delay_frames']} frames, {p['lookahead_s']:.2f} s): "
