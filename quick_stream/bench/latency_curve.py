@@ -152,7 +152,7 @@ def format_curve(name: str, c: dict) -> list[str]:
         lines.append(f"{pt['lookahead_s']:5.2f} s {pt['delay_frames']:3d}f{mark}" + "".join(cells))
     bounds = [(pt["lookahead_s"], pt["methods"]["ours"].get("jitter_bound_px")) for pt in c["points"]]
     if any(b is not None and np.isfinite(b) for _, b in bounds):
-        lines.append("  least px any border-free output at ours' border-free cropping can have (docs/method.md 6.3): "
+        lines.append("  least px of a 2D crop at ours' border-free cropping (docs/method.md 6.3): "
                      + ", ".join(f"{s:.2f} s {b:.3f}" for s, b in bounds if b is not None and np.isfinite(b))
                      + " (constant zoom)")
     for name_, p in c["presets"].items():

@@ -8,9 +8,9 @@ static crop that removes every border it left (its border-free scale s zooms the
 pixel jitter grows by 1 / s; a border-free method's is its jitter). The pixel jitter of methods that
 leave black borders is only comparable with a border-free one's through it.
 
-``jitter_bound_px`` / ``jitter_bound_deg``: the least jitter any border-free crop-shift-and-turn
-stabilizer can reach at the method's border-free cropping, from the same input (docs/method.md 6.3):
-how much of a method's jitter its cropping left it no way to remove."""
+``jitter_bound_px`` / ``jitter_bound_deg``: the least jitter a border-free 2D crop-shift-and-turn
+stabilizer at constant zoom can reach at the method's border-free cropping, from the same input
+(docs/method.md 6.3): how much of a 2D method's jitter its cropping left it no way to remove."""
 from __future__ import annotations
 
 import time

@@ -5,8 +5,11 @@ turned by theta_t can only move that window inside the frame. Its output's per-p
 order, z (input translation - (c_{t+1} - c_t)) px and (input angle - (theta_{t+1} - theta_t)) degrees, and
 the residual jitter of 6.1 is linear in the trajectory, so the least jitter it can reach is a bounded
 least-squares problem per axis (18). Each axis is given the whole room on its own (a window turned by
-theta has less room to shift), which only enlarges the feasible set: the answer is a lower bound for every
-constant-zoom crop-shift-and-turn stabilizer, ours included, on the scorer's own reading of the input.
+theta has less room to shift), which only enlarges the feasible set: the answer bounds every constant-zoom
+2D stabilizer that crops, shifts and turns the input, on the scorer's own reading of the input motion
+(whose measurement noise it counts as motion to remove: on a slow clip, where that noise is much of the
+jitter, it is no bound). A 3D warp is not such a crop (it changes the parallax between frames) and can go
+below it (docs/method.md 6.3).
 Pure numpy/scipy; the scorer's per-pair input motions in, (px, deg) out.
 """
 from __future__ import annotations

@@ -115,7 +115,7 @@ def test_the_curve_of_a_clip_end_to_end(tmp_path):
     lines = lc.format_curve("clip", c)
     assert lines[0].startswith("latency curve, clip") and "ours --latency 0.5s (15 frames" in "\n".join(lines)
     # the bound of docs/method.md 6.3 at ours' border-free cropping, one per look-ahead
-    bound = [ln for ln in lines if ln.startswith("  least px any border-free output")]
+    bound = [ln for ln in lines if ln.startswith("  least px of a 2D crop")]
     assert len(bound) == 1 and bound[0].count(" s ") == len(c["points"])
     assert all(0 <= p["methods"]["ours"]["jitter_bound_px"] for p in c["points"])
     lc.plot([r], tmp_path / "curve.png")
