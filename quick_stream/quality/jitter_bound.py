@@ -1,4 +1,4 @@
-"""The least residual jitter a border-free stabilizer can reach at a given cropping: docs/method.md 6.3.
+"""The least residual jitter a border-free 2D cropping stabilizer can reach at a given cropping: docs/method.md 6.3.
 
 A stabilizer whose output shows, at zoom z = 1 / cropping, a window of the input shifted by c_t px and
 turned by theta_t can only move that window inside the frame. Its output's per-pair motion is, to first
