@@ -15,6 +15,7 @@ Pure numpy/scipy; the scorer's per-pair input motions in, (px, deg) out.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 from scipy import sparse
@@ -49,9 +50,11 @@ def turn_room_deg(width: int, height: int, cropping: float) -> float:
     return math.degrees(lo)
 
 
+@lru_cache(maxsize=4)
 def high_pass_matrix(n: int, sigma_frames: float, chunk: int = 256) -> sparse.csr_matrix:
     """(n, n) sparse matrix of 6.1's high-pass on a trajectory of n frames: identity minus its Gaussian
-    smoothing (zero beyond the kernel's reach, so banded; built a block of columns at a time)."""
+    smoothing (zero beyond the kernel's reach, so banded; built a block of columns at a time). Cached:
+    every method of a clip is bounded on the same input (read only)."""
     eye = np.eye(n, min(chunk, n))
     blocks = []
     for j in range(0, n, chunk):
