@@ -90,7 +90,7 @@ def latency_preset(name: str) -> tuple[int, int, float]:
 
 # the user-facing settings (a flag each: --max-zoom for max_zoom), in the order they are applied
 USER_SETTINGS = ("group", "estimator", "latency", "keyframe_interval", "lookahead", "end", "lowpass_sigma",
-                 "path_weights", "path", "max_zoom", "smoothness", "fill_frames", "fill_band", "framing", "crop_zoom")
+                 "path_weights", "path", "max_zoom", "smoothness", "fill_frames", "fill_band", "max_tilt", "framing", "crop_zoom")
 
 
 def user_defaults() -> dict[str, object]:
@@ -99,7 +99,8 @@ def user_defaults() -> dict[str, object]:
     p = StabilizerParams()
     return {"group": p.motion.group, "estimator": p.motion.estimator, "latency": "1s", "end": p.planner.end,
             "lowpass_sigma": p.planner.lowpass_sigma, "path": p.planner.mode, "max_zoom": p.planner.budget.max_zoom,
-            "fill_frames": p.framing.fill_frames, "fill_band": p.planner.budget.fill, "framing": p.framing.mode,
+            "fill_frames": p.framing.fill_frames, "fill_band": p.planner.budget.fill, "max_tilt": p.planner.max_tilt_deg,
+            "framing": p.framing.mode,
             "crop_zoom": p.framing.crop_zoom}
 
 
@@ -169,6 +170,8 @@ def with_user_settings(params: StabilizerParams, given: Mapping[str, object]) ->
         framing, budget = replace(framing, fill_frames=n), replace(budget, fill=fill, fill_reach=max(n, 0))
     if "fill_band" in f:
         budget = replace(budget, fill=float(f["fill_band"]) if framing.fill_frames > 0 else 0.0)  # type: ignore[arg-type]
+    if "max_tilt" in f:
+        planner = replace(planner, max_tilt_deg=float(f["max_tilt"]))  # type: ignore[arg-type]
     if "framing" in f:
         framing = replace(framing, mode=f["framing"])
     if "crop_zoom" in f:

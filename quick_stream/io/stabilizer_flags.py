@@ -80,6 +80,10 @@ def add_stabilizer_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fill-band", type=float,
                    help="border fill: share of half the short side the smooth path may leave uncovered for the "
                         f"fill (0 = the crop alone removes every border; default {d['fill_band']:g})")
+    g.add_argument("--max-tilt", type=float, metavar="DEG",
+                   help="smooth path: the virtual camera's optical axis turns at most about this far from the real "
+                        "one's (a keystone the eye reads as distortion); the rest of a larger turn is an image shift "
+                        f"(docs/method.md 4.5; 0 = no cap; default {d['max_tilt']:g})")
     g.add_argument("--crop-zoom", type=float,
                    help=f"zoom for --framing crop, 1-100 (default {d['crop_zoom']:g})")
 
@@ -137,6 +141,7 @@ def stabilizer_params(args: argparse.Namespace, recorded: StabilizerParams | Non
     _flag_error("--group/--estimator", params.motion.validate)
     _flag_error("--keyframe-interval", params.planner.keyframes.validate)
     _flag_error("--max-zoom/--fill-band", params.planner.budget.validate)  # before the planner's, which checks it too
+    _flag_error("--max-tilt", params.planner.validate_tilt)
     _flag_error("--lookahead/--smoothness", params.planner.validate)
     _flag_error("--path-weights", lambda: params.planner.path.weight_vector(GROUPS[params.planner.group].dim))
     _flag_error("--crop-zoom/--fill-frames", params.framing.validate)

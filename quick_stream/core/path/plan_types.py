@@ -37,6 +37,10 @@ class PlannerParams:
     budget: BudgetParams = field(default_factory=BudgetParams)  # smooth: the crop budget
     zoom_smoothness: float = 1000.0  # smooth with a budget: mu of the zoom track, docs/method.md (11): gain 0.5 at 0.85 Hz
     zoom_hold: float = 1e-3  # smooth with a budget: pull towards zoom 1 of the look-ahead frames' zooms (1 = as released)
+    # smooth: the corrections' tilt (the angle between the virtual and the real optical axis) held below this, the
+    # rest of the turn given as an image shift (docs/method.md 4.5, (19)); 0 = no cap
+    max_tilt_deg: float = 0.0
+    tilt_knee_deg: float = 2.0  # smooth with a tilt cap: c(theta) leaves theta unchanged up to max_tilt - knee
     end: str = "smoothed"  # ep: end-constraint mode: identity | smoothed
     alpha: float = 0.1  # ep, smoothed ends: keyframe-pose filter gains
     beta: float = 0.4
@@ -51,11 +55,19 @@ class PlannerParams:
             raise ValueError(f"smoothness must be a finite number >= 0, got {self.smoothness!r}")
         if not (np.isfinite(self.motion_sigma) and self.motion_sigma > 0):
             raise ValueError(f"motion_sigma must be a finite number > 0, got {self.motion_sigma!r}")
+        self.validate_tilt()
         self.budget.validate()
         self.keyframes.validate()
         if self.mode == "smooth" and not 0 <= self.lookahead < self.keyframes.interval:
             raise ValueError(f"look-ahead must be >= 0 and below the keyframe interval "
                              f"({self.keyframes.interval}), got {self.lookahead}")
+
+    def validate_tilt(self) -> None:
+        """The tilt cap's settings (docs/method.md 4.5): 0 <= max_tilt_deg < 90, 0 < tilt_knee_deg < 90."""
+        if not (np.isfinite(self.max_tilt_deg) and 0 <= self.max_tilt_deg < 90
+                and np.isfinite(self.tilt_knee_deg) and 0 < self.tilt_knee_deg < 90):
+            raise ValueError(f"the tilt cap needs 0 <= max_tilt_deg < 90 (degrees; 0: no cap) and 0 < tilt_knee_deg < 90, "
+                             f"got {self.max_tilt_deg!r} and {self.tilt_knee_deg!r}")
 
 
 @dataclass

@@ -20,6 +20,7 @@ from .frame_model import SegmentMeshes
 from .optimal import solve_segment
 from .plan_types import Correction, OpenSegment, PlannerParams, PlanState, SegmentInfo
 from .smoother import SegmentSystem, chart_path, segment_system
+from .tilt import limit_tilt
 
 
 class WindowSmoother:
@@ -93,7 +94,7 @@ class WindowSmoother:
             Xinv_base = np.linalg.inv(X) @ base
 
             def correction(frames: np.ndarray, P: np.ndarray) -> np.ndarray:
-                return Xinv_base[frames][:, None] @ g.exp(P)
+                return self._capped(Xinv_base[frames][:, None] @ g.exp(P))
 
             hold = np.ones(N)  # the look-ahead frames' zooms are provisional: not pulled towards 1
             hold[R:] = p.zoom_hold
@@ -101,7 +102,8 @@ class WindowSmoother:
             q, w, rep = constrain(g, system, q, correction, meshes, p.budget, zoom_system,
                                   1.0 / np.asarray(self._zooms))
             if p.budget.fill > 0 and p.budget.fill_reach > 0:
-                w = self._fill_zoom(meshes, correction, X, base @ g.exp(q), q, w, rep.upper, zoom_system)
+                virtual = base @ g.exp(q) if p.max_tilt_deg <= 0 else X @ correction(np.arange(N), q[:, None, :])[:, 0]
+                w = self._fill_zoom(meshes, correction, X, virtual, q, w, rep.upper, zoom_system)
             zooms = [float(z) for z in np.clip(1.0 / np.maximum(w, 1e-9), 1.0, p.budget.max_zoom)]
             rep.worst_margin_px = rep.margin_px(1.0 / np.asarray(zooms[:R]), p.budget.margin_px)  # as released
         # The EP problem (docs/method.md (4)-(6)) with the smoothed path's own velocities as
@@ -110,7 +112,7 @@ class WindowSmoother:
         targets = g.log(np.linalg.inv(np.concatenate([np.eye(4)[None], Q[:-1]])) @ Q)
         sol = solve_segment(g, np.eye(4)[None].repeat(R, 0), None, Q[-1], p.path, zbar=targets)
         path = base[None] @ (sol.corrections[1:] if sol.converged else Q)
-        corrections = np.linalg.inv(X[:R]) @ path
+        corrections = self._capped(np.linalg.inv(X[:R]) @ path)
         ms = (time.perf_counter() - t0) * 1e3
         pl.account(SegmentInfo(seg, win.start, win.seqs[R - 1], closed_by, sol.converged,
                                        sol.iterations, sol.residual, sol.cost, ms, sol.reason, rep.constrained,
@@ -126,6 +128,13 @@ class WindowSmoother:
         self._real, self._real_c = (self._real + list(X[:R]))[-keep:], (self._real_c + list(trust[:R]))[-keep:]
         win.keep_from(R)
         return out
+
+    def _capped(self, corrections: np.ndarray) -> np.ndarray:
+        """``corrections`` (..., 4, 4) with the tilt cap (docs/method.md (19)) when one is set."""
+        p = self.params
+        if p.max_tilt_deg <= 0:
+            return corrections
+        return limit_tilt(corrections, np.radians(p.max_tilt_deg), np.radians(min(p.tilt_knee_deg, p.max_tilt_deg)))
 
     def _fill_zoom(self, meshes: SegmentMeshes, correction, X: np.ndarray, virtual: np.ndarray, q: np.ndarray,
                    w: np.ndarray, upper: np.ndarray, zoom_system: SegmentSystem) -> np.ndarray:
