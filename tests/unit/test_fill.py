@@ -77,7 +77,10 @@ def test_shaky_frames_come_out_border_free_with_less_zoom_than_without_fill():
     st, out = stabilize(frames, parse_settings([]).params)  # the defaults of quick-stream stabilize
     assert [sf.seq for sf in out] == list(range(75))
     assert st.render.filler.filled > 0  # the shake uncovered bands the neighbours filled
-    assert st.render.filler.fill_raised == 0  # the planned zoom track already counted on what the fill could do
+    # the planned zoom track counted on what the fill could do (at the planner's median depth): the renderer
+    # lifted the zoom beyond the plan on few frames, and little (docs/method.md (14a))
+    assert st.render.filler.fill_raised <= 0.05 * len(out)
+    assert max(sf.zoom - sf.correction.zoom for sf in out) < 0.03
     assert st.render.filler.bordered == 0  # the renderer's own account: no output pixel left without a source
     for sf in out:
         assert not uncovered_mask(sf.image).any(), sf.seq
@@ -96,7 +99,7 @@ def test_covered_zoom_is_enough_for_the_renderer():
     for sf in out[10:40:5]:
         f, c = by_seq[sf.seq], sf.correction
         z = covered_zoom(sf.mesh, f.depth, f.intrinsics.K, sf.zoom, c.camera @ c.matrix,
-                         ordered_sources(sf.seq, c.chain, srcs, 8))
+                         ordered_sources(sf.seq, c.chain, srcs, st.render.filler.framing.fill_frames))
         assert z == pytest.approx(sf.zoom)  # what was rendered needed no more
 
 

@@ -43,9 +43,9 @@ class BudgetParams:
     stop_gain: float = 1e-3  # the SQP stops once the QP at its path promises less than this share of its cost
     crop_weight: float = 1.0  # price of one pixel of crop (per frame, squared) against one pixel of path
     # deviation in the smoother's cost: docs/method.md (11)
-    fill: float = 0.08  # share of half the short side the mesh may leave uncovered inside the crop: the
+    fill: float = 0.4  # share of half the short side the mesh may leave uncovered inside the crop: the
     # renderer fills it from neighbouring frames (docs/method.md 5.4); 0 when the renderer does not fill
-    fill_reach: int = 8  # frames on each side the renderer's fill reads (the zoom track plans with them)
+    fill_reach: int = 30  # frames on each side the renderer's fill reads (the zoom track plans with them)
 
     @property
     def enabled(self) -> bool:

@@ -39,7 +39,7 @@ class PlannerParams:
     zoom_hold: float = 1e-3  # smooth with a budget: pull towards zoom 1 of the look-ahead frames' zooms (1 = as released)
     # smooth: the corrections' tilt (the angle between the virtual and the real optical axis) held below this, the
     # rest of the turn given as an image shift (docs/method.md 4.5, (19)); 0 = no cap
-    max_tilt_deg: float = 0.0
+    max_tilt_deg: float = 5.0
     tilt_knee_deg: float = 2.0  # smooth with a tilt cap: c(theta) leaves theta unchanged up to max_tilt - knee
     end: str = "smoothed"  # ep: end-constraint mode: identity | smoothed
     alpha: float = 0.1  # ep, smoothed ends: keyframe-pose filter gains

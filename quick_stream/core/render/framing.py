@@ -51,7 +51,7 @@ class FramingParams:
     max_zoom: float = 1.6  # auto: never zoom more (a frame needing more keeps some black border)
     fall_per_frame: float = 0.004  # auto: largest zoom decrease per frame (0.2 takes 50 frames)
     rise_per_frame: float = 0.01  # auto: largest anticipated zoom increase per frame within a segment
-    fill_frames: int = 8  # border fill (docs/method.md 5.4): neighbours searched on each side; 0 = no fill
+    fill_frames: int = 30  # border fill (docs/method.md 5.4): neighbours searched on each side; 0 = no fill
     fill_zoom_max: float = 1.6  # border fill: what fill leaves uncovered is zoomed away, up to this zoom
     fill_lift_rate: float = 0.002  # border fill: largest change per frame of that extra zoom (rises start early)
     fill_lookahead: int = 8  # border fill: frames ahead a rise of that extra zoom is started from (docs/method.md (14a))
