@@ -29,7 +29,7 @@ from typing import Iterable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..core.lie import so3
+from ..core.path.tilt import effective_rotation
 
 DEFAULT_TOOL = Path("../shared/tools/shake")
 DEFAULT_AMPLITUDES = (0.6, 0.6, 0.8)  # RMS deg: pitch, yaw, roll (the tool's defaults)
@@ -147,11 +147,11 @@ def make_clip(source: Path, spec: ShakeSpec, cache: Path, tool: Path = DEFAULT_T
 
 
 def rotation_part(g: np.ndarray) -> np.ndarray:
-    """The rotation of a 4x4 (or 3x3) transformation: its linear part projected onto SO(3) (SVD).
-
-    Exact for SE(3); for SIM(3) it drops the scale, for SA(3)/GA(3) it is the polar rotation.
-    """
-    return so3.nearest_rotation(np.asarray(g, float)[:3, :3])
+    """The rotation a 4x4 (or 3x3) correction renders at the image centre (:func:`.tilt.effective_rotation`,
+    docs/method.md 4.5): for one the tilt cap turned in part into an image shift, the whole turn, whose image
+    motion at the centre the shift renders; otherwise its linear part projected onto SO(3) (exact for SE(3);
+    for SIM(3) it drops the scale)."""
+    return effective_rotation(np.asarray(g, float))
 
 
 def seconds_text(timestamp_ns: int) -> str:

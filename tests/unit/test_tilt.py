@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from quick_stream.core.lie import so3
-from quick_stream.core.path.tilt import capped_angle, limit_tilt, tilt
+from quick_stream.core.path.tilt import capped_angle, effective_rotation, limit_tilt, tilt
 from quick_stream.core.render.shape_term import rotation_references
 from quick_stream.quality.metrics import scale_and_distortion
 
@@ -120,3 +120,11 @@ def test_the_stabilizer_releases_capped_corrections_and_renders_them_border_free
     for f in capped:  # the crop planned with the capped corrections is the crop rendered: no black edge
         edges = np.concatenate([f.image[0], f.image[-1], f.image[:, 0], f.image[:, -1]])
         assert np.mean(edges.max(axis=1) == 0) < 0.01, f.seq
+
+
+def test_the_effective_rotation_of_a_capped_correction_is_the_whole_turn() -> None:
+    C = _corrections(100, 12.0, seed=4)
+    D = limit_tilt(C, CAP, KNEE)
+    assert np.allclose(effective_rotation(D), C[:, :3, :3], atol=1e-9)  # the turn (19) capped, given back
+    assert np.allclose(effective_rotation(C), C[:, :3, :3], atol=1e-12)  # no shift: the rotation itself
+    assert np.allclose(effective_rotation(np.eye(4)), np.eye(3))

@@ -75,3 +75,29 @@ def limit_tilt(corrections: np.ndarray, cap: float, knee: float) -> np.ndarray:
     out[over] = out_o
     return out
 
+
+
+def _swing_to(a: np.ndarray) -> np.ndarray:
+    """The rotations (..., 3, 3) turning e_z onto the unit vectors ``a`` (..., 3) about e_z x a (identity when a = e_z)."""
+    ez = np.array([0.0, 0.0, 1.0])
+    n = np.cross(ez, a)
+    s = np.linalg.norm(n, axis=-1)
+    angle = np.arctan2(s, a[..., 2])
+    n = np.where(s[..., None] > 1e-15, n / np.maximum(s, 1e-300)[..., None], np.array([1.0, 0.0, 0.0]))
+    return _axis_angle_rotation(n, angle)
+
+
+def effective_rotation(corrections: np.ndarray) -> np.ndarray:
+    """The rotation (..., 3, 3) a correction (..., 4, 4) renders at the image centre (docs/method.md 4.5): the turn
+    that puts the virtual optical axis where the correction puts it, L e_z, with the twist of its rotation R' of (19)
+    (the point transform's linear part with rows 0 and 1 taken off along row 2, then its polar rotation). For a
+    correction without a shift it is the correction's polar rotation; for one (19) capped, the whole turn R again."""
+    L = np.asarray(corrections, dtype=np.float64)[..., :3, :3]
+    P = np.linalg.inv(L)
+    r2 = P[..., 2:3, :]
+    P = np.concatenate([P[..., :2, :] - (np.sum(P[..., :2, :] * r2, axis=-1, keepdims=True)
+                                         / np.sum(r2 * r2, axis=-1, keepdims=True)) * r2, r2], axis=-2)
+    R_cap = np.swapaxes(so3.nearest_rotation(P), -1, -2)
+    twist = np.swapaxes(_swing_to(R_cap[..., :, 2]), -1, -2) @ R_cap
+    axis = L[..., :, 2] / np.linalg.norm(L[..., :, 2], axis=-1, keepdims=True)
+    return _swing_to(axis) @ twist
