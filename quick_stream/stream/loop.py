@@ -121,12 +121,14 @@ class Loop:
             with self.contained((lambda: inp.label(key_expr)) if inp.label else f"message on {key_expr}"):
                 inp.raw(key_expr, payload, arrival_ns)
             return
+        arrivals = getattr(inp.inbox, "arrivals", None)
+        depth = arrivals.depth_of(payload) if arrivals is not None else None  # the check's, kept (flow)
         if inp.admit is not None and not inp.admit(key_expr, payload):
             return
-        last = getattr(getattr(inp.inbox, "arrivals", None), "last", None)  # the check's decode, when whole
+        last = getattr(arrivals, "last", None)  # the check's decode, when whole
         msg = self.decode(key_expr, payload, tuple(inp.on), inp.color,
                           checked=last[1] if last is not None and last[0] is payload else None,
-                          pixels=not inp.lazy)
+                          pixels=not inp.lazy, depth_raw=depth)
         if msg is None:
             return
         if inp.lazy:
@@ -150,7 +152,7 @@ class Loop:
         raise NotImplementedError
 
     def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr",
-               checked: Decoded | None = None, pixels: bool = True) -> Decoded | None:
+               checked: Decoded | None = None, pixels: bool = True, depth_raw: bytes | None = None) -> Decoded | None:
         raise NotImplementedError
 
     def contained(self, what: str | Callable[[], str]) -> Any:
