@@ -281,16 +281,20 @@ class ServiceRuntime(Cursors, Loop):
             self.publish_stats(values() if values is not None else None)
 
     def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr",
-               checked: Decoded | None = None, pixels: bool = True, depth_raw: bytes | None = None) -> Decoded | None:
+               checked: Decoded | None = None, pixels: bool = True, depth_raw: bytes | None = None,
+               streams: bool = True) -> Decoded | None:
         """The message decoded (a frame's JPEG colour as ``color`` asks, :func:`~quick_stream.stream.wire.decode`;
         ``pixels=False``: every field checked, images and depth left undecoded), if it is one of the
         ``expect`` types and of this service's stream; otherwise None, logged (naming the key, field
         and problem) and counted in ``decode_errors``. ``checked``: the decode the inbox's check made
         of these very bytes when it decoded them whole (:attr:`.arrivals.ArrivalLedger.last`), taken
         instead of decoding them again; ``depth_raw``: a frame's depth stream that check decompressed
-        (:meth:`.arrivals.ArrivalLedger.depth_of`), not decompressed again."""
+        (:meth:`.arrivals.ArrivalLedger.depth_of`), not decompressed again; ``streams=False`` (with
+        ``pixels=False``): the depth's compressed stream left unchecked too (an inbox's message: its
+        check on arrival decompressed it)."""
         try:
-            msg = checked if checked is not None else decode(data, color=color, pixels=pixels, depth_raw=depth_raw)
+            msg = checked if checked is not None else decode(data, color=color, pixels=pixels, depth_raw=depth_raw,
+                                                             streams=streams)
             if msg.stream != self.stream:
                 raise WireError(f"message of stream {msg.stream!r} on the key of stream {self.stream!r}",
                                 stream=msg.stream, seq=msg.seq, field="stream", type=msg.type)

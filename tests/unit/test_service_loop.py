@@ -220,3 +220,12 @@ def test_a_frames_depth_is_decompressed_once_when_its_inbox_keeps_it():
     assert [m.seq for m in taken] == [1, 2, 3] and not box.arrivals._depths and box.arrivals._depth_bytes == 0
     for m, data in zip(taken, zstd[1:]):
         assert np.array_equal(m.obj.depth, decode(data, color="luma").obj.depth) and m.depth_raw is None
+
+
+def test_a_lazy_inputs_frames_are_not_decompressed_again_after_their_check_on_arrival():
+    rt = bare_runtime()
+    box = inbox(rt, encode_frame(FRAME.with_(seq=0), "cam0", color="jpeg", depth="zstd"))
+    got: list = []
+    with patch("quick_stream.stream.wire.pixels._decompress", side_effect=AssertionError("decompressed again")):
+        rt.serve([Input(box, {"frame": got.append}, lazy=True)], lambda: {}, tick=stop_when_empty(rt, box))
+    assert [m.seq for m in got] == [0] and got[0].depth_raw is None and not got[0].obj.depth.any()
