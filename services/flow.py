@@ -54,8 +54,10 @@ def run(args: argparse.Namespace, conf: zenoh.Config) -> int:
     with ServiceRuntime("flow", args.stream, conf, settings=settings_digest(params)) as rt:
         resume_after = rt.take_over("flow", "frames", log)  # not None: a restarted flow
         taking_over = resume_after is not None
+        # each frame's depth is decompressed once: by the check on arrival, kept for its decode (24 MB: 40
+        # frames waiting at 640x480; beyond them the decode decompresses it again)
         inbox = rt.inbox(keys.key(args.stream, "frame"), 2 * args.queue, history=taking_over, publisher="capture",
-                         skip_through=resume_after, catch_up=args.catch_up if taking_over else 0)
+                         skip_through=resume_after, catch_up=args.catch_up if taking_over else 0, keep_depth_mb=24)
         pub = rt.publisher("flow", cache=args.history)
         gate = FrameGate(rt, args.stream, inbox, FlowAdmission(args.queue, max_jump=params.continuity.max_jump))
         rt.serve_cursor()

@@ -31,6 +31,8 @@ message last moved the stage's newest seq (``source``, the zenoh session that pu
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 from ..core.continuity import JumpGuard, published_after
@@ -87,6 +89,12 @@ class ArrivalLedger:
         # the newest message checked whole (WHOLE_WHEN_CHECKED) and its decode, for its consumer to reuse
         # (a flow's decode costs 0.4-0.7 ms): (payload, decoded), the payload the very bytes object checked
         self.last: tuple[bytes, Decoded] | None = None
+        # checked frames' depth streams, decompressed by the check, for their decode (:meth:`depth_of`):
+        # payload id -> (payload, raw), the oldest forgotten beyond ``keep_depth_bytes`` (0: none kept)
+        self.keep_depth_bytes = 0
+        self._depths: OrderedDict[int, tuple[bytes, bytes]] = OrderedDict()
+        self._depth_bytes = 0
+        self._depth_lock = threading.Lock()  # kept in zenoh's threads, taken in the service's
 
     def checked(self, key_expr: str, payload: bytes) -> tuple[str, int, int | None, int | None] | None:
         """(type, seq, publication time ns or None, an end's ``last_seq`` or None) of a message that
@@ -102,7 +110,30 @@ class ArrivalLedger:
             return None
         if d.type in WHOLE_WHEN_CHECKED:
             self.last = (payload, d)
+        elif d.depth_raw is not None and self.keep_depth_bytes > 0:
+            self._keep_depth(payload, d.depth_raw)
         return d.type, d.seq, d.pub_ns, d.obj.seq if d.type == "end" else None
+
+    def _keep_depth(self, payload: bytes, raw: bytes) -> None:
+        with self._depth_lock:
+            old = self._depths.pop(id(payload), None)
+            self._depth_bytes += len(raw) - (len(old[1]) if old is not None else 0)
+            self._depths[id(payload)] = (payload, raw)  # the payload held: its id is not reused meanwhile
+            while self._depth_bytes > self.keep_depth_bytes and self._depths:
+                self._depth_bytes -= len(self._depths.popitem(last=False)[1][1])
+
+    def depth_of(self, payload: bytes) -> bytes | None:
+        """The depth stream the check of this very bytes object decompressed (forgotten here), if still
+        kept (``keep_depth_bytes``): its decode need not decompress it again (the flow service's,
+        :meth:`~quick_stream.stream.loop.Loop.handle`)."""
+        if not self._depths:
+            return None
+        with self._depth_lock:
+            kept = self._depths.pop(id(payload), None)
+            if kept is None:
+                return None
+            self._depth_bytes -= len(kept[1])
+        return kept[1] if kept[0] is payload else None
 
     def add(self, key_expr: str, payload: bytes) -> Gap | None:
         """Check and account one message on ``quick/@v1/<stream>/<stage>``; the gap it reveals, if any."""

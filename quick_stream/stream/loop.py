@@ -46,9 +46,10 @@ class Input:
     what a frame's JPEG colour decodes to (:func:`~quick_stream.stream.wire.decode`; the flow
     service needs only its grey). ``admit(key, payload)``: asked before a message is decoded;
     False: it is let go undecoded (the flow service's shedding, counted by its policy). ``lazy``:
-    every field is checked but images and depth maps are left undecoded (``pixels=False``), the
-    handler finding the message's bytes in ``extra["payload"]`` to decode when it needs the pixels
-    (the render service: when the frame's correction arrives)."""
+    every field is checked but images and depth maps are left undecoded (``pixels=False``; the depth's
+    compressed stream, checked by the inbox on arrival, is not decompressed again), the handler
+    finding the message's bytes in ``payload`` to decode when it needs the pixels (the render
+    service: when the frame's correction arrives)."""
 
     inbox: Inbox
     on: dict[str, Handler | None] = field(default_factory=dict)
@@ -121,12 +122,15 @@ class Loop:
             with self.contained((lambda: inp.label(key_expr)) if inp.label else f"message on {key_expr}"):
                 inp.raw(key_expr, payload, arrival_ns)
             return
+        arrivals = getattr(inp.inbox, "arrivals", None)
+        depth = arrivals.depth_of(payload) if arrivals is not None else None  # the check's, kept (flow)
         if inp.admit is not None and not inp.admit(key_expr, payload):
             return
-        last = getattr(getattr(inp.inbox, "arrivals", None), "last", None)  # the check's decode, when whole
+        last = getattr(arrivals, "last", None)  # the check's decode, when whole
+        # (a lazy input's depth stream is not decompressed again: the inbox checked it on arrival)
         msg = self.decode(key_expr, payload, tuple(inp.on), inp.color,
                           checked=last[1] if last is not None and last[0] is payload else None,
-                          pixels=not inp.lazy)
+                          pixels=not inp.lazy, depth_raw=depth, streams=False)
         if msg is None:
             return
         if inp.lazy:
@@ -150,7 +154,8 @@ class Loop:
         raise NotImplementedError
 
     def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr",
-               checked: Decoded | None = None, pixels: bool = True) -> Decoded | None:
+               checked: Decoded | None = None, pixels: bool = True, depth_raw: bytes | None = None,
+               streams: bool = True) -> Decoded | None:
         raise NotImplementedError
 
     def contained(self, what: str | Callable[[], str]) -> Any:

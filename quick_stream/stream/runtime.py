@@ -136,7 +136,7 @@ class ServiceRuntime(Cursors, Loop):
               on_arrival: Callable[[str, bytes, int], None] | None = None,
               on_gap: Callable[[Gap], None] | None = None, skip_through: int | None = None,
               catch_up: int = 0, publisher: str | None = None, publisher_wait_s: float = 5.0,
-              catch_up_s: float = 5.0, replays: ReplayFilter | None = None) -> Inbox:
+              catch_up_s: float = 5.0, replays: ReplayFilter | None = None, keep_depth_mb: float = 0.0) -> Inbox:
         """Subscribe ``key_expr`` into a drop-oldest inbox of ``capacity`` messages. ``history``: first
         receive what the publishers' caches hold (a service restarted mid-stream takes over);
         ``skip_through``: data messages with a seq up to this one are counted (``skipped``) but not
@@ -152,8 +152,12 @@ class ServiceRuntime(Cursors, Loop):
         ``on_arrival(key, payload, arrival_ns)`` runs in zenoh's thread as each message arrives, before it is
         queued (keep it short; it must not raise); ``on_gap(gap)`` before it, when the message skips seqs
         of its stage (:mod:`quick_stream.stream.arrivals`). ``replays``: messages received before, byte
-        for byte, are dropped on arrival (:mod:`quick_stream.stream.replays`; the recorder's)."""
+        for byte, are dropped on arrival (:mod:`quick_stream.stream.replays`; the recorder's).
+        ``keep_depth_mb``: the frames' depth streams the check decompressed are kept, up to this many
+        MB, for the loop's decode of the same frames (the flow service's: each depth decompressed once,
+        :meth:`.arrivals.ArrivalLedger.depth_of`)."""
         box = Inbox(capacity, self._cond, on_arrival, on_gap, replays)
+        box.arrivals.keep_depth_bytes = int(keep_depth_mb * 2**20)
         box.skip_through = skip_through
         box.capacity = box.catch_up = max(capacity, catch_up)
         box.catch_up_until = time.monotonic() + catch_up_s if catch_up > capacity else 0.0
@@ -277,15 +281,20 @@ class ServiceRuntime(Cursors, Loop):
             self.publish_stats(values() if values is not None else None)
 
     def decode(self, key_expr: str, data: bytes, expect: tuple[str, ...], color: str = "bgr",
-               checked: Decoded | None = None, pixels: bool = True) -> Decoded | None:
+               checked: Decoded | None = None, pixels: bool = True, depth_raw: bytes | None = None,
+               streams: bool = True) -> Decoded | None:
         """The message decoded (a frame's JPEG colour as ``color`` asks, :func:`~quick_stream.stream.wire.decode`;
         ``pixels=False``: every field checked, images and depth left undecoded), if it is one of the
         ``expect`` types and of this service's stream; otherwise None, logged (naming the key, field
         and problem) and counted in ``decode_errors``. ``checked``: the decode the inbox's check made
         of these very bytes when it decoded them whole (:attr:`.arrivals.ArrivalLedger.last`), taken
-        instead of decoding them again."""
+        instead of decoding them again; ``depth_raw``: a frame's depth stream that check decompressed
+        (:meth:`.arrivals.ArrivalLedger.depth_of`), not decompressed again; ``streams=False`` (with
+        ``pixels=False``): the depth's compressed stream left unchecked too (an inbox's message: its
+        check on arrival decompressed it)."""
         try:
-            msg = checked if checked is not None else decode(data, color=color, pixels=pixels)
+            msg = checked if checked is not None else decode(data, color=color, pixels=pixels, depth_raw=depth_raw,
+                                                             streams=streams)
             if msg.stream != self.stream:
                 raise WireError(f"message of stream {msg.stream!r} on the key of stream {self.stream!r}",
                                 stream=msg.stream, seq=msg.seq, field="stream", type=msg.type)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import threading
 from types import SimpleNamespace
+from unittest.mock import patch
 
 import numpy as np
 import pytest
@@ -196,3 +197,35 @@ def test_a_message_its_input_does_not_admit_is_let_go_undecoded_and_a_lazy_input
     assert box.arrivals.invalid == 1 and rt.errors["decode_errors"] == 0
     assert got[0].payload == jpeg[0] and not got[0].obj.color.any() and not got[0].obj.depth.any()
     assert decode(got[0].payload).obj.color.any()  # decoded when asked
+
+
+def test_a_frames_depth_is_decompressed_once_when_its_inbox_keeps_it():
+    """The flow service's inbox keeps the depth stream its check decompressed (``keep_depth_bytes``) for
+    the decode of the very same bytes: the frame decodes bit for bit as a plain decode, and what was
+    kept is forgotten once taken, or beyond the budget (the oldest first)."""
+    rt = bare_runtime()
+    zstd = [encode_frame(FRAME.with_(seq=seq), "cam0", color="jpeg", depth="zstd") for seq in range(4)]
+    box = inbox(rt)
+    raw = len(decode(zstd[0], pixels=False).depth_raw)
+    box.arrivals.keep_depth_bytes = 3 * raw  # three frames' depth
+    for data in zstd:
+        box._on_sample(SimpleNamespace(key_expr="quick/@v1/cam0/frame", payload=SimpleNamespace(to_bytes=lambda d=data: d)))
+    queued = [item[1] for item in box._q]
+    assert box.arrivals.depth_of(queued[0]) is None  # the oldest, forgotten for room
+    assert box.arrivals.depth_of(bytes(bytearray(zstd[1]))) is None  # equal bytes, another object: not the check's
+    box._q.popleft()
+    taken: list = []
+    with patch("quick_stream.stream.wire.pixels._decompress", side_effect=AssertionError("decompressed again")):
+        rt.serve([Input(box, {"frame": taken.append}, color="luma")], lambda: {}, tick=stop_when_empty(rt, box))
+    assert [m.seq for m in taken] == [1, 2, 3] and not box.arrivals._depths and box.arrivals._depth_bytes == 0
+    for m, data in zip(taken, zstd[1:]):
+        assert np.array_equal(m.obj.depth, decode(data, color="luma").obj.depth) and m.depth_raw is None
+
+
+def test_a_lazy_inputs_frames_are_not_decompressed_again_after_their_check_on_arrival():
+    rt = bare_runtime()
+    box = inbox(rt, encode_frame(FRAME.with_(seq=0), "cam0", color="jpeg", depth="zstd"))
+    got: list = []
+    with patch("quick_stream.stream.wire.pixels._decompress", side_effect=AssertionError("decompressed again")):
+        rt.serve([Input(box, {"frame": got.append}, lazy=True)], lambda: {}, tick=stop_when_empty(rt, box))
+    assert [m.seq for m in got] == [0] and got[0].depth_raw is None and not got[0].obj.depth.any()

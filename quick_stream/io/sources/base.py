@@ -51,7 +51,8 @@ class LiveSource(Source, Protocol):
 @runtime_checkable
 class ReplaySource(Source, Protocol):
     """A recording: each frame with the message bytes it was recorded as, so a replay can send them
-    exactly (``pixels=False``: images left undecoded, every field still checked)."""
+    exactly (``pixels=False``: images and depth left undecoded, their compressed streams unchecked, every
+    other field still checked; the receivers check the pixels)."""
 
     def iter_with_messages(self, pixels: bool = True) -> Iterator[tuple[FrameOrGap, bytes]]: ...
 

@@ -167,6 +167,12 @@ class Reader:
     pixels: bool = True  # False: check every field, but leave images and depth maps undecoded (:func:`check`)
     version: int = FORMAT_VERSION  # the message's format version (``v``)
     color: str = "bgr"  # what a JPEG colour image decodes to (:data:`COLOR_MODES`)
+    # with pixels False: False leaves the compressed depth stream unchecked too (an exact replay's
+    # capture sends recorded bytes, which every receiver checks; :func:`~.pixels.decode_depth`)
+    streams: bool = True
+    # the depth's decompressed zstd stream: set by a check (pixels False), which decompresses it whole
+    # anyway; handed to a decode of the same bytes, it is not decompressed again (:mod:`.pixels`)
+    depth_raw: bytes | None = None
 
     def error(self, name: str, problem: str) -> WireError:
         return WireError(problem, stream=self.stream, seq=self.seq, field=self.prefix + name, type=self.type)

@@ -34,6 +34,7 @@ class Decoded:
     src_pub_ns: int | None = None  # stabilized: when its input frame was published
     ready_pub_ns: int | None = None  # stabilized: when the frame that made it renderable was published
     payload: bytes | None = None  # the message's bytes (a lazy input's frame, decoded when rendered)
+    depth_raw: bytes | None = None  # frame, checked (pixels=False): its depth stream decompressed, for its decode
 
 
 def intrinsics_fields(k: Intrinsics) -> dict[str, Any]:

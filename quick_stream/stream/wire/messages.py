@@ -120,7 +120,8 @@ def _decode_frame(r: Reader) -> Decoded:
     frame = RGBDFrame(color, depth, k, t_ns, r.seq, pose,
                       r.str("origin", optional=True) or "", capture=capture, luma=luma)
     return Decoded("frame", frame, r.stream, r.seq, color_encoding=cenc, depth_encoding=denc, depth_scale=scale,
-                   pub_ns=ranges.time_ns(r, "pub_ns", r.int("pub_ns", optional=True)))
+                   pub_ns=ranges.time_ns(r, "pub_ns", r.int("pub_ns", optional=True)),
+                   depth_raw=None if r.pixels else r.depth_raw)
 
 
 # --- stabilized ---------------------------------------------------------------------------------
@@ -221,18 +222,23 @@ def encode(obj: Any, stream: str, **kw: Any) -> bytes:
     raise WireError(f"no wire message type for {type(obj).__name__}")
 
 
-def decode(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES, pixels: bool = True, color: str = "bgr") -> Decoded:
+def decode(data: bytes, max_bytes: int = DEFAULT_MAX_BYTES, pixels: bool = True, color: str = "bgr",
+           streams: bool = True, depth_raw: bytes | None = None) -> Decoded:
     """Decode one message; raises :class:`WireError` (and nothing else) for any malformed input.
     ``pixels=False`` checks every field the same way but leaves images and depth maps undecoded
-    (zero-filled read-only views of the declared shape): :func:`check`. ``color``: what a frame's
-    JPEG colour decodes to, its BGR pixels and/or its own grey (:data:`~.codec.COLOR_MODES`; the
-    scene flow reads the grey, so every decode that feeds it asks for it)."""
+    (zero-filled read-only views of the declared shape): :func:`check`; with ``streams=False`` too
+    the depth's compressed stream is not decompressed to check it either (an exact replay's
+    capture: the recorded bytes go out as they are, and every receiver checks them). ``color``: what
+    a frame's JPEG colour decodes to, its BGR pixels and/or its own grey (:data:`~.codec.COLOR_MODES`;
+    the scene flow reads the grey, so every decode that feeds it asks for it). ``depth_raw``: the
+    depth's decompressed stream a check of these very bytes kept (:attr:`Decoded.depth_raw`), taken
+    instead of decompressing it again."""
     if color not in COLOR_MODES:
         raise ValueError(f"color must be one of {COLOR_MODES}, got {color!r}")
     r = None
     try:
         r = unpack(data, max_bytes)
-        r.pixels, r.color = pixels, color
+        r.pixels, r.color, r.streams, r.depth_raw = pixels, color, streams, depth_raw
         return _DECODERS[r.type](r)
     except WireError:
         raise
