@@ -73,7 +73,8 @@ def rotation_references(K: np.ndarray, point_transforms: np.ndarray, src: np.nda
     """Grid vertices ``src`` moved by each correction's rotation alone: the homography K R K^-1.
 
     R is the rotation of the point transform's linear part (its polar factor: the part
-    itself for SE(3); scale has no image effect; shear is left to the data term). A
+    itself for SE(3); scale has no image effect; shear is left to the data term), after an image
+    shift of the output (the tilt cap's, docs/method.md (19)) is taken out. A
     rotation moves every pixel by this homography whatever its depth, so it is the
     parallax-free part of the correction. ``K`` (..., 3, 3) and ``point_transforms``
     (..., 4, 4) broadcast; where a vertex would leave the virtual camera's front
