@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..lie import so3
+from ..render.shape_term import without_image_shift
 
 
 def capped_angle(theta: np.ndarray, cap: float, knee: float) -> np.ndarray:
@@ -39,10 +40,8 @@ def tilt(corrections: np.ndarray) -> np.ndarray:
 
 
 def _axis_angle_rotation(n: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotations (..., 3, 3) by ``angle`` (...,) about unit axes ``n`` (..., 3) (Rodrigues)."""
-    K = so3.hat(n)
-    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
+    """Rotations (..., 3, 3) by ``angle`` (...,) about unit axes ``n`` (..., 3)."""
+    return so3.exp(n * np.asarray(angle)[..., None])
 
 
 def limit_tilt(corrections: np.ndarray, cap: float, knee: float) -> np.ndarray:
@@ -93,11 +92,7 @@ def effective_rotation(corrections: np.ndarray) -> np.ndarray:
     (the point transform's linear part with rows 0 and 1 taken off along row 2, then its polar rotation). For a
     correction without a shift it is the correction's polar rotation; for one (19) capped, the whole turn R again."""
     L = np.asarray(corrections, dtype=np.float64)[..., :3, :3]
-    P = np.linalg.inv(L)
-    r2 = P[..., 2:3, :]
-    P = np.concatenate([P[..., :2, :] - (np.sum(P[..., :2, :] * r2, axis=-1, keepdims=True)
-                                         / np.sum(r2 * r2, axis=-1, keepdims=True)) * r2, r2], axis=-2)
-    R_cap = np.swapaxes(so3.nearest_rotation(P), -1, -2)
+    R_cap = np.swapaxes(so3.nearest_rotation(without_image_shift(np.linalg.inv(L))), -1, -2)
     twist = np.swapaxes(_swing_to(R_cap[..., :, 2]), -1, -2) @ R_cap
     axis = L[..., :, 2] / np.linalg.norm(L[..., :, 2], axis=-1, keepdims=True)
     return _swing_to(axis) @ twist

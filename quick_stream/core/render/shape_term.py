@@ -69,6 +69,14 @@ def similarity_normal(reference: np.ndarray) -> np.ndarray:
     return np.swapaxes(S, -1, -2) @ S
 
 
+def without_image_shift(L: np.ndarray) -> np.ndarray:
+    """A point transform's linear part L (..., 3, 3) with an image shift of the output taken out (the tilt cap's
+    S^-1, docs/method.md (19)): rows 0 and 1 less their share along row 2 (a shift changes no triangle's shape)."""
+    r2 = L[..., 2:3, :]
+    return np.concatenate([L[..., :2, :] - (np.sum(L[..., :2, :] * r2, axis=-1, keepdims=True)
+                                            / np.sum(r2 * r2, axis=-1, keepdims=True)) * r2, r2], axis=-2)
+
+
 def rotation_references(K: np.ndarray, point_transforms: np.ndarray, src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Grid vertices ``src`` moved by each correction's rotation alone: the homography K R K^-1.
 
@@ -81,13 +89,7 @@ def rotation_references(K: np.ndarray, point_transforms: np.ndarray, src: np.nda
     half-space the input grid itself is the reference. Returns the references
     (..., gy+1, gx+1, 2) and where the rotation could be used (...,) bool.
     """
-    L = np.asarray(point_transforms, dtype=np.float64)[..., :3, :3]
-    # an image shift of the output (a tilt cap's S, docs/method.md (19)) is L's rows 0 and 1 moved along its
-    # row 2: taken out before the polar factor (a shift changes no triangle's shape)
-    r2 = L[..., 2:3, :]
-    L = np.concatenate([L[..., :2, :] - (np.sum(L[..., :2, :] * r2, axis=-1, keepdims=True)
-                                         / np.sum(r2 * r2, axis=-1, keepdims=True)) * r2, r2], axis=-2)
-    R = so3.nearest_rotation(L)
+    R = so3.nearest_rotation(without_image_shift(np.asarray(point_transforms, dtype=np.float64)[..., :3, :3]))
     K = np.asarray(K, dtype=np.float64)
     Hr = K @ R @ np.linalg.inv(K)
     pts = src.reshape(-1, 2)
