@@ -196,8 +196,8 @@ def test_forward_backward_limit_grows_with_the_flow():
     d1 = cv2.warpPerspective(a.depth, H, (w, h), flags=cv2.INTER_NEAREST)
     f0 = a.with_(color=cv2.filter2D(a.color, -1, ker))
     f1 = a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000)
-    grown = SceneFlow().compute(f0, f1)
-    fixed = SceneFlow(SceneFlowParams(fb_rel=0.0)).compute(f0, f1)
+    grown = SceneFlow(SceneFlowParams(fb_scale=0.5)).compute(f0, f1)  # at 0.75 (the default) fewer disagree
+    fixed = SceneFlow(SceneFlowParams(fb_scale=0.5, fb_rel=0.0)).compute(f0, f1)
     q = np.c_[grown.pixels, np.ones(len(grown))] @ H.T
     assert np.median(np.linalg.norm(grown.pixels_next - q[:, :2] / q[:, 2:], axis=1)) < 0.5
     assert np.median(np.linalg.norm(grown.pixels_next - grown.pixels, axis=1)) > 40
@@ -250,7 +250,7 @@ def test_a_flow_the_strict_tests_starve_under_motion_blur_is_lifted_loose():
     c1 = cv2.filter2D(cv2.warpPerspective(a.color, H, (w, h)), -1, np.full((1, 61), 1 / 61, np.float32))
     d1 = cv2.warpPerspective(a.depth, H, (w, h), flags=cv2.INTER_NEAREST)
     f1 = a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000)
-    strict = SceneFlow(SceneFlowParams(loose_below=0)).compute(a, f1)
+    strict = SceneFlow(SceneFlowParams(loose_below=0, loose_try_below=0)).compute(a, f1)
     loose = SceneFlow().compute(a, f1)
     assert len(strict) < 50 and "loose" not in strict.counts
     assert len(loose) > 1000 and loose.counts["loose"] == 1
@@ -258,7 +258,35 @@ def test_a_flow_the_strict_tests_starve_under_motion_blur_is_lifted_loose():
     assert np.median(np.linalg.norm(loose.pixels_next - q[:, :2] / q[:, 2:], axis=1)) < 3.0
     sharp = a.with_(color=cv2.warpPerspective(a.color, H, (w, h)), depth=d1, seq=1,
                     timestamp_ns=a.timestamp_ns + 33_000_000)
-    r0, r1 = SceneFlow(SceneFlowParams(loose_below=0)).compute(a, sharp), SceneFlow().compute(a, sharp)
+    r0, r1 = SceneFlow(SceneFlowParams(loose_below=0, loose_try_below=0)).compute(a, sharp), SceneFlow().compute(a, sharp)
     assert "loose" not in r1.counts and np.array_equal(r0.pixels_next, r1.pixels_next) and len(r1) >= 50
     with pytest.raises(ValueError, match="loose_below"):
         SceneFlowParams(loose_below=-1).validate()
+
+
+def test_a_flow_left_with_few_strict_pairs_takes_the_loose_lift_only_when_it_keeps_many_more():
+    """docs/method.md (1c): below ``loose_try_below`` strict pairs the same fields are lifted loose too, and the
+    loose flow is taken only when it keeps ``loose_gain`` times as many pairs (a few LK-exact pairs beat a
+    few more DIS ones). A 41 px blur leaves a pair with more strict pairs than loose_below but far fewer
+    than loose_try_below: the loose lift keeps several times as many, still on the exact flow K R K^-1."""
+    import cv2
+
+    from quick_stream.core.lie import so3
+
+    a = SyntheticSource(frames=1, seed=4).frame(0)
+    K = a.intrinsics.K
+    H = K @ so3.exp(np.array([0.005, 0.03, 0.01])) @ np.linalg.inv(K)
+    h, w = a.depth.shape
+    c1 = cv2.filter2D(cv2.warpPerspective(a.color, H, (w, h)), -1, np.full((1, 41), 1 / 41, np.float32))
+    d1 = cv2.warpPerspective(a.depth, H, (w, h), flags=cv2.INTER_NEAREST)
+    f1 = a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000)
+    strict = SceneFlow(SceneFlowParams(loose_try_below=0)).compute(a, f1)
+    assert 50 <= len(strict) < 400 and "loose" not in strict.counts
+    taken = SceneFlow().compute(a, f1)
+    assert taken.counts["loose"] == 1 and len(taken) >= 4 * len(strict)
+    q = np.c_[taken.pixels, np.ones(len(taken))] @ H.T
+    assert np.median(np.linalg.norm(taken.pixels_next - q[:, :2] / q[:, 2:], axis=1)) < 3.0
+    kept = SceneFlow(SceneFlowParams(loose_gain=len(taken) / len(strict) + 0.01)).compute(a, f1)
+    assert "loose" not in kept.counts and np.array_equal(kept.pixels_next, strict.pixels_next)
+    with pytest.raises(ValueError, match="loose_gain"):
+        SceneFlowParams(loose_gain=0.5).validate()

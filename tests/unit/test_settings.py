@@ -100,7 +100,7 @@ def test_files_that_are_not_settings_files_are_named(tmp_path: Path):
 def test_no_flags_give_the_product_defaults_and_the_flags_keep_their_meaning():
     assert stabilizer_params(flags()) == default_settings()
     d = default_settings()
-    assert (d.framing.mode, d.framing.max_zoom, d.planner.keyframes.interval, d.planner.lookahead) == ("auto", 1.15, 30, 15)
+    assert (d.framing.mode, d.framing.max_zoom, d.planner.keyframes.interval, d.planner.lookahead) == ("auto", 1.25, 30, 15)
     low = stabilizer_params(flags("--latency", "0.5s"))
     assert (low.planner.keyframes.interval, low.planner.lookahead, low.planner.smoothness) == (15, 10, 3000.0)
     assert low.planner.keyframes.min_interval == 10

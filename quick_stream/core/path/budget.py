@@ -35,7 +35,8 @@ Correct = Callable[[np.ndarray, np.ndarray], np.ndarray]  # (window frames (F,),
 class BudgetParams:
     """Crop budget of the smoothed path (each parameter documented where it acts)."""
 
-    max_zoom: float = 1.15  # every frame border-free at this zoom (0: no budget, the path is unconstrained)
+    max_zoom: float = 1.25  # every frame border-free at this zoom (0: no budget, the path is unconstrained;
+    # docs/method.md 4.3, "The zoom limit under fast motion")
     margin_px: float = 1.0  # kept between the crop rectangle and the border, in pixels (model error)
     model_points: int = 128  # 3D points per frame model (a regular subset of the flow's)
     near_px: float = 16.0  # frames whose crop comes this close (px) to the border get constraints

@@ -53,9 +53,11 @@ class SceneFlow:
                 )
         fwd, bwd = self.optical_flow(f0, f1)
         flow = lift_flow(f0, f1, fwd, bwd, self.params, self.refiner(f0, f1))
-        if len(flow) < self.params.loose_below:  # smeared by motion blur: the same flow fields, lifted loose (1c)
+        p = self.params
+        if len(flow) < max(p.loose_below, p.loose_try_below):  # smeared by motion blur: the same fields, lifted loose (1c)
             loose = lift_flow(f0, f1, fwd, bwd, self._loose, self.textured(f0, f1))
-            if len(loose) >= self.params.loose_below:  # fewer: too few for a fit, and loose ones stray
+            need = p.loose_below if len(flow) < p.loose_below else max(p.loose_below, p.loose_gain * len(flow))
+            if len(loose) >= need:  # fewer than loose_below: too few for a fit, and loose ones stray
                 loose.counts["loose"] = 1
                 return loose
         return flow

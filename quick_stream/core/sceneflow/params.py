@@ -23,7 +23,7 @@ class SceneFlowParams:
     flow_max_side: int = 640  # ... or less, so that their longer side is at most this many px (0: no limit;
     # docs/method.md 1, "Resolution"): 1280x720 flows at 0.5
     fb_check: bool = True  # forward-backward consistency test (occlusions)
-    fb_scale: float = 0.5  # backward flow (used only for the test) at this image scale
+    fb_scale: float = 0.75  # backward flow (used only for the test) at this image scale (docs/method.md (1a))
     fb_threshold_px: float = 1.5  # max |f_fwd(p) + f_bwd(p + f_fwd)| in full-resolution px ...
     fb_rel: float = 0.05  # ... or this share of |f_fwd(p)| where that is more: fast motion (docs/method.md (1a))
     grid_step: int = 4  # sample at most every grid_step-th pixel in x and y ...
@@ -47,6 +47,9 @@ class SceneFlowParams:
     # no LK refinement and a forward-backward limit of loose_fb_px, kept when that gives this many (motion
     # blur: LK and the tight limit drop smeared samples; docs/method.md (1c)); 0: off
     loose_fb_px: float = 4.0
+    loose_try_below: int = 400  # a flow keeping fewer pairs than this is also lifted loose, and the loose one taken
+    loose_gain: float = 4.0  # ... when it keeps at least loose_gain x as many pairs (and loose_below): a few
+    # LK-exact pairs against many DIS ones (docs/method.md (1c)); loose_try_below <= loose_below: only the starved
     loose_min_std: float = 3.0  # ... and only samples with this much grey-level std around them in both frames
     reach_over: int = 2  # a frame whose flow has fewer than reach_min_pairs pairs (smeared, blank) is reached
     # over: the next frames' flow starts from the frame before it, for at most this many frames (0: off;
@@ -81,6 +84,9 @@ class SceneFlowParams:
         if self.reach_over < 0 or self.reach_min_pairs < 1 or self.reach_back_pairs < 0:
             raise ValueError(f"sceneflow reach_over and reach_back_pairs must be >= 0 and reach_min_pairs >= 1, got "
                              f"{self.reach_over}, {self.reach_back_pairs}, {self.reach_min_pairs}")
+        if self.loose_try_below < 0 or not self.loose_gain >= 1:
+            raise ValueError(f"sceneflow loose_try_below must be >= 0 and loose_gain >= 1, got "
+                             f"{self.loose_try_below}, {self.loose_gain}")
         if self.loose_below < 0 or not self.loose_fb_px > 0 or not self.loose_min_std >= 0:
             raise ValueError(f"sceneflow loose_below must be >= 0, loose_fb_px > 0 and loose_min_std >= 0, got "
                              f"{self.loose_below}, {self.loose_fb_px}, {self.loose_min_std}")
