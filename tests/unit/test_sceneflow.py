@@ -234,11 +234,9 @@ def test_a_720p_pair_flows_at_half_scale_and_its_samples_still_follow_ground_tru
     assert r.pixels[:, 0].max() > 700  # the samples are the frame's own pixels, in its full-size units
 
 
-def test_a_flow_the_strict_tests_starve_under_motion_blur_is_lifted_loose():
-    """docs/method.md (1c): a frame and its copy turned by a known rotation and smeared by a 61 px motion blur:
-    LK and the 1.5 px forward-backward limit keep fewer than loose_below (50) samples; the same flow
-    fields lifted loose keep thousands, marked ``loose``, and still follow the exact flow K R K^-1 to
-    a few pixels. A sharp pair keeps its strict flow, bit for bit."""
+def _turned_and_smeared(blur_px: int):
+    """A synthetic frame, its copy turned by a known rotation and smeared by a horizontal motion blur of
+    ``blur_px``, and the exact flow K R K^-1 between them."""
     import cv2
 
     from quick_stream.core.lie import so3
@@ -247,9 +245,21 @@ def test_a_flow_the_strict_tests_starve_under_motion_blur_is_lifted_loose():
     K = a.intrinsics.K
     H = K @ so3.exp(np.array([0.005, 0.03, 0.01])) @ np.linalg.inv(K)
     h, w = a.depth.shape
-    c1 = cv2.filter2D(cv2.warpPerspective(a.color, H, (w, h)), -1, np.full((1, 61), 1 / 61, np.float32))
+    c1 = cv2.filter2D(cv2.warpPerspective(a.color, H, (w, h)), -1, np.full((1, blur_px), 1 / blur_px, np.float32))
     d1 = cv2.warpPerspective(a.depth, H, (w, h), flags=cv2.INTER_NEAREST)
-    f1 = a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000)
+    return a, a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000), H
+
+
+def test_a_flow_the_strict_tests_starve_under_motion_blur_is_lifted_loose():
+    """docs/method.md (1c): a frame and its copy turned by a known rotation and smeared by a 61 px motion blur:
+    LK and the 1.5 px forward-backward limit keep fewer than loose_below (50) samples; the same flow
+    fields lifted loose keep thousands, marked ``loose``, and still follow the exact flow K R K^-1 to
+    a few pixels. A sharp pair keeps its strict flow, bit for bit."""
+    import cv2
+
+    a, f1, H = _turned_and_smeared(61)
+    h, w = a.depth.shape
+    d1 = f1.depth
     strict = SceneFlow(SceneFlowParams(loose_below=0, loose_try_below=0)).compute(a, f1)
     loose = SceneFlow().compute(a, f1)
     assert len(strict) < 50 and "loose" not in strict.counts
@@ -269,17 +279,7 @@ def test_a_flow_left_with_few_strict_pairs_takes_the_loose_lift_only_when_it_kee
     loose flow is taken only when it keeps ``loose_gain`` times as many pairs (a few LK-exact pairs beat a
     few more DIS ones). A 41 px blur leaves a pair with more strict pairs than loose_below but far fewer
     than loose_try_below: the loose lift keeps several times as many, still on the exact flow K R K^-1."""
-    import cv2
-
-    from quick_stream.core.lie import so3
-
-    a = SyntheticSource(frames=1, seed=4).frame(0)
-    K = a.intrinsics.K
-    H = K @ so3.exp(np.array([0.005, 0.03, 0.01])) @ np.linalg.inv(K)
-    h, w = a.depth.shape
-    c1 = cv2.filter2D(cv2.warpPerspective(a.color, H, (w, h)), -1, np.full((1, 41), 1 / 41, np.float32))
-    d1 = cv2.warpPerspective(a.depth, H, (w, h), flags=cv2.INTER_NEAREST)
-    f1 = a.with_(color=c1, depth=d1, seq=1, timestamp_ns=a.timestamp_ns + 33_000_000)
+    a, f1, H = _turned_and_smeared(41)
     strict = SceneFlow(SceneFlowParams(loose_try_below=0)).compute(a, f1)
     assert 50 <= len(strict) < 400 and "loose" not in strict.counts
     taken = SceneFlow().compute(a, f1)
